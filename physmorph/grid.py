@@ -1,0 +1,77 @@
+"""The simulation grid shared by sampling, targets and the MPM solver.
+
+Convention (used everywhere in physmorph): the domain is the cube [lo, hi]^3 split into
+``res`` cells per axis of size ``dx = (hi - lo) / res``; grid node ``i`` sits at
+``lo + i * dx`` for ``i = 0 .. res - 1``. Particles transfer to nodes with the quadratic
+B-spline of MLS-MPM (paper section 4, "Physics rollout"; Hu et al. 2018):
+
+    base = floor((x - lo) / dx - 0.5),   f = (x - lo) / dx - base
+    w0 = 0.5 (1.5 - f)^2,  w1 = 0.75 - (f - 1)^2,  w2 = 0.5 (f - 0.5)^2
+
+so a particle touches nodes base .. base + 2 on each axis. Particles are kept at least
+``BOUNDARY_CELLS`` cells away from the domain faces so the stencil never leaves the grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+BOUNDARY_CELLS = 3
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A cubic Eulerian grid over [lo, hi]^3 with ``res`` nodes per axis."""
+
+    res: int
+    lo: float = -16.0
+    hi: float = 16.0
+
+    def __post_init__(self) -> None:
+        if self.res < 2 * BOUNDARY_CELLS + 2:
+            raise ValueError(f"grid res must be >= {2 * BOUNDARY_CELLS + 2}, got {self.res}")
+        if not self.hi > self.lo:
+            raise ValueError(f"grid domain needs hi > lo, got lo={self.lo}, hi={self.hi}")
+
+    @property
+    def dx(self) -> float:
+        return (self.hi - self.lo) / self.res
+
+    def node_positions(self) -> np.ndarray:  # [res]
+        return self.lo + self.dx * np.arange(self.res)
+
+    def interior_bounds(self) -> tuple[float, float]:
+        """Positions particles must stay within so the B-spline stencil stays on the grid."""
+        margin = BOUNDARY_CELLS * self.dx
+        return self.lo + margin, self.hi - margin
+
+
+def bspline_weights(x: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Quadratic B-spline stencil: base node index [N, 3] and weights [N, 3 (axis), 3 (offset)]."""
+    xg = (np.asarray(x, dtype=np.float64) - grid.lo) / grid.dx
+    base = np.floor(xg - 0.5).astype(np.int64)
+    f = xg - base
+    w = np.stack([0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2], axis=-1)
+    return base, w
+
+
+def splat_mass(x: np.ndarray, mass: np.ndarray, grid: Grid) -> np.ndarray:
+    """Particle mass on grid nodes, m_I = sum_p w_Ip m_p (the MPM P2G mass transfer).
+
+    x: [N, 3] positions, mass: [N]. Returns [res, res, res]. Stencil entries that fall
+    outside the grid are dropped (callers keep particles inside ``interior_bounds``).
+    """
+    x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+    mass = np.asarray(mass, dtype=np.float64).reshape(-1)
+    base, w = bspline_weights(x, grid)
+    out = np.zeros((grid.res,) * 3, dtype=np.float64)
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                idx = base + np.array([a, b, c])
+                wt = w[:, 0, a] * w[:, 1, b] * w[:, 2, c] * mass
+                ok = np.all((idx >= 0) & (idx < grid.res), axis=1)
+                np.add.at(out, (idx[ok, 0], idx[ok, 1], idx[ok, 2]), wt[ok])
+    return out

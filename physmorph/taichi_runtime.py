@@ -1,0 +1,54 @@
+"""One Taichi runtime per process, shared by the MPM solver and any Taichi kernels.
+
+``ti.init`` resets every field, so calling it twice in a process would invalidate the objects
+built before; every physmorph module goes through :func:`init_taichi` instead. Fields and
+kernels choose their float type explicitly (f32 or f64), so one runtime serves both.
+"""
+
+from __future__ import annotations
+
+import os
+
+import taichi as ti
+
+_state: dict = {}
+
+
+def resolve_device(device: str) -> str:
+    """'auto' -> 'cuda' when a CUDA device is usable, else 'cpu'. 'cpu'/'cuda' pass through."""
+    if device not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu or cuda, got {device!r}")
+    if device != "auto":
+        return device
+    try:
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    except ImportError:  # pragma: no cover - torch is a hard dependency
+        return "cpu"
+
+
+def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = False) -> str:
+    """Initialise Taichi once; later calls must agree on the device. Returns the arch used."""
+    arch = resolve_device(device)
+    if _state:
+        if _state["arch"] != arch:
+            raise RuntimeError(
+                f"Taichi already initialised on {_state['arch']}; cannot switch to {arch} in one process"
+            )
+        return arch
+    if threads is None:
+        env = os.environ.get("PHYSMORPH_THREADS")
+        threads = int(env) if env else None
+    kwargs = dict(arch=ti.cuda if arch == "cuda" else ti.cpu, debug=debug, log_level=ti.WARN,
+                  offline_cache=True, random_seed=0)
+    if threads is not None and arch == "cpu":
+        kwargs["cpu_max_num_threads"] = int(threads)
+    ti.init(**kwargs)
+    _state.update(arch=arch, threads=threads, debug=debug)
+    return arch
+
+
+def taichi_state() -> dict:
+    """What the runtime was initialised with (empty before :func:`init_taichi`)."""
+    return dict(_state)
