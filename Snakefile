@@ -1,0 +1,22 @@
+# physmorph workflow entry point. Stages live in workflow/rules/*.smk, one per stage; each rule
+# runs a thin script in workflow/scripts/ that calls one physmorph function.
+configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+
+
+rule all:
+    input:
+        table_inputs(),
+
+
+rule tables:
+    input:
+        table_inputs(),
+
+
+include: "workflow/rules/fetch_mesh.smk"
+include: "workflow/rules/prepare_mesh.smk"
+include: "workflow/rules/sample_particles.smk"
+include: "workflow/rules/rasterize_target.smk"

@@ -1,0 +1,46 @@
+"""Stage entry points with plain arguments (config dicts, paths): what the workflow scripts call.
+
+Each function turns the validated config subset into typed dataclasses and calls the library
+stage, so every stage can be run and tested from plain Python, without Snakemake.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from physmorph.config import SamplingConfig, TargetConfig
+
+
+def fetch_mesh_stage(output: str, source: dict, mesh_dir: str | None = None) -> Path:
+    from physmorph.meshes import fetch_mesh
+
+    out = Path(output)
+    return fetch_mesh(out.name, source["url"], source["sha256"], out.parent, mesh_dir=mesh_dir)
+
+
+def shape_spec(name: str, entry: dict):
+    from physmorph.meshes import ShapeSpec
+
+    return ShapeSpec(name=name, **entry)
+
+
+def prepare_mesh_stage(shape: str, entry: dict, raw: str | None, output: str) -> dict:
+    from physmorph.meshes import prepare_mesh
+
+    return prepare_mesh(shape_spec(shape, entry), Path(raw) if raw else None, Path(output))
+
+
+def sample_particles_stage(mesh_h5: str, output: str, preview: str, sampling: SamplingConfig, seed: int) -> dict:
+    from physmorph.particles import sample_particles
+
+    return sample_particles(Path(mesh_h5), Path(output), sampling.grid_res, sampling.ppc_surface,
+                            sampling.ppc_interior, sampling.density, sampling.sigma_scale, seed,
+                            preview_png=Path(preview))
+
+
+def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling: SamplingConfig,
+                           target: dict, seed: int) -> dict:
+    from physmorph.targets import rasterize_target
+
+    return rasterize_target(mesh_h5, output, sampling, TargetConfig(**target), seed,
+                            preview_png=preview, config={"sampling": sampling.__dict__, "target": target})
