@@ -1,0 +1,80 @@
+"""Stage rasterize_target: coverage alpha, depth, signed distance transform, grid mass."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from physmorph.cameras import ring_cameras
+from physmorph.grid import Grid, splat_mass
+from physmorph.targets import rasterize_mesh, signed_distance_transform
+
+
+def test_sdt_sign_convention_and_magnitude():
+    mask = np.zeros((21, 21), bool)
+    mask[5:16, 5:16] = True
+    sdt = signed_distance_transform(mask)
+    assert sdt[10, 10] < 0 and sdt[0, 0] > 0
+    # A pixel just inside/outside the boundary sits half a pixel from it.
+    assert sdt[5, 10] == pytest.approx(-0.5)
+    assert sdt[4, 10] == pytest.approx(0.5)
+    assert sdt[10, 0] == pytest.approx(4.5)  # 5 pixel centres left of the edge column
+    assert sdt[10, 10] == pytest.approx(-5.5)
+    assert np.all(sdt[mask] < 0) and np.all(sdt[~mask] > 0)
+
+
+def test_sdt_empty_and_full_masks_are_finite():
+    empty = signed_distance_transform(np.zeros((4, 6), bool))
+    full = signed_distance_transform(np.ones((4, 6), bool))
+    assert np.all(np.isfinite(empty)) and np.all(empty > 0)
+    assert np.all(np.isfinite(full)) and np.all(full < 0)
+
+
+def test_ring_cameras_geometry():
+    cams = ring_cameras(count=8, elevation_deg=21.0, distance=40.0, width=64, height=48)
+    centers = cams.centers
+    assert np.allclose(np.linalg.norm(centers, axis=1), 40.0)
+    assert np.allclose(np.degrees(np.arcsin(centers[:, 1] / 40.0)), 21.0)
+    uv, z = cams.project(np.zeros((1, 3)))
+    assert np.allclose(uv[:, 0], [32.0, 24.0]) and np.allclose(z, 40.0)
+    # Rotations are orthonormal.
+    R = cams.rotation
+    assert np.allclose(R @ np.transpose(R, (0, 2, 1)), np.eye(3), atol=1e-12)
+
+
+def test_sphere_silhouette_area_and_depth():
+    r, D = 6.0, 40.0
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=r)
+    cams = ring_cameras(count=2, elevation_deg=21.0, fov_y_deg=40.0, width=96, height=96, distance=D)
+    alpha, depth = rasterize_mesh(sphere, cams, supersample=4)
+    f = cams.intrinsics[0, 1]
+    radius_px = f * np.tan(np.arcsin(r / D))  # perspective silhouette of a sphere, centred
+    expected = np.pi * radius_px**2
+    for v in range(2):
+        assert alpha[v].sum() == pytest.approx(expected, rel=0.01)
+        # The centre pixel sees the near pole at depth D - r.
+        assert depth[v, 47:49, 47:49].mean() == pytest.approx(D - r, abs=0.05)
+        assert np.all(depth[v][alpha[v] == 0] == 0)
+    assert alpha.min() >= 0 and alpha.max() <= 1
+
+
+def test_occlusion_depth_is_nearest_surface():
+    near = trimesh.creation.box(extents=[4, 4, 4])
+    near.apply_translation([0, 0, 0])
+    far = trimesh.creation.box(extents=[12, 12, 2])
+    cams = ring_cameras(count=1, elevation_deg=0.0, fov_y_deg=40.0, width=32, height=32, distance=30.0)
+    far.apply_translation([0, 0, -6])  # camera 0 sits on +z: the big plate is behind the cube
+    scene = trimesh.util.concatenate([near, far])
+    _, depth = rasterize_mesh(scene, cams, supersample=1)
+    assert depth[0, 16, 16] == pytest.approx(28.0, abs=1e-6)  # cube's front face at z = +2
+    assert depth[0, 16, 2] == 0 or depth[0, 16, 2] > 28.0
+
+
+def test_splat_mass_conserves_mass():
+    grid = Grid(16)
+    lo, hi = grid.interior_bounds()
+    rng = np.random.default_rng(0)
+    x = rng.uniform(lo, hi, size=(500, 3))
+    m = rng.uniform(0.5, 2.0, size=500)
+    gm = splat_mass(x, m, grid)
+    assert gm.sum() == pytest.approx(m.sum(), rel=1e-12)
+    assert gm.min() >= 0
