@@ -1,0 +1,134 @@
+"""Chamfer-guided plasticity (paper section 3.4, eq. 4): migrate the rest state toward the target.
+
+Per frame k >= k0:
+1. d_i = NN_T(x_i) - x_i, the nearest target-surface point per particle (KD tree);
+2. smooth d by iterative KNN averaging (k neighbours, ``smooth_iters`` passes);
+3. displacement Jacobian J_i from the particle's k neighbours and its symmetric part
+   dFp_i = (J_i + J_i^T) / 2;
+4. Fp_i <- (I + eta_i dFp_i) Fp_i, with eta_i = eta * |d_i| / (|d_i| + median_j |d_j|) (particles
+   already on the target barely change, far ones move at up to eta);
+5. damping toward identity Fp <- (1 - d_p) Fp + d_p I;
+6. isochoric projection: singular values of Fp clamped so that det(Fp) stays in ``det_bounds``
+   (uniform rescale, which leaves anisotropy unchanged) and max/min <= ``max_anisotropy``.
+
+Jacobian estimator. Eq. 4 as printed, J_i = mean_j (d_j - d_i)(x_j - x_i)^T / |x_j - x_i|^2,
+returns A M_i for an affine field d = A x + b, where M_i = mean_j e_j e_j^T / |e_j|^2 (M = I/3 for
+an isotropic neighbourhood): it is a scaled, neighbourhood-biased estimate. ``jacobian="least_squares"``
+(default) right-multiplies by M_i^{-1} so an affine field is recovered exactly;
+``jacobian="paper"`` keeps the printed form.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class PlasticityConfig:
+    eta: float = 0.2  # base rate
+    k_neighbors: int = 64
+    smooth_iters: int = 3
+    damping: float = 0.05  # d_p
+    start_frame: int = 20  # k0
+    det_bounds: tuple[float, float] = (0.5, 2.0)
+    max_anisotropy: float = 4.0
+    jacobian: str = "least_squares"  # or "paper"
+
+    def __post_init__(self) -> None:
+        if self.jacobian not in ("least_squares", "paper"):
+            raise ValueError(f"plasticity.jacobian must be least_squares or paper, got {self.jacobian!r}")
+        lo, hi = self.det_bounds
+        if not 0 < lo <= 1 <= hi:
+            raise ValueError(f"plasticity.det_bounds must satisfy 0 < lo <= 1 <= hi, got {self.det_bounds}")
+        if self.max_anisotropy < 1:
+            raise ValueError(f"plasticity.max_anisotropy must be >= 1, got {self.max_anisotropy}")
+
+
+def nearest_target_displacement(x: np.ndarray, target_tree: cKDTree, target_points: np.ndarray) -> np.ndarray:
+    """d_i = NN_T(x_i) - x_i.   x: [N, 3] -> [N, 3]"""
+    _, idx = target_tree.query(x, k=1)
+    return target_points[idx] - x
+
+
+def knn_smooth(d: np.ndarray, neighbors: np.ndarray, iters: int) -> np.ndarray:
+    """Iterative KNN averaging: d_i <- mean_{j in K_i} d_j (K_i includes i).  d: [N, 3], neighbors: [N, k]"""
+    for _ in range(iters):
+        d = d[neighbors].mean(axis=1)
+    return d
+
+
+def displacement_jacobian(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, mode: str = "least_squares") -> np.ndarray:
+    """Per-particle displacement Jacobian J_i [N, 3, 3] (eq. 4; see the module docstring).
+
+    x, d: [N, 3]; neighbors: [N, k] indices (the particle itself may be included; it adds nothing).
+    """
+    e = x[neighbors] - x[:, None, :]  # [N, k, 3]
+    dd = d[neighbors] - d[:, None, :]  # [N, k, 3]
+    r2 = np.einsum("nki,nki->nk", e, e)
+    w = np.where(r2 > 0, 1.0 / np.where(r2 > 0, r2, 1.0), 0.0)  # self / coincident neighbours carry no information
+    count = np.maximum((r2 > 0).sum(axis=1), 1)[:, None, None]
+    J = np.einsum("nk,nki,nkj->nij", w, dd, e) / count
+    if mode == "paper":
+        return J
+    M = np.einsum("nk,nki,nkj->nij", w, e, e) / count
+    # Regularise rank-deficient neighbourhoods (e.g. coplanar) so the inverse stays bounded.
+    M = M + 1e-9 * np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3)
+    return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
+
+
+def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:
+    """Isochoric projection of Fp [N, 3, 3]: clamp its stretches' anisotropy and determinant.
+
+    Fp = U diag(s) V^T (signed so U, V are rotations); s is made positive, its spread about the
+    geometric mean limited to max_anisotropy, then rescaled uniformly so det lies in det_bounds.
+    """
+    U, s, Vt = np.linalg.svd(Fp)
+    # Signed SVD: put any reflection into the smallest singular value, then force it positive,
+    # which un-inverts an inverted Fp.
+    flip = np.linalg.det(U) * np.linalg.det(Vt) < 0
+    U[flip, :, 2] *= -1
+    s = np.abs(s)
+    s = np.maximum(s, 1e-6)
+    g = np.exp(np.log(s).mean(axis=1, keepdims=True))  # geometric mean = det^(1/3)
+    half = np.sqrt(max_anisotropy)
+    s = np.clip(s, g / half, g * half)
+    det = np.prod(s, axis=1, keepdims=True)
+    det_c = np.clip(det, det_bounds[0], det_bounds[1])
+    s = s * (det_c / det) ** (1.0 / 3.0)
+    return np.einsum("nij,nj,njk->nik", U, s, Vt)
+
+
+@dataclass
+class PlasticityResult:
+    Fp: np.ndarray  # [N, 3, 3]
+    displacement: np.ndarray  # [N, 3] smoothed
+    eta: np.ndarray  # [N]
+    mean_distance: float  # mean |d| before smoothing (a Chamfer-like term)
+
+
+def chamfer_plasticity_step(
+    x: np.ndarray,  # [N, 3]
+    Fp: np.ndarray,  # [N, 3, 3]
+    target_points: np.ndarray,  # [M, 3]
+    cfg: PlasticityConfig,
+    target_tree: cKDTree | None = None,
+) -> PlasticityResult:
+    """One Chamfer-guided plasticity update (steps 1-6 of the module docstring)."""
+    tree = target_tree if target_tree is not None else cKDTree(target_points)
+    d_raw = nearest_target_displacement(x, tree, target_points)
+    k = min(cfg.k_neighbors, len(x))
+    _, neighbors = cKDTree(x).query(x, k=k)
+    neighbors = np.asarray(neighbors).reshape(len(x), k)
+    d = knn_smooth(d_raw, neighbors, cfg.smooth_iters)
+    J = displacement_jacobian(x, d, neighbors, cfg.jacobian)
+    dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
+    mag = np.linalg.norm(d, axis=1)
+    scale = np.median(mag)
+    eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
+    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ Fp
+    Fp_new = (1.0 - cfg.damping) * Fp_new + cfg.damping * np.eye(3)
+    Fp_new = project_plastic(Fp_new, cfg.det_bounds, cfg.max_anisotropy)
+    return PlasticityResult(Fp_new, d, eta, float(np.linalg.norm(d_raw, axis=1).mean()))
