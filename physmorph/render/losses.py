@@ -1,0 +1,89 @@
+"""Rendering losses, adaptive gradient matching and the alpha-MSE metric (paper section 3.5).
+
+All losses are plain torch functions of the rendered alpha [V, H, W] and accumulated depth
+D = sum_k a_k T_k z_k [V, H, W]; targets are tensors of the same shape.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .config import RenderConfig
+
+# Smoothing of the soft IoU ratio in pixel units: an empty render against an empty target scores 0.
+_IOU_EPS = 1e-6
+
+
+def expected_depth(alpha: torch.Tensor, depth_acc: torch.Tensor, min_alpha: float) -> torch.Tensor:  # [V, H, W]
+    """Expected depth of the visible surface, D / alpha; 0 where alpha <= min_alpha."""
+    covered = alpha.detach() > min_alpha
+    safe = torch.where(covered, alpha, torch.ones_like(alpha))
+    return torch.where(covered, depth_acc / safe, torch.zeros_like(depth_acc))
+
+
+def dt_loss(alpha: torch.Tensor, target_sdt: torch.Tensor) -> torch.Tensor:
+    """L_DT = mean_p alpha_p * DT(p) / H (paper eq. 5).
+
+    DT is the target's signed distance in pixels (> 0 outside); dividing by the image height H
+    makes the loss, and the pull it exerts, independent of the image resolution.
+    """
+    return (alpha * target_sdt).mean() / alpha.shape[-2]
+
+
+def soft_iou_loss(alpha: torch.Tensor, target_alpha: torch.Tensor) -> torch.Tensor:
+    """L_IoU = mean over views of 1 - (I + eps) / (U + eps), I = sum alpha t, U = sum alpha + t - alpha t."""
+    inter = (alpha * target_alpha).sum(dim=(-2, -1))
+    union = (alpha + target_alpha - alpha * target_alpha).sum(dim=(-2, -1))
+    return (1.0 - (inter + _IOU_EPS) / (union + _IOU_EPS)).mean()
+
+
+def depth_loss(alpha: torch.Tensor, depth_acc: torch.Tensor, target_depth: torch.Tensor,
+               min_alpha: float) -> torch.Tensor:
+    """Mean squared error of the expected depth over pixels the target covers (target depth > 0)
+    where the render is not transparent (alpha > min_alpha); 0 when there are no such pixels.
+    The pixel set is held fixed under differentiation."""
+    depth = expected_depth(alpha, depth_acc, min_alpha)
+    mask = (target_depth > 0) & (alpha.detach() > min_alpha)
+    count = mask.sum().clamp(min=1)
+    return torch.where(mask, (depth - target_depth) ** 2, torch.zeros_like(depth)).sum() / count
+
+
+def render_losses(alpha: torch.Tensor, depth_acc: torch.Tensor, target_alpha: torch.Tensor,
+                  target_depth: torch.Tensor, target_sdt: torch.Tensor, cfg: RenderConfig) -> dict[str, torch.Tensor]:
+    """The three rendering losses: {"dt", "iou", "depth"} (scalars)."""
+    return {
+        "dt": dt_loss(alpha, target_sdt),
+        "iou": soft_iou_loss(alpha, target_alpha),
+        "depth": depth_loss(alpha, depth_acc, target_depth, cfg.depth_min_alpha),
+    }
+
+
+def alpha_mse(alpha: torch.Tensor, target_alpha: torch.Tensor) -> torch.Tensor:  # [V]
+    """The paper's headline metric: per-view mean over pixels of (alpha - target alpha)^2."""
+    return ((alpha - target_alpha) ** 2).mean(dim=(-2, -1))
+
+
+def matching_weight(grad_dt: torch.Tensor, grad_aux: torch.Tensor, fraction: float) -> float:
+    """Adaptive gradient matching (paper section 3.5, after Yu et al. 2020): the weight w with
+    ||w grad_aux|| = fraction ||grad_dt||; 0 when either gradient is zero or fraction is 0."""
+    norm_aux = float(torch.linalg.vector_norm(grad_aux))
+    norm_dt = float(torch.linalg.vector_norm(grad_dt))
+    if fraction == 0.0 or norm_aux == 0.0 or not torch.isfinite(torch.tensor(norm_aux)):
+        return 0.0
+    return fraction * norm_dt / norm_aux
+
+
+def match_gradients(grads: dict[str, torch.Tensor], cfg: RenderConfig) -> tuple[torch.Tensor, dict[str, float]]:
+    """Combine per-loss gradients of one variable (F or x):
+
+        g = g_DT + w_IoU g_IoU + w_depth g_depth,  w_aux = fraction_aux ||g_DT|| / ||g_aux||
+
+    so each auxiliary term's norm is its configured fraction of the DT gradient's norm.
+    Returns the combined gradient and the weights."""
+    weights = {
+        "dt": 1.0,
+        "iou": matching_weight(grads["dt"], grads["iou"], cfg.iou_fraction),
+        "depth": matching_weight(grads["dt"], grads["depth"], cfg.depth_fraction),
+    }
+    total = grads["dt"] + weights["iou"] * grads["iou"] + weights["depth"] * grads["depth"]
+    return total, weights
