@@ -44,3 +44,13 @@ def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling: Sa
 
     return rasterize_target(mesh_h5, output, sampling, TargetConfig(**target), seed,
                             preview_png=preview, config={"sampling": sampling.__dict__, "target": target})
+
+
+def morph_stage(config: dict, name: str, particles_h5: str, target_h5: str, output: str) -> dict:
+    from physmorph.config import experiment, validate_config
+    from physmorph.morph import morph_config, run_morph
+
+    cfg = validate_config(config)
+    mcfg = morph_config(cfg, name)
+    record = {"experiment": experiment(cfg, name), "morph": mcfg.to_dict()}
+    return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record)

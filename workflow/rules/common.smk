@@ -9,6 +9,7 @@ wildcard_constraints:
     shape=r"[A-Za-z][A-Za-z0-9]*",
     res=r"\d+x\d+x\d+",
     file=r"[^/]+",
+    experiment=r"[A-Za-z0-9_]+",
 
 
 def raw_mesh_path(shape):
@@ -25,4 +26,5 @@ def table_inputs():
     for name in PM["tables"].get("experiments", []):
         exp = experiment(PM, name)
         shapes.update([exp["source"], exp["target"]])
-    return [p for s in sorted(shapes) for p in shape_data(s)]
+    runs = [f"results/runs/{name}.h5" for name in PM["tables"].get("experiments", [])]
+    return [p for s in sorted(shapes) for p in shape_data(s)] + runs

@@ -1,0 +1,381 @@
+"""The morph loop (paper Algorithm 1) as a resumable experiment writing one run HDF5.
+
+Per frame k = 1..K, from the state promoted from frame k-1:
+A. physics: J Adam iterations on the control field dFc against the end-layer mass loss, with the
+   previous frame's render gradient injected on the final F (gamma * dL/dF; methods f_inject and
+   full) or on the final x (gamma_x * dL/dx; the position_inject negative control);
+B. render: the surface-masked particles as Gaussians Sigma = sigma0^2 F F^T from V ring cameras;
+   losses against the target images; g = dL_render/dF (and dL/dx) kept for frame k+1;
+C. plasticity (method full, k >= k0): Chamfer-guided update of Fp (physmorph.plasticity).
+The state at the end of frame k is the initial state of frame k+1.
+
+Methods: physics_only (A without injection), f_inject (A+B), full (A+B+C), position_inject.
+
+Resume: after every frame the run file gets the complete loop state (particles, control field and
+Adam moments, mask, pending render gradient) and the frame's metrics; a run started on an
+existing ``<out>.partial`` continues from its last completed frame, and with the same config and
+thread count reproduces the uninterrupted run. The finished file is renamed to ``<out>``.
+Divergence (non-finite or out-of-bounds F, Fp, x) raises MorphDivergenceError naming frame and
+quantity; the partial file keeps every completed frame. For position_inject a divergence is
+recorded in the run (status "diverged") instead, since instability is the finding.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import h5py
+import numpy as np
+from scipy.spatial import cKDTree
+
+from physmorph.h5io import peak_rss_mb, write_provenance
+from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
+from physmorph.particles import load_particles
+from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step
+from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
+from physmorph.surface import SurfaceMaskConfig, update_surface_mask
+from physmorph.targets import load_target
+
+METHODS = ("physics_only", "f_inject", "full", "position_inject")
+
+
+class MorphDivergenceError(RuntimeError):
+    """A run diverged; the message names the frame and the quantity."""
+
+
+@dataclass(frozen=True)
+class MorphConfig:
+    method: str = "full"
+    frames: int = 30
+    gamma: float = 0.1  # render-F gain
+    gamma_x: float = 0.1  # render-x gain (position_inject only)
+    cameras: int | None = None  # use the first n of the target's cameras (None: all)
+    save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
+    metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
+    max_F_norm: float = 50.0  # divergence bound on |F|_max entries
+    max_Fp_norm: float = 10.0
+    progress: bool = True
+    mpm: MPMConfig = field(default_factory=MPMConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
+    surface: SurfaceMaskConfig = field(default_factory=SurfaceMaskConfig)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.frames < 1:
+            raise ValueError(f"frames must be >= 1, got {self.frames}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
+SCALARS = (
+    "alpha_mse", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
+    "loss_depth", "loss_render", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
+    "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
+    "mask_fraction", "chamfer", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+)
+
+
+def _anisotropy(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N]
+    s = np.linalg.svd(M, compute_uv=False)
+    return s[:, 0] / np.maximum(s[:, 2], 1e-12)
+
+
+def _check_state(st: ParticleState, frame: int, cfg: MorphConfig) -> None:
+    for name, arr, bound in (("x", st.x, 1e6), ("F", st.F, cfg.max_F_norm), ("Fp", st.Fp, cfg.max_Fp_norm)):
+        if not np.isfinite(arr).all():
+            p = int(np.argwhere(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0, 0])
+            raise MorphDivergenceError(f"frame {frame}: {name} became non-finite (particle {p})")
+        big = np.abs(arr).reshape(len(arr), -1).max(axis=1)
+        if big.max() > bound:
+            p = int(np.argmax(big))
+            raise MorphDivergenceError(f"frame {frame}: |{name}| = {big[p]:.3g} exceeds {bound:g} (particle {p})")
+
+
+class RunFile:
+    """The run HDF5: metrics per frame (index 0 = initial state), saved states, checkpoint."""
+
+    def __init__(self, path: Path, n_views: int):
+        self.path = path
+        self.n_views = n_views
+
+    def create(self, meta: dict) -> None:
+        with h5py.File(self.path, "w") as f:
+            for k, v in meta.items():
+                f.attrs[k] = v
+            f.attrs["status"] = "running"
+            f.attrs["frames_completed"] = -1
+            g = f.create_group("metrics")
+            for name in SCALARS:
+                g.create_dataset(name, shape=(0,), maxshape=(None,), dtype="f8")
+            g.create_dataset("alpha_mse_views", shape=(0, self.n_views), maxshape=(None, self.n_views), dtype="f8")
+            f.create_group("states")
+
+    def append(self, frame: int, scalars: dict, views: np.ndarray, st: ParticleState, save_state: bool,
+               checkpoint: dict) -> None:
+        with h5py.File(self.path, "a") as f:
+            g = f["metrics"]
+            for name in SCALARS:
+                d = g[name]
+                d.resize((frame + 1,))
+                d[frame] = float(scalars.get(name, np.nan))
+            d = g["alpha_mse_views"]
+            d.resize((frame + 1, self.n_views))
+            d[frame] = views
+            if save_state:
+                s = f["states"].require_group(f"frame_{frame:04d}")
+                for k in ("x", "F", "Fp"):
+                    if k in s:
+                        del s[k]
+                    s.create_dataset(k, data=getattr(st, k).astype(np.float32), compression="gzip")
+            if "checkpoint" in f:
+                del f["checkpoint"]
+            c = f.create_group("checkpoint")
+            for k, v in checkpoint.items():
+                if isinstance(v, np.ndarray):
+                    c.create_dataset(k, data=v)
+                else:
+                    c.attrs[k] = v
+            f.attrs["frames_completed"] = frame
+            f.attrs["peak_rss_mb"] = max(float(f.attrs.get("peak_rss_mb", 0.0)), peak_rss_mb())
+
+    def read_checkpoint(self) -> tuple[int, dict]:
+        with h5py.File(self.path, "r") as f:
+            frame = int(f.attrs["frames_completed"])
+            c = f["checkpoint"]
+            data = {k: c[k][()] for k in c}
+            data.update({k: c.attrs[k] for k in c.attrs})
+        return frame, data
+
+
+def _solver_optimizer_state(solver: MPMSolver) -> dict:
+    return {"control": solver.control(), "adam_m": solver.adam_m.to_numpy().astype(np.float64),
+            "adam_v": solver.adam_v.to_numpy().astype(np.float64), "adam_step": int(solver._adam_step)}
+
+
+def _restore_optimizer_state(solver: MPMSolver, data: dict) -> None:
+    solver.set_control(data["control"])
+    solver.adam_m.from_numpy(data["adam_m"].astype(solver.np_dtype))
+    solver.adam_v.from_numpy(data["adam_v"].astype(solver.np_dtype))
+    solver._adam_step = int(data["adam_step"])
+
+
+def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
+              name: str = "", config_record: dict | None = None, log=None) -> dict:
+    """Run (or resume) one morph experiment; returns a summary dict. See the module docstring."""
+    log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    started = time.time()
+    out_h5 = Path(out_h5)
+    partial = out_h5.with_name(out_h5.name + ".partial")
+    out_h5.parent.mkdir(parents=True, exist_ok=True)
+    parts = load_particles(particles_h5)
+    target = load_target(target_h5)
+    if target.grid.res != cfg.mpm.grid_res:
+        raise ValueError(f"{target_h5}: target grid {target.grid.res}^3 does not match mpm.grid_res {cfg.mpm.grid_res}")
+    cams = target.cameras if cfg.cameras is None else target.cameras.subset(list(range(min(cfg.cameras, target.cameras.count))))
+    views = list(range(cams.count))
+    rtarget = RenderTarget(target.alpha[views], target.depth[views], target.sdt[views])
+    tree = cKDTree(target.surface_points)
+    N = len(parts.x)
+    solver = MPMSolver(cfg.mpm, N)
+    solver.set_target_grid_mass(target.grid_mass)
+    run = RunFile(partial, cams.count)
+    lo, hi = cfg.mpm.domain_lo, cfg.mpm.domain_hi
+    record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
+
+    def metrics_for(st: ParticleState, mask: np.ndarray) -> tuple[dict, np.ndarray]:
+        sel = slice(None) if cfg.metric_all_particles else mask
+        alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, cams, cfg.render)
+        per_view = ((alpha - rtarget.alpha) ** 2).mean(axis=(1, 2))
+        det = np.linalg.det(st.Fp)
+        d, _ = tree.query(st.x, k=1)
+        return {"alpha_mse": float(per_view.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
+                "fp_anisotropy_max": float(_anisotropy(st.Fp).max()),
+                "elastic_energy": float(elastic_energy(st, cfg.mpm)), "total_volume": float(total_volume(st)),
+                "mask_size": int(mask.sum()), "mask_fraction": float(mask.mean()),
+                "chamfer": float(d.mean())}, per_view
+
+    resumed_from = None
+    if partial.exists():
+        try:
+            with h5py.File(partial, "r") as f:
+                same = f.attrs.get("config_record") == record
+            frame0, ck = run.read_checkpoint()
+        except (OSError, KeyError):
+            same, frame0 = False, -1
+        if same and frame0 >= 0:
+            resumed_from = frame0
+        else:
+            log(f"[{name}] discarding {partial.name}: config changed or no completed frame")
+    if resumed_from is None:
+        st = ParticleState(x=parts.x.copy(), v=np.zeros((N, 3)), F=np.tile(np.eye(3), (N, 1, 1)),
+                           C=np.zeros((N, 3, 3)), Fp=np.tile(np.eye(3), (N, 1, 1)),
+                           mass=parts.mass.copy(), volume=parts.volume.copy())
+        mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi)
+        g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
+        run.create({"experiment": name, "method": cfg.method, "config_record": record, "n_particles": N,
+                    "sigma0": parts.sigma0, "views": cams.count, "frames_planned": cfg.frames})
+        m, per_view = metrics_for(st, mask)
+        # Frame 0's physics loss is that of the unmoved source.
+        run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
+                                              **_solver_optimizer_state(solver)})
+        start = 1
+    else:
+        st = ParticleState(**{k: ck[k] for k in ("x", "v", "F", "C", "Fp", "mass", "volume")})
+        mask, g_F, g_x = ck["mask"].astype(bool), ck["g_F"], ck["g_x"]
+        _restore_optimizer_state(solver, ck)
+        start = resumed_from + 1
+        log(f"[{name}] resuming after frame {resumed_from}/{cfg.frames}")
+
+    inject_F = cfg.method in ("f_inject", "full")
+    inject_x = cfg.method == "position_inject"
+    want_grad = inject_F or inject_x
+    status = "complete"
+    frame_times = []
+    for k in range(start, cfg.frames + 1):
+        t0 = time.time()
+        # A. physics
+        solver.load_state(st)
+        try:
+            stats = solver.optimize_control(grad_F_final=cfg.gamma * g_F if inject_F else None,
+                                            grad_x_final=cfg.gamma_x * g_x if inject_x else None)
+            new = solver.state_at(cfg.mpm.substeps)
+            _check_state(new, k, cfg)
+        except (MPMError, MorphDivergenceError) as exc:
+            msg = str(exc) if str(exc).startswith("frame") else f"frame {k}: {exc}"
+            if cfg.method == "position_inject":
+                status = f"diverged: {msg}"
+                log(f"[{name}] {status} (recorded; position injection is the negative control)")
+                break
+            raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
+        st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
+        t1 = time.time()
+        # Surface mask on the new state.
+        mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask)
+        t2 = time.time()
+        # B. render (gradients only where a method uses them)
+        scal = {"physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
+                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"]}
+        if want_grad:
+            res = render_and_grad(st.x[mask], st.F[mask], parts.sigma0, cams, rtarget, cfg.render, want_grad_x=inject_x)
+            g_F = np.zeros((N, 3, 3))
+            g_F[mask] = res.grad_F
+            g_x = np.zeros((N, 3))
+            if inject_x and res.grad_x is not None:
+                g_x[mask] = res.grad_x
+            scal.update(loss_dt=res.losses["dt"], loss_iou=res.losses["iou"], loss_depth=res.losses["depth"],
+                        loss_render=res.losses["total"], grad_F_norm=float(np.linalg.norm(g_F)),
+                        grad_x_norm=float(np.linalg.norm(g_x)))
+        t3 = time.time()
+        # C. plasticity
+        if cfg.method == "full" and k >= cfg.plasticity.start_frame:
+            pl = chamfer_plasticity_step(st.x, st.Fp, target.surface_points, cfg.plasticity, tree)
+            st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
+            try:
+                _check_state(st, k, cfg)
+            except MorphDivergenceError as exc:
+                raise MorphDivergenceError(f"{exc} (completed frames are kept in {partial})") from exc
+        t4 = time.time()
+        m, per_view = metrics_for(st, mask)
+        scal.update(m)
+        scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
+        save = k % cfg.save_every == 0 or k == cfg.frames
+        run.append(k, scal, per_view, st, save, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
+                                                  **_solver_optimizer_state(solver)})
+        frame_times.append(scal["t_frame"])
+        if cfg.progress:
+            eta = np.mean(frame_times) * (cfg.frames - k)
+            log(f"[{name}] frame {k}/{cfg.frames}  alpha_mse {scal['alpha_mse']:.4f}  "
+                f"physics {stats['loss_initial']:.4g}->{stats['loss_final']:.4g}  "
+                f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s")
+    with h5py.File(partial, "a") as f:
+        f.attrs["status"] = status
+        write_provenance(f, json.loads(record), started)
+        f.attrs["peak_rss_mb"] = max(float(f.attrs.get("peak_rss_mb", 0.0)), peak_rss_mb())
+    os.replace(partial, out_h5)
+    return summarize_run(out_h5)
+
+
+def asdict_state(st: ParticleState) -> dict:
+    return {k: np.asarray(getattr(st, k)) for k in ("x", "v", "F", "C", "Fp", "mass", "volume")}
+
+
+def read_metrics(path: str | Path) -> dict[str, np.ndarray]:
+    """Per-frame metrics of a run file (index 0 = initial state), plus its attributes under 'attrs'."""
+    with h5py.File(path, "r") as f:
+        out = {k: f["metrics"][k][()] for k in f["metrics"]}
+        out["attrs"] = dict(f.attrs)
+    return out
+
+
+def summarize_run(path: str | Path) -> dict:
+    m = read_metrics(path)
+    a = m["alpha_mse"]
+    return {"frames": int(len(a) - 1), "alpha_mse_initial": float(a[0]), "alpha_mse_final": float(a[-1]),
+            "alpha_mse_best": float(np.nanmin(a)), "best_frame": int(np.nanargmin(a)),
+            "status": str(m["attrs"].get("status", "")), "peak_rss_mb": float(m["attrs"].get("peak_rss_mb", 0.0))}
+
+
+def _build(cls, section: dict | None, where: str):
+    section = dict(section or {})
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(section) - names)
+    if unknown:
+        raise ValueError(f"config key '{where}.{unknown[0]}': unknown key (allowed: {', '.join(sorted(names))})")
+    for k, v in section.items():
+        if isinstance(v, list):
+            section[k] = tuple(v)
+    try:
+        return cls(**section)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"config section '{where}': {exc}") from exc
+
+
+def morph_config(cfg: dict, experiment_name: str) -> MorphConfig:
+    """The MorphConfig of one experiment: global sections, then the experiment's own settings."""
+    from physmorph.config import experiment
+
+    exp = experiment(cfg, experiment_name)
+    device = cfg.get("device", "auto")
+    mpm = dict(cfg.get("mpm", {}))
+    mpm.setdefault("grid_res", cfg["sampling"]["grid_res"])
+    mpm.setdefault("density", cfg["sampling"]["density"])
+    mpm.setdefault("device", device)
+    mpm.setdefault("threads", cfg.get("threads"))
+    if "drag" in exp:
+        mpm["drag"] = exp["drag"]
+    if "grad_iters" in exp:
+        mpm["grad_iters"] = exp["grad_iters"]
+    render = dict(cfg.get("render", {}))
+    render.setdefault("device", device)
+    plast = dict(cfg.get("plasticity", {}))
+    if "plasticity_start" in exp:
+        plast["start_frame"] = exp["plasticity_start"]
+    morph = dict(cfg.get("morph", {}))
+    for key in ("frames", "cameras", "gamma", "gamma_x"):
+        if key in exp:
+            morph[key] = exp[key]
+    morph["method"] = exp["method"]
+    return MorphConfig(
+        **{k: v for k, v in _build_plain(morph).items()},
+        mpm=_build(MPMConfig, mpm, "mpm"),
+        render=_build(RenderConfig, render, "render"),
+        plasticity=_build(PlasticityConfig, plast, "plasticity"),
+        surface=_build(SurfaceMaskConfig, cfg.get("surface", {}), "surface"),
+    )
+
+
+def _build_plain(morph: dict) -> dict:
+    allowed = {f.name for f in fields(MorphConfig)} - {"mpm", "render", "plasticity", "surface"}
+    unknown = sorted(set(morph) - allowed)
+    if unknown:
+        raise ValueError(f"config key 'morph.{unknown[0]}': unknown key (allowed: {', '.join(sorted(allowed))})")
+    return morph

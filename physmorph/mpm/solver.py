@@ -1,0 +1,675 @@
+"""Differentiable MLS-MPM solver with hand-written reverse kernels (paper section 4, "Physics
+rollout"; SPEC section 4A).
+
+One substep t (state s_t = (x, v, C, F), control dFc_t, constants Fp, m, V0):
+
+    Fe = (F + dFc_t) Fp^-1,   tau = P(Fe) Fe^T   (Kirchhoff stress, fixed corotated)
+    A  = -dt V0 (4/dx^2) tau + m C                                    (MLS-MPM affine)
+    P2G:  mv_I = sum_p w_Ip [m (1 - dt d) v + A (x_I - x_p)],  m_I = sum_p w_Ip m
+    grid: v_I = mv_I / m_I, outward component zeroed on the BOUNDARY_CELLS layer of each face
+    G2P:  v' = sum_I w_Ip v_I,  C' = 4/dx^2 sum_I w_Ip v_I (x_I - x_p)^T,  x' = x + dt v'
+          F_new = (I + dt C') F,   F' = (1 - s) F_new + s F
+
+P = 2 mu (Fe - R) + lam (J - 1) cof(Fe), with cof(Fe) = J Fe^-T written with cross products
+so it stays finite for singular Fe. The control dFc enters the stress only (it acts like an
+actuation); F itself is advected by the grid velocity. The end-layer mass loss compares the
+grid mass of x_T (same quadratic B-spline as physmorph.grid.splat_mass) with the target.
+
+Backward: the adjoint of each substep is written by hand (reverse of G2P, grid update, P2G);
+the per-substep particle state (x, v, C, F) is stored in the forward and the grid is recomputed
+in the backward. The derivative of the rotation R (which Taichi's autodiff cannot do for
+ti.svd) uses the SVD formula dR = U X V^T, X_ij = (M_ij - M_ji) / (s_i + s_j), M = U^T dFe V,
+with the denominator floored for the singular/inverted cases s_i + s_j -> 0.
+"""
+
+
+import numpy as np
+import taichi as ti
+
+from ..grid import BOUNDARY_CELLS, Grid
+from ..taichi_runtime import init_taichi
+from .config import MPMConfig, MPMDivergenceError, MPMStateError
+from .state import ParticleState
+
+# Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
+# dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
+_ROT_DENOM_FLOOR = 1e-6
+# |F| or |v| entries above this are treated as a divergence (Inf follows soon after).
+_BLOWUP = 1e8
+
+
+@ti.func
+def _cofactor(F):
+    """cof(F) = J F^-T, columns c0 = f1 x f2, c1 = f2 x f0, c2 = f0 x f1 (polynomial in F)."""
+    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    c0 = f1.cross(f2)
+    c1 = f2.cross(f0)
+    c2 = f0.cross(f1)
+    return ti.Matrix.cols([c0, c1, c2])
+
+
+@ti.func
+def _cofactor_diff(F, dF):
+    """d cof(F)[dF]: product rule on the cross products of _cofactor."""
+    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    d0 = ti.Vector([dF[0, 0], dF[1, 0], dF[2, 0]])
+    d1 = ti.Vector([dF[0, 1], dF[1, 1], dF[2, 1]])
+    d2 = ti.Vector([dF[0, 2], dF[1, 2], dF[2, 2]])
+    c0 = d1.cross(f2) + f1.cross(d2)
+    c1 = d2.cross(f0) + f2.cross(d0)
+    c2 = d0.cross(f1) + f0.cross(d1)
+    return ti.Matrix.cols([c0, c1, c2])
+
+
+def _make_stress_funcs(dtype, mu: float, lam: float):
+    """Fixed-corotated P(Fe) and its differential dP(Fe)[dFe] for one float type."""
+
+    @ti.func
+    def stress(Fe):
+        """P = 2 mu (Fe - R) + lam (J - 1) cof(Fe)  (Stomakhin et al. 2012)."""
+        U, sig, V = ti.svd(Fe, dtype)
+        R = U @ V.transpose()
+        J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+        return 2.0 * mu * (Fe - R) + lam * (J - 1.0) * _cofactor(Fe)
+
+    @ti.func
+    def stress_and_diff(Fe, dFe):
+        """(P(Fe), dP[dFe]); dP is the Hessian of Psi applied to dFe, hence self-adjoint:
+        the same map gives the reverse-mode product  Fe_bar = dP[P_bar]."""
+        U, sig, V = ti.svd(Fe, dtype)
+        R = U @ V.transpose()
+        J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+        cof = _cofactor(Fe)
+        P = 2.0 * mu * (Fe - R) + lam * (J - 1.0) * cof
+        M = U.transpose() @ dFe @ V
+        smax = ti.max(ti.abs(sig[0, 0]), ti.abs(sig[1, 1]), ti.abs(sig[2, 2]))
+        floor = _ROT_DENOM_FLOOR * smax + 1e-30
+        X = ti.Matrix.zero(dtype, 3, 3)
+        for i, j in ti.static(((0, 1), (0, 2), (1, 2))):
+            den = ti.max(sig[i, i] + sig[j, j], floor)
+            xij = (M[i, j] - M[j, i]) / den
+            X[i, j] = xij
+            X[j, i] = -xij
+        dR = U @ X @ V.transpose()
+        dJ = (cof * dFe).sum()
+        dP = 2.0 * mu * (dFe - dR) + lam * (dJ * cof + (J - 1.0) * _cofactor_diff(Fe, dFe))
+        return P, dP
+
+    return stress, stress_and_diff
+
+
+@ti.data_oriented
+class MPMSolver:
+    """Differentiable MPM over one frame of T substeps, with the control field dFc and Adam.
+
+    Built once per (config, particle count); ``load_state`` each frame. See the module docstring
+    for the equations and physmorph/mpm/__init__.py for the design decisions.
+    """
+
+    def __init__(self, cfg: MPMConfig, n_particles: int):
+        if int(n_particles) < 1:
+            raise MPMStateError(f"n_particles must be >= 1, got {n_particles}")
+        init_taichi(cfg.device, cfg.threads)
+        self.cfg = cfg
+        self.n = int(n_particles)
+        self.grid = Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi)
+        self.dtype = ti.f64 if cfg.precision == "float64" else ti.f32
+        self.np_dtype = np.float64 if cfg.precision == "float64" else np.float32
+        T, N, R, f = cfg.substeps, self.n, cfg.grid_res, self.dtype
+        Tc = cfg.n_control_slots
+        vec, mat = ti.types.vector(3, f), ti.types.matrix(3, 3, f)
+        # stored per-substep particle state, index [t, p], t = 0..T
+        self.x = vec.field(shape=(T + 1, N))
+        self.v = vec.field(shape=(T + 1, N))
+        self.C = mat.field(shape=(T + 1, N))
+        self.F = mat.field(shape=(T + 1, N))
+        self.Fp_inv = mat.field(shape=N)
+        self.mass = ti.field(f, shape=N)
+        self.vol = ti.field(f, shape=N)
+        # control field and Adam moments, index [slot, p]
+        self.ctrl = mat.field(shape=(Tc, N))
+        self.ctrl_grad = mat.field(shape=(Tc, N))
+        self.adam_m = mat.field(shape=(Tc, N))
+        self.adam_v = mat.field(shape=(Tc, N))
+        # adjoints of the particle state at the substep being reversed
+        self.x_adj = vec.field(shape=N)
+        self.v_adj = vec.field(shape=N)
+        self.C_adj = mat.field(shape=N)
+        self.F_adj = mat.field(shape=N)
+        # grid
+        self.grid_mv = vec.field(shape=(R, R, R))
+        self.grid_m = ti.field(f, shape=(R, R, R))
+        self.grid_v = vec.field(shape=(R, R, R))
+        self.grid_v_adj = vec.field(shape=(R, R, R))
+        self.grid_mv_adj = vec.field(shape=(R, R, R))
+        self.grid_m_adj = ti.field(f, shape=(R, R, R))
+        self.target_m = ti.field(f, shape=(R, R, R))
+        self.loss_acc = ti.field(ti.f64, shape=())
+        self.norm_acc = ti.field(ti.f64, shape=())
+        self._stress, self._stress_and_diff = _make_stress_funcs(f, cfg.mu, cfg.lam)
+        # compile-time constants of the kernels
+        self._dx = cfg.dx
+        self._inv_dx = 1.0 / cfg.dx
+        self._lo = cfg.domain_lo
+        self._res = R
+        self._bound = BOUNDARY_CELLS
+        # positions are clamped so the 3x3x3 stencil never leaves the grid: x_g in [1, res - 2]
+        self._x_min = cfg.domain_lo + 1.0 * cfg.dx
+        self._x_max = cfg.domain_lo + (R - 2.0) * cfg.dx
+        self._has_target = False
+        self._loaded = False
+        self._forward_done = False
+        self._grad_norm = float("nan")
+        self._last_loss: float | None = None
+        self._adam_step = 0
+        self._log_eps = 0.0
+        self.reset_control()
+
+    # ------------------------------------------------------------------ kernels: forward
+    @ti.func
+    def _stencil(self, xp):
+        """Quadratic B-spline: base node, fractional offset fx, weights w[axis][k], dw/dx."""
+        xg = (xp - self._lo) * self._inv_dx
+        base = ti.floor(xg - 0.5, ti.i32)
+        fx = xg - ti.cast(base, self.dtype)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        dw = [(fx - 1.5) * self._inv_dx, -2.0 * (fx - 1.0) * self._inv_dx, (fx - 0.5) * self._inv_dx]
+        return base, fx, w, dw
+
+    @ti.func
+    def _affine(self, t, p):
+        """A = -dt V0 (4/dx^2) P(Fe) Fe^T + m C, Fe = (F + dFc_t) Fp^-1; returns (A, Fe)."""
+        slot = t if ti.static(self.cfg.control == "per_substep") else 0
+        Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
+        P = self._stress(Fe)
+        k = 4.0 * self._inv_dx * self._inv_dx
+        A = (-self.cfg.dt * self.vol[p] * k) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
+        return A, Fe
+
+    @ti.kernel
+    def _clear_grid(self):
+        for I in ti.grouped(self.grid_m):
+            self.grid_mv[I] = ti.Vector.zero(self.dtype, 3)
+            self.grid_m[I] = 0.0
+
+    @ti.kernel
+    def _p2g(self, t: ti.i32):
+        """mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p."""
+        for p in range(self.n):
+            xp = self.x[t, p]
+            base, fx, w, dw_unused = self._stencil(xp)
+            A, Fe_unused = self._affine(t, p)
+            mom = self.mass[p] * (1.0 - self.cfg.dt * self.cfg.drag) * self.v[t, p]
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                off = ti.Vector([i, j, k])
+                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                wt = w[i][0] * w[j][1] * w[k][2]
+                self.grid_mv[base + off] += wt * (mom + A @ dpos)
+                self.grid_m[base + off] += wt * self.mass[p]
+
+    @ti.func
+    def _boundary(self, I, v):
+        """Zero the outward velocity component on the BOUNDARY_CELLS layer of every face."""
+        out = v
+        for a in ti.static(range(3)):
+            if I[a] < self._bound and v[a] < 0:
+                out[a] = 0.0
+            if I[a] >= self._res - self._bound and v[a] > 0:
+                out[a] = 0.0
+        return out
+
+    @ti.kernel
+    def _grid_update(self):
+        """v_I = mv_I / m_I (0 on empty nodes), then the boundary condition."""
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            v = ti.Vector.zero(self.dtype, 3)
+            if m > 0:
+                v = self._boundary(I, self.grid_mv[I] / m)
+            self.grid_v[I] = v
+
+    @ti.kernel
+    def _g2p(self, t: ti.i32):
+        """v' = sum w v_I, C' = 4/dx^2 sum w v_I dpos^T, x' = x + dt v', F' = (1-s)(I + dt C')F + sF."""
+        for p in range(self.n):
+            xp = self.x[t, p]
+            base, fx, w, dw_unused = self._stencil(xp)
+            nv = ti.Vector.zero(self.dtype, 3)
+            nC = ti.Matrix.zero(self.dtype, 3, 3)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                off = ti.Vector([i, j, k])
+                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                wt = w[i][0] * w[j][1] * w[k][2]
+                gv = self.grid_v[base + off]
+                nv += wt * gv
+                nC += (4.0 * self._inv_dx * self._inv_dx * wt) * gv.outer_product(dpos)
+            Fo = self.F[t, p]
+            Fn = (ti.Matrix.identity(self.dtype, 3) + self.cfg.dt * nC) @ Fo
+            self.v[t + 1, p] = nv
+            self.C[t + 1, p] = nC
+            self.x[t + 1, p] = ti.math.clamp(xp + self.cfg.dt * nv, self._x_min, self._x_max)
+            self.F[t + 1, p] = (1.0 - self.cfg.smoothing) * Fn + self.cfg.smoothing * Fo
+
+    @ti.kernel
+    def _splat_final(self):
+        """m_I = sum_p w_Ip m_p of x_T (the physmorph.grid.splat_mass transfer)."""
+        for p in range(self.n):
+            base, fx, w, dw_unused = self._stencil(self.x[self.cfg.substeps, p])
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                self.grid_m[base + ti.Vector([i, j, k])] += w[i][0] * w[j][1] * w[k][2] * self.mass[p]
+
+    @ti.kernel
+    def _mass_loss(self, log_eps: ti.f64):
+        """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2."""
+        self.loss_acc[None] = 0.0
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            mt = self.target_m[I]
+            if ti.static(self.cfg.mass_loss == "squared"):
+                r = m - mt
+                self.loss_acc[None] += ti.cast(r * r, ti.f64)
+                self.grid_m_adj[I] = 2.0 * r
+            else:
+                e = ti.cast(log_eps, self.dtype)
+                r = ti.log(m + e) - ti.log(mt + e)
+                self.loss_acc[None] += ti.cast(r * r, ti.f64)
+                self.grid_m_adj[I] = 2.0 * r / (m + e)
+
+    # ------------------------------------------------------------------ kernels: backward
+    @ti.kernel
+    def _loss_backward(self):
+        """x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top of the injected g^x already there)."""
+        T = self.cfg.substeps
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[T, p])
+            g = ti.Vector.zero(self.dtype, 3)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                gw = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                w[i][0] * w[j][1] * dw[k][2]])
+                g += gw * (self.mass[p] * self.grid_m_adj[base + ti.Vector([i, j, k])])
+            self.x_adj[p] += g
+
+    @ti.kernel
+    def _clear_grid_adj(self):
+        for I in ti.grouped(self.grid_m):
+            self.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
+
+    @ti.kernel
+    def _g2p_backward(self, t: ti.i32):
+        """Reverse of _g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t."""
+        s = self.cfg.smoothing
+        dt = self.cfg.dt
+        kq = 4.0 * self._inv_dx * self._inv_dx
+        for p in range(self.n):
+            xp = self.x[t, p]
+            base, fx, w, dw = self._stencil(xp)
+            xn = self.x[t + 1, p]
+            xbar_n = self.x_adj[p]
+            for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
+                if xn[a] <= self._x_min or xn[a] >= self._x_max:
+                    xbar_n[a] = 0.0
+            Fo = self.F[t, p]
+            Cn = self.C[t + 1, p]
+            Fbar_n = self.F_adj[p]
+            Fbar_new = (1.0 - s) * Fbar_n
+            Fbar = s * Fbar_n + (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
+            Cbar = self.C_adj[p] + dt * Fbar_new @ Fo.transpose()
+            vbar = self.v_adj[p] + dt * xbar_n
+            xbar = xbar_n
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                off = ti.Vector([i, j, k])
+                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                wt = w[i][0] * w[j][1] * w[k][2]
+                gw = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                w[i][0] * w[j][1] * dw[k][2]])
+                gv = self.grid_v[base + off]
+                Cd = Cbar @ dpos
+                self.grid_v_adj[base + off] += wt * (vbar + kq * Cd)
+                xbar += gw * (vbar.dot(gv) + kq * gv.dot(Cd)) - (wt * kq) * (Cbar.transpose() @ gv)
+            self.x_adj[p] = xbar
+            self.F_adj[p] = Fbar
+            self.v_adj[p] = ti.Vector.zero(self.dtype, 3)
+            self.C_adj[p] = ti.Matrix.zero(self.dtype, 3, 3)
+
+    @ti.kernel
+    def _grid_backward(self):
+        """Reverse of _grid_update: v_bar -> (mv_bar, m_bar) through the mask and v = mv / m."""
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            mvb = ti.Vector.zero(self.dtype, 3)
+            mb = ti.cast(0.0, self.dtype)
+            if m > 0:
+                vfree = self.grid_mv[I] / m
+                vb = self.grid_v_adj[I]
+                vc = self._boundary(I, vfree)
+                for a in ti.static(range(3)):
+                    if vc[a] == 0.0 and vfree[a] != 0.0:
+                        vb[a] = 0.0
+                mvb = vb / m
+                mb = -vb.dot(vfree) / m
+            self.grid_mv_adj[I] = mvb
+            self.grid_m_adj[I] = mb
+
+    @ti.kernel
+    def _p2g_backward(self, t: ti.i32):
+        """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t."""
+        dt = self.cfg.dt
+        kq = 4.0 * self._inv_dx * self._inv_dx
+        damp = 1.0 - dt * self.cfg.drag
+        for p in range(self.n):
+            xp = self.x[t, p]
+            base, fx, w, dw = self._stencil(xp)
+            A, Fe = self._affine(t, p)
+            mp = self.mass[p]
+            mom = mp * damp * self.v[t, p]
+            vbar = ti.Vector.zero(self.dtype, 3)
+            Abar = ti.Matrix.zero(self.dtype, 3, 3)
+            xbar = ti.Vector.zero(self.dtype, 3)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                off = ti.Vector([i, j, k])
+                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                wt = w[i][0] * w[j][1] * w[k][2]
+                gw = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                w[i][0] * w[j][1] * dw[k][2]])
+                mvb = self.grid_mv_adj[base + off]
+                mb = self.grid_m_adj[base + off]
+                vbar += wt * mvb
+                Abar += wt * mvb.outer_product(dpos)
+                xbar += gw * (mvb.dot(mom + A @ dpos) + mb * mp) - wt * (A.transpose() @ mvb)
+            tau_bar = (-dt * self.vol[p] * kq) * Abar
+            P, dP = self._stress_and_diff(Fe, tau_bar @ Fe)  # P_bar = tau_bar Fe
+            Fe_bar = tau_bar.transpose() @ P + dP
+            Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
+            self.x_adj[p] += xbar
+            self.v_adj[p] += mp * damp * vbar
+            self.C_adj[p] += mp * Abar
+            self.F_adj[p] += Fhat_bar
+            slot = t if ti.static(self.cfg.control == "per_substep") else 0
+            self.ctrl_grad[slot, p] += Fhat_bar
+
+    # ------------------------------------------------------------------ kernels: utilities
+    @ti.kernel
+    def _load_initial(self, x: ti.types.ndarray(), v: ti.types.ndarray(), F: ti.types.ndarray(),
+                      C: ti.types.ndarray()):
+        for p in range(self.n):
+            for a in ti.static(range(3)):
+                self.x[0, p][a] = x[p, a]
+                self.v[0, p][a] = v[p, a]
+                for b in ti.static(range(3)):
+                    self.F[0, p][a, b] = F[p, a, b]
+                    self.C[0, p][a, b] = C[p, a, b]
+
+    @ti.kernel
+    def _export(self, t: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), F: ti.types.ndarray(),
+                C: ti.types.ndarray()):
+        for p in range(self.n):
+            for a in ti.static(range(3)):
+                x[p, a] = self.x[t, p][a]
+                v[p, a] = self.v[t, p][a]
+                for b in ti.static(range(3)):
+                    F[p, a, b] = self.F[t, p][a, b]
+                    C[p, a, b] = self.C[t, p][a, b]
+
+    @ti.kernel
+    def _zero_ctrl_grad(self):
+        for s, p in self.ctrl_grad:
+            self.ctrl_grad[s, p] = ti.Matrix.zero(self.dtype, 3, 3)
+
+    @ti.kernel
+    def _grad_norm_sq(self):
+        self.norm_acc[None] = 0.0
+        for s, p in self.ctrl_grad:
+            g = self.ctrl_grad[s, p]
+            self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
+
+    @ti.kernel
+    def _adam(self, lr_t: ti.f64):
+        """Adam (Kingma & Ba) on dFc; lr_t already carries the bias corrections."""
+        b1 = self.cfg.adam_beta1
+        b2 = self.cfg.adam_beta2
+        for s, p in self.ctrl:
+            g = self.ctrl_grad[s, p]
+            m = b1 * self.adam_m[s, p] + (1.0 - b1) * g
+            v = b2 * self.adam_v[s, p] + (1.0 - b2) * g * g
+            self.adam_m[s, p] = m
+            self.adam_v[s, p] = v
+            step = ti.Matrix.zero(self.dtype, 3, 3)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                step[a, b] = m[a, b] / (ti.sqrt(v[a, b]) + self._eps_hat)
+            c = self.ctrl[s, p] - ti.cast(lr_t, self.dtype) * step
+            if ti.static(self.cfg.control_clip > 0):
+                c = ti.math.clamp(c, -self.cfg.control_clip, self.cfg.control_clip)
+            self.ctrl[s, p] = c
+
+    # ------------------------------------------------------------------ public API
+    def set_target_grid_mass(self, m: np.ndarray) -> None:  # m: [res, res, res]
+        """Target grid mass (physmorph.grid.splat_mass convention)."""
+        m = np.asarray(m, dtype=np.float64)
+        R = self.cfg.grid_res
+        if m.shape != (R, R, R):
+            raise MPMStateError(f"target grid mass must have shape {(R, R, R)}, got {m.shape}")
+        if not np.isfinite(m).all() or (m < 0).any():
+            raise MPMStateError("target grid mass must be finite and >= 0")
+        self.target_m.from_numpy(m.astype(self.np_dtype))
+        self._has_target = True
+
+    def load_state(self, state: ParticleState) -> None:
+        """Set the frame's initial state (x, v, F, C at t = 0 and the constants Fp, m, V0)."""
+        st = state.validated()
+        if st.n != self.n:
+            raise MPMStateError(f"state has {st.n} particles, solver was built for {self.n}")
+        bad = ((st.x < self._x_min) | (st.x > self._x_max)).any(axis=1)
+        if bad.any():
+            p = int(np.argmax(bad))
+            raise MPMStateError(
+                f"x of particle {p} = {st.x[p].tolist()} is outside the usable domain "
+                f"[{self._x_min}, {self._x_max}] (the B-spline stencil would leave the grid)")
+        dt_ = self.np_dtype
+        self._load_initial(st.x.astype(dt_), st.v.astype(dt_), st.F.astype(dt_), st.C.astype(dt_))
+        self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
+        self.mass.from_numpy(st.mass.astype(dt_))
+        self.vol.from_numpy(st.volume.astype(dt_))
+        self._log_eps = float(self.cfg.log_mass_eps * st.mass.mean())
+        self._loaded = True
+        self._forward_done = False
+        if not self.cfg.warm_start:
+            self.reset_control()
+
+    def reset_control(self) -> None:
+        """Zero dFc and the Adam moments (and the Adam step counter)."""
+        self.ctrl.fill(0.0)
+        self.ctrl_grad.fill(0.0)
+        self.adam_m.fill(0.0)
+        self.adam_v.fill(0.0)
+        self._adam_step = 0
+
+    def forward(self) -> float:
+        """T substeps from the loaded state with the current dFc; returns the mass loss (or nan
+        without a target). Raises MPMDivergenceError if the state became non-finite."""
+        self._require_loaded()
+        for t in range(self.cfg.substeps):
+            self._clear_grid()
+            self._p2g(t)
+            self._grid_update()
+            self._g2p(t)
+        self._check_finite_rollout()
+        self._forward_done = True
+        if self._has_target:
+            self._clear_grid()
+            self._splat_final()
+            self._mass_loss(self._log_eps)
+            self._last_loss = float(self.loss_acc[None])
+        else:
+            self._last_loss = float("nan")
+        return self._last_loss
+
+    def backward(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
+                 grad_x_final: np.ndarray | None = None) -> None:  # [N, 3]
+        """Reverse the last forward: d(L + <gF, F_T> + <gx, x_T>)/d(dFc) into the control
+        gradient, and the adjoint of the initial state (see initial_state_gradients)."""
+        if not self._forward_done:
+            raise RuntimeError("backward needs a forward() first")
+        N = self.n
+        gx = np.zeros((N, 3)) if grad_x_final is None else self._check_adjoint(grad_x_final, (N, 3), "grad_x_final")
+        gF = np.zeros((N, 3, 3)) if grad_F_final is None else self._check_adjoint(grad_F_final, (N, 3, 3), "grad_F_final")
+        self.x_adj.from_numpy(gx.astype(self.np_dtype))
+        self.F_adj.from_numpy(gF.astype(self.np_dtype))
+        self.v_adj.fill(0.0)
+        self.C_adj.fill(0.0)
+        self._zero_ctrl_grad()
+        if self._has_target:
+            self._clear_grid()
+            self._splat_final()
+            self._mass_loss(self._log_eps)
+            self._loss_backward()
+        for t in reversed(range(self.cfg.substeps)):
+            self._clear_grid()
+            self._p2g(t)
+            self._grid_update()
+            self._clear_grid_adj()
+            self._g2p_backward(t)
+            self._grid_backward()
+            self._p2g_backward(t)
+        self._grad_norm_sq()
+        gn = float(self.norm_acc[None])
+        if not np.isfinite(gn):
+            raise MPMDivergenceError("the dFc gradient became non-finite (NaN/Inf) in the backward pass")
+        self._grad_norm = float(np.sqrt(gn))
+
+    def adam_step(self) -> None:
+        """One Adam step on dFc with the gradient of the last backward."""
+        self._adam_step += 1
+        k = self._adam_step
+        b1, b2 = self.cfg.adam_beta1, self.cfg.adam_beta2
+        # folded bias correction: lr_t = lr sqrt(1 - b2^k) / (1 - b1^k), eps_hat = eps sqrt(1 - b2^k)
+        lr_t = self.cfg.learning_rate * np.sqrt(1.0 - b2 ** k) / (1.0 - b1 ** k)
+        self._adam(lr_t)
+
+    @property
+    def _eps_hat(self) -> float:
+        # a compile-time constant of _adam: eps without the step-dependent factor (a tiny
+        # difference from textbook Adam, whose eps is added after the bias correction)
+        return self.cfg.adam_eps
+
+    def optimize_control(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
+                         grad_x_final: np.ndarray | None = None,  # [N, 3]
+                         iters: int | None = None) -> dict:
+        """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> Adam on dFc,
+        then a last forward with the updated dFc (its loss is loss_final; rollout() returns it)."""
+        if not self._has_target:
+            raise RuntimeError("optimize_control needs set_target_grid_mass first")
+        J = self.cfg.grad_iters if iters is None else int(iters)
+        if J < 1:
+            raise ValueError(f"iters must be >= 1, got {J}")
+        losses = []
+        for _ in range(J):
+            losses.append(self.forward())
+            self.backward(grad_F_final, grad_x_final)
+            self.adam_step()
+        loss_final = self.forward()
+        return {"loss_initial": losses[0], "loss_final": loss_final, "losses": losses,
+                "grad_norm": self._grad_norm, "iters": J,
+                "delta_E_percent": 100.0 * (losses[0] - loss_final) / losses[0] if losses[0] > 0 else 0.0}
+
+    def rollout(self) -> ParticleState:
+        """Forward with the current dFc and return the state at t = T."""
+        self.forward()
+        return self.state_at(self.cfg.substeps)
+
+    def mass_loss(self) -> float:
+        """End-layer mass loss of the last forward."""
+        if self._last_loss is None:
+            raise RuntimeError("mass_loss needs a forward first")
+        return self._last_loss
+
+    def state_at(self, t: int) -> ParticleState:
+        """Stored particle state at substep t (0..T) of the last forward, float64."""
+        T = self.cfg.substeps
+        if not 0 <= t <= T:
+            raise IndexError(f"substep t must be in [0, {T}], got {t}")
+        x, v, F, C = self._export_raw(t)
+        Fp = np.linalg.inv(self.Fp_inv.to_numpy().astype(np.float64))
+        return ParticleState(x=x.astype(np.float64), v=v.astype(np.float64), F=F.astype(np.float64),
+                             C=C.astype(np.float64), Fp=Fp,
+                             mass=self.mass.to_numpy().astype(np.float64),
+                             volume=self.vol.to_numpy().astype(np.float64))
+
+    def grid_mass(self) -> np.ndarray:  # [res, res, res]
+        """Grid mass of x_T from the last forward (valid right after forward/rollout)."""
+        self._clear_grid()
+        self._splat_final()
+        return self.grid_m.to_numpy().astype(np.float64)
+
+    def control(self) -> np.ndarray:  # [Tc, N, 3, 3]
+        return self.ctrl.to_numpy().astype(np.float64)
+
+    def set_control(self, dFc: np.ndarray) -> None:  # [Tc, N, 3, 3]
+        dFc = np.asarray(dFc, dtype=np.float64)
+        shape = (self.cfg.n_control_slots, self.n, 3, 3)
+        if dFc.shape != shape or not np.isfinite(dFc).all():
+            raise MPMStateError(f"dFc must be finite with shape {shape}, got {dFc.shape}")
+        self.ctrl.from_numpy(dFc.astype(self.np_dtype))
+
+    def control_gradient(self) -> np.ndarray:  # [Tc, N, 3, 3]
+        return self.ctrl_grad.to_numpy().astype(np.float64)
+
+    def initial_state_gradients(self) -> dict:
+        """Adjoints of the initial x, v, C, F after backward(): {"x": [N,3], "v", "C", "F"}."""
+        return {"x": self.x_adj.to_numpy().astype(np.float64),
+                "v": self.v_adj.to_numpy().astype(np.float64),
+                "C": self.C_adj.to_numpy().astype(np.float64),
+                "F": self.F_adj.to_numpy().astype(np.float64)}
+
+    @property
+    def grad_norm(self) -> float:
+        return self._grad_norm
+
+    def bytes_per_particle_substep(self) -> int:
+        """Stored state per particle per substep: x, v (3 each), C, F (9 each) floats."""
+        return 24 * np.dtype(self.np_dtype).itemsize
+
+    # ------------------------------------------------------------------ helpers
+    def _require_loaded(self) -> None:
+        if not self._loaded:
+            raise RuntimeError("call load_state before running the solver")
+
+    def _export_raw(self, t: int):
+        n, d = self.n, self.np_dtype
+        x, v = np.empty((n, 3), d), np.empty((n, 3), d)
+        F, C = np.empty((n, 3, 3), d), np.empty((n, 3, 3), d)
+        self._export(t, x, v, F, C)
+        return x, v, F, C
+
+    def _check_adjoint(self, g, shape, name) -> np.ndarray:
+        g = np.asarray(g, dtype=np.float64)
+        if g.shape != shape:
+            raise MPMStateError(f"{name} must have shape {shape}, got {g.shape}")
+        if not np.isfinite(g).all():
+            raise MPMStateError(f"{name} is not finite (NaN/Inf)")
+        return g
+
+    def _check_finite_rollout(self) -> None:
+        """Cheap check of the final state; on failure find the first bad substep/particle."""
+        T = self.cfg.substeps
+        def bad_rows(t):
+            x, v, F, _ = self._export_raw(t)
+            for name, a in (("x", x), ("v", v), ("F", F)):
+                a = a.reshape(self.n, -1)
+                bad = ~(np.abs(a) <= _BLOWUP).all(axis=1)
+                if bad.any():
+                    return name, int(np.argmax(bad))
+            return None
+
+        if bad_rows(T) is None:
+            return
+        for t in range(1, T + 1):
+            hit = bad_rows(t)
+            if hit is not None:
+                name, p = hit
+                raise MPMDivergenceError(
+                    f"{name} became non-finite (NaN/Inf or |{name}| > {_BLOWUP:g}) at substep "
+                    f"{t - 1} (particle {p})")
