@@ -176,8 +176,11 @@ class MPMSolver:
         xg = (xp - self._lo) * self._inv_dx
         base = ti.floor(xg - 0.5, ti.i32)
         fx = xg - ti.cast(base, self.dtype)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        dw = [(fx - 1.5) * self._inv_dx, -2.0 * (fx - 1.0) * self._inv_dx, (fx - 0.5) * self._inv_dx]
+        # rows: stencil offset 0..2, columns: axis (dynamic loops over the 27 nodes keep the
+        # kernels small to compile)
+        w = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
+        dw = ti.Matrix.rows([(fx - 1.5) * self._inv_dx, -2.0 * (fx - 1.0) * self._inv_dx,
+                             (fx - 0.5) * self._inv_dx])
         return base, fx, w, dw
 
     @ti.func
@@ -204,10 +207,10 @@ class MPMSolver:
             base, fx, w, dw_unused = self._stencil(xp)
             A, Fe_unused = self._affine(t, p)
             mom = self.mass[p] * (1.0 - self.cfg.dt * self.cfg.drag) * self.v[t, p]
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
                 dpos = (ti.cast(off, self.dtype) - fx) * self._dx
-                wt = w[i][0] * w[j][1] * w[k][2]
+                wt = w[i, 0] * w[j, 1] * w[k, 2]
                 self.grid_mv[base + off] += wt * (mom + A @ dpos)
                 self.grid_m[base + off] += wt * self.mass[p]
 
@@ -240,10 +243,10 @@ class MPMSolver:
             base, fx, w, dw_unused = self._stencil(xp)
             nv = ti.Vector.zero(self.dtype, 3)
             nC = ti.Matrix.zero(self.dtype, 3, 3)
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
                 dpos = (ti.cast(off, self.dtype) - fx) * self._dx
-                wt = w[i][0] * w[j][1] * w[k][2]
+                wt = w[i, 0] * w[j, 1] * w[k, 2]
                 gv = self.grid_v[base + off]
                 nv += wt * gv
                 nC += (4.0 * self._inv_dx * self._inv_dx * wt) * gv.outer_product(dpos)
@@ -259,8 +262,8 @@ class MPMSolver:
         """m_I = sum_p w_Ip m_p of x_T (the physmorph.grid.splat_mass transfer)."""
         for p in range(self.n):
             base, fx, w, dw_unused = self._stencil(self.x[self.cfg.substeps, p])
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                self.grid_m[base + ti.Vector([i, j, k])] += w[i][0] * w[j][1] * w[k][2] * self.mass[p]
+            for i, j, k in ti.ndrange(3, 3, 3):
+                self.grid_m[base + ti.Vector([i, j, k])] += w[i, 0] * w[j, 1] * w[k, 2] * self.mass[p]
 
     @ti.kernel
     def _mass_loss(self, log_eps: ti.f64):
@@ -287,9 +290,9 @@ class MPMSolver:
         for p in range(self.n):
             base, fx, w, dw = self._stencil(self.x[T, p])
             g = ti.Vector.zero(self.dtype, 3)
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                gw = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])
+            for i, j, k in ti.ndrange(3, 3, 3):
+                gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
+                                w[i, 0] * w[j, 1] * dw[k, 2]])
                 g += gw * (self.mass[p] * self.grid_m_adj[base + ti.Vector([i, j, k])])
             self.x_adj[p] += g
 
@@ -320,12 +323,12 @@ class MPMSolver:
             Cbar = self.C_adj[p] + dt * Fbar_new @ Fo.transpose()
             vbar = self.v_adj[p] + dt * xbar_n
             xbar = xbar_n
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
                 dpos = (ti.cast(off, self.dtype) - fx) * self._dx
-                wt = w[i][0] * w[j][1] * w[k][2]
-                gw = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])
+                wt = w[i, 0] * w[j, 1] * w[k, 2]
+                gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
+                                w[i, 0] * w[j, 1] * dw[k, 2]])
                 gv = self.grid_v[base + off]
                 Cd = Cbar @ dpos
                 self.grid_v_adj[base + off] += wt * (vbar + kq * Cd)
@@ -369,12 +372,12 @@ class MPMSolver:
             vbar = ti.Vector.zero(self.dtype, 3)
             Abar = ti.Matrix.zero(self.dtype, 3, 3)
             xbar = ti.Vector.zero(self.dtype, 3)
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
                 dpos = (ti.cast(off, self.dtype) - fx) * self._dx
-                wt = w[i][0] * w[j][1] * w[k][2]
-                gw = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])
+                wt = w[i, 0] * w[j, 1] * w[k, 2]
+                gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
+                                w[i, 0] * w[j, 1] * dw[k, 2]])
                 mvb = self.grid_mv_adj[base + off]
                 mb = self.grid_m_adj[base + off]
                 vbar += wt * mvb
