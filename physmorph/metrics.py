@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
+# The tables `snakemake tables` writes (physmorph.tables builds them).
+TABLE_NAMES = ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing")
+
 
 def matched_convergence_frame(baseline: np.ndarray, fraction: float = 0.9) -> int:  # baseline [K+1]
     a = np.asarray(baseline, dtype=float)

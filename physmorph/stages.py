@@ -54,3 +54,9 @@ def morph_stage(config: dict, name: str, particles_h5: str, target_h5: str, outp
     mcfg = morph_config(cfg, name)
     record = {"experiment": experiment(cfg, name), "morph": mcfg.to_dict()}
     return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record)
+
+
+def tables_stage(names: list[str], runs: list[str], out_dir: str) -> dict:
+    from physmorph.tables import build_tables
+
+    return build_tables(dict(zip(names, runs)), out_dir)

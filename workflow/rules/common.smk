@@ -2,6 +2,7 @@
 from physmorph.config import SamplingConfig, validate_config, experiment, shape_entry
 
 PM = validate_config(config)
+from physmorph.metrics import TABLE_NAMES as TABLES
 RES = SamplingConfig.from_config(PM).tag
 
 
@@ -27,4 +28,5 @@ def table_inputs():
         exp = experiment(PM, name)
         shapes.update([exp["source"], exp["target"]])
     runs = [f"results/runs/{name}.h5" for name in PM["tables"].get("experiments", [])]
-    return [p for s in sorted(shapes) for p in shape_data(s)] + runs
+    tables = [f"results/tables/{t}.md" for t in TABLES] if runs else []
+    return [p for s in sorted(shapes) for p in shape_data(s)] + runs + tables

@@ -1,0 +1,140 @@
+"""The paper's tables from run files: CSV, Markdown and LaTeX, with the paper's figures beside ours.
+
+Each table reads experiments by name (the names of config/config.yaml). An experiment that was
+not run in this profile shows as empty cells, so a partial profile still produces every table.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
+                               rebound_percent, spread)
+from physmorph.morph import read_metrics
+
+
+# The paper's figures (SPEC.md section 5).
+PAPER_MAIN = {"bunny": (0.0799, 0.0593, 25.8), "cow": (0.0777, 0.0694, 10.8), "duck": (0.0689, 0.0345, 49.9)}
+PAPER_COMPONENTS = {"iso_bunny_physics_only_d05": (0.1152, 93.8), "iso_bunny_f_inject_d05": (0.1043, 95.8),
+                    "iso_bunny_full_d05": (0.1040, 95.9)}
+PAPER_DRAG = {"iso_bunny_physics_only": (0.0609, 0.0741), "iso_bunny_full_d05": (0.0735, 0.0786),
+              "iso_bunny_full": (0.0546, 0.0637)}
+PAPER_SOURCES = {"iso_bunny_full": 0.0546, "cow_bunny_full": 0.0460, "duck_bunny_full": 0.0558}
+SHAPE_RUNS = ("duck_cow_full", "cow_bunny_full", "cow_duck_full", "iso_A_full", "cow_S_full", "duck_C_full")
+
+
+def _load(runs: dict[str, str | Path]) -> dict[str, dict]:
+    return {name: read_metrics(path) for name, path in runs.items() if path is not None and Path(path).exists()}
+
+
+def main_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = []
+    for target, (p_phys, p_ours, p_imp) in PAPER_MAIN.items():
+        phys, full = m.get(f"iso_{target}_physics_only"), m.get(f"iso_{target}_full")
+        row = {"target": target, "paper_physics_only": p_phys, "paper_ours": p_ours, "paper_improvement_%": p_imp}
+        if phys is not None and full is not None:
+            k = min(matched_convergence_frame(phys["alpha_mse"]), len(full["alpha_mse"]) - 1)
+            a, b = phys["alpha_mse"][k], full["alpha_mse"][k]
+            row.update(frame=k, physics_only=a, ours=b, **{"improvement_%": improvement_percent(a, b)})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def components_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = []
+    for name, (p_a, p_e) in PAPER_COMPONENTS.items():
+        row = {"experiment": name, "paper_alpha_mse": p_a, "paper_delta_E_%": p_e}
+        if name in m:
+            r = m[name]
+            phys = r["physics_loss"]
+            row.update(alpha_mse=r["alpha_mse"][-1], **{"delta_E_%": delta_e_percent(r["physics_loss_initial"][1], phys[-1])})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def drag_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = []
+    for name, (p_best, p_final) in PAPER_DRAG.items():
+        row = {"experiment": name, "paper_best": p_best, "paper_final": p_final}
+        if name in m:
+            a = m[name]["alpha_mse"]
+            row.update(best=float(np.nanmin(a)), final=float(a[-1]))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def source_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = [{"experiment": n, "paper_best": p, "best": float(np.nanmin(m[n]["alpha_mse"])) if n in m else np.nan}
+            for n, p in PAPER_SOURCES.items()]
+    df = pd.DataFrame(rows)
+    for col in ("paper_best", "best"):
+        vals = df[col].dropna().to_numpy()
+        s = spread(vals) if len(vals) > 1 else {"mean": np.nan, "std": np.nan, "cv_percent": np.nan}
+        df.loc[len(df)] = {"experiment": f"{col}: mean / std / cv%", col: np.nan}
+        df.loc[len(df) - 1, col] = f"{s['mean']:.4f} / {s['std']:.4f} / {s['cv_percent']:.1f}"
+    return df
+
+
+def plasticity_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = []
+    for name, label in (("iso_bunny_full", "with plasticity"), ("iso_bunny_f_inject", "without plasticity")):
+        row = {"experiment": name, "variant": label, "paper_rebound_%": "< 8" if label == "with plasticity" else ""}
+        if name in m:
+            a = m[name]["alpha_mse"]
+            row.update(best=float(np.nanmin(a)), final=float(a[-1]), **{"rebound_%": rebound_percent(a)})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def shapes_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = []
+    for name in SHAPE_RUNS:
+        row = {"experiment": name}
+        if name in m:
+            r = m[name]
+            v = r["total_volume"]
+            row.update(best=float(np.nanmin(r["alpha_mse"])), final=float(r["alpha_mse"][-1]),
+                       **{"volume_change_%": 100.0 * (v[-1] - v[0]) / v[0]})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def timing_table(m: dict[str, dict]) -> pd.DataFrame:
+    rows = []
+    for name, r in sorted(m.items()):
+        frames = slice(1, None)
+        rows.append({"experiment": name, "frames": len(r["alpha_mse"]) - 1, "status": str(r["attrs"].get("status", "")),
+                     "physics_s": float(np.nanmean(r["t_physics"][frames])), "render_s": float(np.nanmean(r["t_render"][frames])),
+                     "plasticity_s": float(np.nanmean(r["t_plasticity"][frames])), "mask_s": float(np.nanmean(r["t_mask"][frames])),
+                     "frame_s": float(np.nanmean(r["t_frame"][frames])), "peak_rss_mb": float(r["attrs"].get("peak_rss_mb", np.nan)),
+                     "particles": int(r["attrs"].get("n_particles", 0))})
+    return pd.DataFrame(rows)
+
+
+def build_tables(runs: dict[str, str | Path], out_dir: str | Path) -> dict[str, pd.DataFrame]:
+    """Write every table as results/tables/{name}.csv, .md and .tex; returns the DataFrames."""
+    m = _load(runs)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tables = {"main": main_table(m), "ablation_components": components_table(m), "ablation_drag": drag_table(m),
+              "source_invariance": source_table(m), "plasticity": plasticity_table(m), "shapes": shapes_table(m),
+              "timing": timing_table(m)}
+    for name, df in tables.items():
+        df.to_csv(out / f"{name}.csv", index=False)
+        (out / f"{name}.md").write_text(_markdown(df))
+        (out / f"{name}.tex").write_text(df.to_latex(index=False, float_format="%.4g", na_rep="--"))
+    return tables
+
+
+def _markdown(df: pd.DataFrame) -> str:
+    """A GitHub table without the optional tabulate dependency."""
+    def fmt(v):
+        if isinstance(v, float):
+            return "" if np.isnan(v) else f"{v:.4g}"
+        return str(v)
+    lines = ["| " + " | ".join(map(str, df.columns)) + " |", "|" + "---|" * len(df.columns)]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join(lines) + "\n"
