@@ -35,8 +35,8 @@ def torch_dtype(cfg: RenderConfig) -> torch.dtype:
 
 
 def _check_inputs(x: np.ndarray, F: np.ndarray, sigma0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    x = np.asarray(x, dtype=np.float64)
-    F = np.asarray(F, dtype=np.float64)
+    x = np.array(x, dtype=np.float64)  # copies: callers may pass read-only or broadcast views
+    F = np.array(F, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"x must be [N, 3], got {x.shape}")
     if F.shape != (x.shape[0], 3, 3):
