@@ -83,16 +83,22 @@ def project_gaussians(x: torch.Tensor, cov3d: torch.Tensor, cams: CameraTensors,
     w, h = float(cams.width), float(cams.height)
     tx_c = torch.minimum(torch.maximum(tx, (-_JACOBIAN_MARGIN * w - cx) / fx), ((1 + _JACOBIAN_MARGIN) * w - cx) / fx)
     ty_c = torch.minimum(torch.maximum(ty, (-_JACOBIAN_MARGIN * h - cy) / fy), ((1 + _JACOBIAN_MARGIN) * h - cy) / fy)
-    zero = torch.zeros_like(z)
-    jac = torch.stack([
-        torch.stack([fx / z_safe, zero, -fx * tx_c / z_safe], dim=-1),
-        torch.stack([zero, fy / z_safe, -fy * ty_c / z_safe], dim=-1),
-    ], dim=-2)  # [V, N, 2, 3]
-    m = jac @ rot[:, None, :, :]  # J W, [V, N, 2, 3]
-    cov2d = m @ cov3d[None] @ m.transpose(-1, -2)  # [V, N, 2, 2]
-    a = cov2d[..., 0, 0] + cfg.low_pass
-    b = cov2d[..., 0, 1]
-    c = cov2d[..., 1, 1] + cfg.low_pass
+    # Rows of J W (2 x 3 per entry), written out elementwise: batched 2x3 matmuls are slow on CPU.
+    r0, r1, r2 = (rot[:, None, i, :] for i in range(3))  # each [V, 1, 3]
+    m0 = (fx / z_safe)[..., None] * (r0 - tx_c[..., None] * r2)  # [V, N, 3]
+    m1 = (fy / z_safe)[..., None] * (r1 - ty_c[..., None] * r2)
+    s00, s01, s02 = cov3d[:, 0, 0], cov3d[:, 0, 1], cov3d[:, 0, 2]
+    s11, s12, s22 = cov3d[:, 1, 1], cov3d[:, 1, 2], cov3d[:, 2, 2]
+
+    def quad(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:  # p^T Sigma q, [V, N]
+        px, py, pz = p.unbind(-1)
+        qx, qy, qz = q.unbind(-1)
+        return (px * (s00 * qx + s01 * qy + s02 * qz) + py * (s01 * qx + s11 * qy + s12 * qz)
+                + pz * (s02 * qx + s12 * qy + s22 * qz))
+
+    a = quad(m0, m0) + cfg.low_pass  # Sigma2D = (J W) Sigma (J W)^T + low_pass I
+    b = quad(m0, m1)
+    c = quad(m1, m1) + cfg.low_pass
     det = a * c - b * b
     # det >= low_pass^2 > 0 for any PSD cov2d; the clamp only guards low_pass = 0 with a singular Sigma.
     det = torch.clamp(det, min=torch.finfo(det.dtype).tiny ** 0.5)

@@ -56,12 +56,13 @@ def bin_gaussians(means2d: torch.Tensor, half_extent: torch.Tensor, depth: torch
         rank[torch.argsort(depth.reshape(-1)[ids], stable=True)] = torch.arange(ids.numel(), device=device)
         owner = torch.repeat_interleave(torch.arange(ids.numel(), device=device), counts)  # [M]
         first = torch.cumsum(counts, 0) - counts
-        local = torch.arange(owner.numel(), device=device) - first[owner]
-        tx = x0[owner] + local % span_x[owner]
-        ty = y0[owner] + local // span_x[owner]
-        view = ids[owner] // n
-        tile_id = (view * tiles_y + ty) * tiles_x + tx
-        key = tile_id * ids.numel() + rank[owner]
+        first_tile = (ids // n * tiles_y + y0) * tiles_x + x0
+        # One gather of everything a pair needs from its owner (gathers dominate on CPU).
+        packed = torch.stack([first, span_x, first_tile, rank], dim=1)[owner]  # [M, 4]
+        local = torch.arange(owner.numel(), device=device) - packed[:, 0]
+        row = torch.div(local, packed[:, 1], rounding_mode="floor")
+        tile_id = packed[:, 2] + row * tiles_x + (local - row * packed[:, 1])
+        key = tile_id * ids.numel() + packed[:, 3]
         order = torch.argsort(key)
         point_list = ids[owner[order]].to(torch.int32)
         per_tile = torch.bincount(tile_id, minlength=n_tiles_total)
