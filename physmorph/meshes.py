@@ -300,8 +300,38 @@ def remesh_winding_number(mesh: trimesh.Trimesh, resolution: int = 64, exact_bud
 
 
 def _enclosed_volume(mesh: trimesh.Trimesh) -> float:
-    """Divergence-theorem volume; for a nearly closed mesh (small holes) still a good estimate."""
-    return float(abs(mesh.volume)) if len(mesh.faces) else 0.0
+    """Volume enclosed by the mesh with every open boundary loop capped by a fan to its centroid.
+
+    For a closed mesh this is the divergence-theorem volume sum_f det[v0, v1, v2] / 6. An open
+    mesh's plain sum depends on the origin; capping each hole (as a repair would) makes it the
+    well-defined reference the repaired volume is checked against.
+    """
+    if len(mesh.faces) == 0:
+        return 0.0
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int64)
+    volume = float(np.einsum("fi,fi->f", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])  # [3F, 2] oriented edges
+    key = np.sort(directed, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = directed[counts[inverse.reshape(-1)] == 1]  # [B, 2] edges used by one face only
+    if len(boundary):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        n = len(v)
+        graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        loop = label[boundary[:, 0]]
+        sums = np.zeros((label.max() + 1, 3))
+        cnt = np.zeros(label.max() + 1)
+        np.add.at(sums, loop, v[boundary[:, 0]])
+        np.add.at(cnt, loop, 1.0)
+        centre = sums[loop] / cnt[loop][:, None]  # [B, 3] centroid of each edge's loop
+        # Cap triangle (v1, v0, c) runs the boundary edge opposite to its face, as a closed surface needs.
+        p0, p1 = v[boundary[:, 1]], v[boundary[:, 0]]
+        volume += float(np.einsum("bi,bi->b", p0, np.cross(p1, centre)).sum() / 6.0)
+    return abs(volume)
 
 
 def repair_mesh(
@@ -318,21 +348,23 @@ def repair_mesh(
     """
     if len(mesh.faces) == 0:
         raise MeshError(f"{label}: mesh is empty (no faces)")
-    raw_volume = _enclosed_volume(mesh)
     extent = float(np.max(mesh.extents))
     if not extent > 0 or np.min(mesh.extents) <= 1e-9 * extent:
-        raise MeshError(f"{label}: mesh is flat (bounding box extents {mesh.extents.tolist()}), it encloses no volume")
-    if raw_volume <= 1e-4 * extent ** 3:
-        raise MeshError(
-            f"{label}: irreparable, the raw mesh encloses no volume ({raw_volume:.3g} for a bounding box "
-            f"{np.round(mesh.extents, 4).tolist()}); it is not the surface of a solid"
-        )
+        raise MeshError(f"{label}: irreparable, mesh is flat (bounding box extents {mesh.extents.tolist()}), it encloses no volume")
     steps: list[str] = []
     m = mesh.copy()
     n_before = len(m.vertices)
     m.merge_vertices(merge_tex=True, merge_norm=True)
     if len(m.vertices) < n_before:
         steps.append(f"merge_vertices: {n_before} -> {len(m.vertices)} vertices")
+    # Measured after merging: UV-seam splits are open boundaries in the raw file, not holes, and
+    # capping them would distort the reference volume. Merging moves no vertex.
+    raw_volume = _enclosed_volume(m)
+    if raw_volume <= 1e-4 * extent ** 3:
+        raise MeshError(
+            f"{label}: irreparable, the raw mesh encloses no volume ({raw_volume:.3g} for a bounding box "
+            f"{np.round(mesh.extents, 4).tolist()}); it is not the surface of a solid"
+        )
     n_before = len(m.faces)
     m.update_faces(m.nondegenerate_faces())
     m.update_faces(m.unique_faces())

@@ -37,9 +37,9 @@ def particle_preview(
     centre, half = 0.5 * (lim_lo + lim_hi), 0.55 * float(np.max(lim_hi - lim_lo) + 1e-9)
     fig, axes = plt.subplots(1, 3, figsize=(9, 3.3), dpi=80)
     for ax, (h, v, name) in zip(axes, _VIEWS):
-        # Interior first so the shell, which is what gets rendered, is drawn on top.
-        for mask, colour, label in ((~is_surface, INTERIOR_COLOUR, "interior"), (is_surface, SHELL_COLOUR, "shell")):
-            ax.scatter(x[mask, h], x[mask, v], s=0.5, c=colour, alpha=0.5, linewidths=0, label=label)
+        # Interior on top: in projection the shell covers everything, so the core would be hidden.
+        for mask, colour, label, size in ((is_surface, SHELL_COLOUR, "shell", 0.5), (~is_surface, INTERIOR_COLOUR, "interior", 1.5)):
+            ax.scatter(x[mask, h], x[mask, v], s=size, c=colour, alpha=0.5, linewidths=0, label=label)
         ax.set_xlim(centre[h] - half, centre[h] + half)
         ax.set_ylim(centre[v] - half, centre[v] + half)
         ax.set_aspect("equal")
