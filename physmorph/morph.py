@@ -52,8 +52,8 @@ class MorphDivergenceError(RuntimeError):
 class MorphConfig:
     method: str = "full"
     frames: int = 30
-    gamma: float = 0.1  # render-F gain
-    gamma_x: float = 0.1  # render-x gain (position_inject only)
+    gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
+    gamma_x: float = 0.1  # render-x gain (position_inject only), relative
     cameras: int | None = None  # use the first n of the target's cameras (None: all)
     save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
     metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
@@ -168,6 +168,28 @@ def _restore_optimizer_state(solver: MPMSolver, data: dict) -> None:
     solver._adam_step = int(data["adam_step"])
 
 
+def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None, g_x: np.ndarray | None) -> float:
+    """Scale c such that the injected adjoint's dFc gradient has norm gamma x the mass loss's.
+
+    The paper injects gamma * dL_render/dF with gamma = 0.1 in its own code's loss units, which
+    we do not share (our mass loss is in kg^2, our DT loss is per pixel and per image height).
+    To make gamma mean the same thing at every resolution we calibrate once, at the first frame
+    that has a render gradient: both adjoints are pulled back to dFc through the same rollout
+    (backward is linear in the injected adjoint) and c = gamma |grad_mass| / |grad_inject|.
+    The run then injects c * g for every later frame (c is stored in the run file).
+    """
+    solver.forward()
+    solver.backward(None, None)
+    g_mass = solver.control_gradient()
+    # The injected part alone (a difference of the two would drown in float32 round-off).
+    solver.backward(g_F, g_x, include_mass_loss=False)
+    g_inj = solver.control_gradient()
+    n_mass, n_inj = float(np.linalg.norm(g_mass)), float(np.linalg.norm(g_inj))
+    if not (n_inj > 0 and np.isfinite(n_inj) and np.isfinite(n_mass)):
+        return 0.0
+    return gamma * n_mass / n_inj
+
+
 def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
               name: str = "", config_record: dict | None = None, log=None) -> dict:
     """Run (or resume) one morph experiment; returns a summary dict. See the module docstring."""
@@ -226,7 +248,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         m, per_view = metrics_for(st, mask)
         # Frame 0's physics loss is that of the unmoved source.
         run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
-                                              **_solver_optimizer_state(solver)})
+                                              "injection_scale": float("nan"), **_solver_optimizer_state(solver)})
         start = 1
     else:
         st = ParticleState(**{k: ck[k] for k in ("x", "v", "F", "C", "Fp", "mass", "volume")})
@@ -235,6 +257,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         start = resumed_from + 1
         log(f"[{name}] resuming after frame {resumed_from}/{cfg.frames}")
 
+    scale = float(ck["injection_scale"]) if resumed_from is not None else float("nan")
     inject_F = cfg.method in ("f_inject", "full")
     inject_x = cfg.method == "position_inject"
     want_grad = inject_F or inject_x
@@ -245,8 +268,13 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         # A. physics
         solver.load_state(st)
         try:
-            stats = solver.optimize_control(grad_F_final=cfg.gamma * g_F if inject_F else None,
-                                            grad_x_final=cfg.gamma_x * g_x if inject_x else None)
+            if want_grad and np.isnan(scale) and (np.any(g_F) or np.any(g_x)):
+                scale = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,
+                                            g_F if inject_F else None, g_x if inject_x else None)
+                log(f"[{name}] injection scale calibrated at frame {k}: {scale:.4g}")
+            c = 0.0 if np.isnan(scale) else scale
+            stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
+                                            grad_x_final=c * g_x if inject_x else None)
             new = solver.state_at(cfg.mpm.substeps)
             _check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:
@@ -289,7 +317,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
         run.append(k, scal, per_view, st, save, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
-                                                  **_solver_optimizer_state(solver)})
+                                                  "injection_scale": scale, **_solver_optimizer_state(solver)})
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)
@@ -298,6 +326,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
                 f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s")
     with h5py.File(partial, "a") as f:
         f.attrs["status"] = status
+        f.attrs["injection_scale"] = scale
         write_provenance(f, json.loads(record), started)
         f.attrs["peak_rss_mb"] = max(float(f.attrs.get("peak_rss_mb", 0.0)), peak_rss_mb())
     os.replace(partial, out_h5)
@@ -330,9 +359,13 @@ def _build(cls, section: dict | None, where: str):
     unknown = sorted(set(section) - names)
     if unknown:
         raise ValueError(f"config key '{where}.{unknown[0]}': unknown key (allowed: {', '.join(sorted(names))})")
+    types = {f.name: str(f.type) for f in fields(cls)}
     for k, v in section.items():
         if isinstance(v, list):
             section[k] = tuple(v)
+        # YAML 1.1 reads "1.4e5" (no dot, no sign) as a string: name the key instead of failing later.
+        if types[k].startswith(("float", "int")) and (isinstance(v, (str, bool))):
+            raise ValueError(f"config key '{where}.{k}': expected a number, got {v!r}")
     try:
         return cls(**section)
     except (TypeError, ValueError) as exc:
@@ -374,8 +407,11 @@ def morph_config(cfg: dict, experiment_name: str) -> MorphConfig:
 
 
 def _build_plain(morph: dict) -> dict:
-    allowed = {f.name for f in fields(MorphConfig)} - {"mpm", "render", "plasticity", "surface"}
-    unknown = sorted(set(morph) - allowed)
+    types = {f.name: str(f.type) for f in fields(MorphConfig) if f.name not in ("mpm", "render", "plasticity", "surface")}
+    unknown = sorted(set(morph) - set(types))
     if unknown:
-        raise ValueError(f"config key 'morph.{unknown[0]}': unknown key (allowed: {', '.join(sorted(allowed))})")
+        raise ValueError(f"config key 'morph.{unknown[0]}': unknown key (allowed: {', '.join(sorted(types))})")
+    for k, v in morph.items():
+        if types[k].startswith(("float", "int")) and isinstance(v, (str, bool)):
+            raise ValueError(f"config key 'morph.{k}': expected a number, got {v!r}")
     return morph

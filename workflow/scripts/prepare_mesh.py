@@ -1,4 +1,3 @@
 from physmorph.stages import prepare_mesh_stage
 
-raw = snakemake.input.raw
-prepare_mesh_stage(snakemake.wildcards.shape, snakemake.params.spec, raw[0] if len(raw) else None, snakemake.output[0])
+prepare_mesh_stage(snakemake.wildcards.shape, snakemake.params.spec, next(iter(snakemake.input), None), snakemake.output[0])
