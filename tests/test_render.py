@@ -89,11 +89,13 @@ def test_projection_of_point_matches_cameras_project():
 # Tile rasterizer vs dense reference
 
 
+@pytest.mark.parametrize("kernel", ["tile", "pixel"])
 @pytest.mark.parametrize("dtype,tol", [("float64", 1e-10), ("float32", 2e-4)])
-def test_tile_rasterizer_matches_dense_forward_and_backward(dtype, tol):
-    """Default thresholds (3-sigma cutoff, 1/255, 0.99 clamp, early stop): tile path == dense path."""
+def test_tile_rasterizer_matches_dense_forward_and_backward(dtype, tol, kernel):
+    """Default thresholds (3-sigma cutoff, 1/255, 0.99 clamp, early stop): tile path == dense path,
+    for both loop orders of the rasterizer."""
     cams = small_cameras(3, width=37, height=29)  # not a multiple of the tile size
-    cfg = RenderConfig(dtype=dtype, tile_size=8)
+    cfg = RenderConfig(dtype=dtype, tile_size=8, kernel=kernel)
     x, F = random_scene(40, 3, spread=2.0)
     F[0] *= 4.0  # one big Gaussian spanning many tiles
     x[1] = [0.0, 0.0, 0.0]
@@ -118,9 +120,30 @@ def test_tile_rasterizer_matches_dense_forward_and_backward(dtype, tol):
                                    atol=50 * tol)
 
 
-def test_multichannel_backward_equals_single_channel_calls():
+def test_tile_and_pixel_kernels_agree_on_a_dense_scene():
+    """Many overlapping Gaussians so early termination (T < 1e-4) is active in most pixels."""
+    cams = small_cameras(2, width=64, height=48)
+    x = fibonacci_sphere(2000, 2.0)
+    F = np.eye(3) + 0.2 * np.random.default_rng(11).normal(size=(2000, 3, 3))
+    out = {}
+    for kernel in ("tile", "pixel"):
+        cfg = RenderConfig(dtype="float64", kernel=kernel)
+        xt, Ft, ct, _ = torch_scene(x, F, 0.12, cams, cfg, requires_grad=False)
+        sp = splat(xt, Ft, torch.tensor(0.12, dtype=torch.float64), ct, cfg)
+        t_final, dacc, last = composite_forward(sp.params, sp.bins, 2, cams.height, cams.width, cfg)
+        g = torch.rand(2, 2, 2, cams.height, cams.width, dtype=torch.float64,
+                       generator=torch.Generator().manual_seed(2))
+        grad = composite_backward(sp.params, sp.bins, t_final, last, g[:, 0], g[:, 1], cfg)
+        out[kernel] = (t_final, dacc, last, grad)
+    assert float(out["tile"][0].min()) < 1e-4  # early termination happened
+    for a, b in zip(out["tile"], out["pixel"]):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", ["tile", "pixel"])
+def test_multichannel_backward_equals_single_channel_calls(kernel):
     cams = small_cameras(2)
-    cfg = RenderConfig(dtype="float64", tile_size=8)
+    cfg = RenderConfig(dtype="float64", tile_size=8, kernel=kernel)
     x, F = random_scene(15, 4)
     xt, Ft, ct, _ = torch_scene(x, F, 0.3, cams, cfg, requires_grad=False)
     sp = splat(xt, Ft, torch.tensor(0.3, dtype=torch.float64), ct, cfg)

@@ -33,6 +33,10 @@ class RenderConfig:
     depth_min_alpha: the depth loss only uses pixels whose rendered alpha exceeds this (the
         expected depth D / alpha is meaningless where almost nothing is rendered).
     dtype: float type of the renderer ("float32" for speed, "float64" for gradient checks).
+    kernel: "auto" | "tile" | "pixel": the rasterizer's loop order. "tile" (Gaussian-major, one
+        thread per tile, only the pixels in each Gaussian's cutoff box) is faster on CPU;
+        "pixel" (one thread per pixel, as 3DGS) suits CUDA; "auto" picks by device. Both give
+        the same result.
     device: "auto" | "cpu" | "cuda" (torch tensors and Taichi kernels).
     """
 
@@ -47,6 +51,7 @@ class RenderConfig:
     depth_fraction: float = 0.25
     depth_min_alpha: float = 0.1
     dtype: str = "float32"
+    kernel: str = "auto"
     device: str = "cpu"
 
     def __post_init__(self) -> None:
@@ -68,6 +73,8 @@ class RenderConfig:
             raise ValueError("iou_fraction and depth_fraction must be >= 0")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be float32 or float64, got {self.dtype!r}")
+        if self.kernel not in ("auto", "tile", "pixel"):
+            raise ValueError(f"kernel must be auto, tile or pixel, got {self.kernel!r}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 

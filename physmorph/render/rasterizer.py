@@ -138,6 +138,159 @@ def _composite_backward(
                         suffix += a * trans * z
 
 
+@ti.func
+def _box_range(centre, half, lo: ti.i32, hi: ti.i32, dtype: ti.template()):
+    """Pixels [first, last] of [lo, hi] whose centres may lie within centre +- half (one pixel of
+    slack so rounding can never drop a pixel the exact cutoff test would keep)."""
+    first = ti.cast(ti.floor(ti.max(centre - half - ti.cast(1.5, dtype), ti.cast(lo, dtype))), ti.i32)
+    last = ti.cast(ti.floor(ti.min(centre + half + ti.cast(0.5, dtype), ti.cast(hi, dtype))), ti.i32)
+    return first, last
+
+
+@ti.kernel
+def _composite_forward_tiles(
+    gauss: ti.types.ndarray(),  # [V*N, 6]
+    half: ti.types.ndarray(),  # [V*N, 2] half extent of the cutoff box (pixels)
+    point_list: ti.types.ndarray(),
+    tile_ranges: ti.types.ndarray(),
+    t_final: ti.types.ndarray(),  # [V, H, W] out
+    depth_acc: ti.types.ndarray(),  # [V, H, W] out
+    last: ti.types.ndarray(),  # [V, H, W] out
+    tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32,
+    opacity: ti.f64, alpha_min: ti.f64, alpha_max: ti.f64, power_min: ti.f64, t_min: ti.f64,
+    dtype: ti.template(),
+):
+    """Same compositing as _composite_forward, Gaussian-major inside a tile (CPU): one thread
+    per tile walks the tile's list front to back and only visits the pixels inside each
+    Gaussian's cutoff box, keeping per-pixel T and D in the output arrays."""
+    n_views, height, width = t_final.shape[0], t_final.shape[1], t_final.shape[2]
+    for v, t in ti.ndrange(n_views, tiles_x * tiles_y):
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * tile
+        y0 = ty * tile
+        x1 = ti.min(x0 + tile, width) - 1
+        y1 = ti.min(y0 + tile, height) - 1
+        gid = (v * tiles_y + ty) * tiles_x + tx
+        start = tile_ranges[gid, 0]
+        end = tile_ranges[gid, 1]
+        for py, px in ti.ndrange((y0, y1 + 1), (x0, x1 + 1)):
+            t_final[v, py, px] = ti.cast(1.0, dtype)
+            depth_acc[v, py, px] = ti.cast(0.0, dtype)
+            last[v, py, px] = start
+        remaining = (x1 - x0 + 1) * (y1 - y0 + 1)  # pixels not yet terminated
+        for k in range(start, end):
+            if remaining == 0:
+                break
+            g = point_list[k]
+            mu_u = gauss[g, 0]
+            mu_v = gauss[g, 1]
+            qa = gauss[g, 2]
+            qb = gauss[g, 3]
+            qc = gauss[g, 4]
+            z = gauss[g, 5]
+            u_first, u_last = _box_range(mu_u, half[g, 0], x0, x1, dtype)
+            v_first, v_last = _box_range(mu_v, half[g, 1], y0, y1, dtype)
+            for py in range(v_first, v_last + 1):
+                dv = mu_v - (ti.cast(py, dtype) + ti.cast(0.5, dtype))
+                for px in range(u_first, u_last + 1):
+                    du = mu_u - (ti.cast(px, dtype) + ti.cast(0.5, dtype))
+                    power = -ti.cast(0.5, dtype) * (qa * du * du + qc * dv * dv) - qb * du * dv
+                    if power >= ti.cast(power_min, dtype):
+                        a = ti.min(ti.cast(alpha_max, dtype), ti.cast(opacity, dtype) * ti.exp(power))
+                        trans = t_final[v, py, px]
+                        if a >= ti.cast(alpha_min, dtype) and trans >= ti.cast(t_min, dtype):
+                            depth_acc[v, py, px] += a * trans * z
+                            trans *= ti.cast(1.0, dtype) - a
+                            t_final[v, py, px] = trans
+                            last[v, py, px] = k + 1
+                            if trans < ti.cast(t_min, dtype):
+                                remaining -= 1
+
+
+@ti.kernel
+def _composite_backward_tiles(
+    gauss: ti.types.ndarray(),  # [V*N, 6]
+    half: ti.types.ndarray(),  # [V*N, 2]
+    point_list: ti.types.ndarray(),
+    tile_ranges: ti.types.ndarray(),
+    t_final: ti.types.ndarray(),  # [V, H, W]
+    last: ti.types.ndarray(),  # [V, H, W]
+    grad_alpha: ti.types.ndarray(),  # [C, V, H, W]
+    grad_depth_acc: ti.types.ndarray(),  # [C, V, H, W]
+    trans_scratch: ti.types.ndarray(),  # [V, H, W] per-pixel T while walking back
+    suffix_scratch: ti.types.ndarray(),  # [V, H, W] per-pixel S while walking back
+    grad_gauss: ti.types.ndarray(),  # [C, V*N, 6] out (accumulated)
+    tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32,
+    opacity: ti.f64, alpha_min: ti.f64, alpha_max: ti.f64, power_min: ti.f64,
+    n_channels: ti.template(), dtype: ti.template(),
+):
+    """Same backward as _composite_backward, Gaussian-major inside a tile (CPU): the tile's list
+    is walked back to front once; each entry's gradient is summed over the tile's pixels in
+    registers and added to the Gaussian once per tile (one atomic per entry, not per pixel)."""
+    n_views, height, width = t_final.shape[0], t_final.shape[1], t_final.shape[2]
+    for v, t in ti.ndrange(n_views, tiles_x * tiles_y):
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * tile
+        y0 = ty * tile
+        x1 = ti.min(x0 + tile, width) - 1
+        y1 = ti.min(y0 + tile, height) - 1
+        gid = (v * tiles_y + ty) * tiles_x + tx
+        start = tile_ranges[gid, 0]
+        stop = start
+        for py, px in ti.ndrange((y0, y1 + 1), (x0, x1 + 1)):
+            trans_scratch[v, py, px] = t_final[v, py, px]
+            suffix_scratch[v, py, px] = ti.cast(0.0, dtype)
+            stop = ti.max(stop, last[v, py, px])
+        for kk in range(stop - start):
+            k = stop - 1 - kk
+            g = point_list[k]
+            mu_u = gauss[g, 0]
+            mu_v = gauss[g, 1]
+            qa = gauss[g, 2]
+            qb = gauss[g, 3]
+            qc = gauss[g, 4]
+            z = gauss[g, 5]
+            acc = ti.Matrix.zero(dtype, n_channels, 6)
+            u_first, u_last = _box_range(mu_u, half[g, 0], x0, x1, dtype)
+            v_first, v_last = _box_range(mu_v, half[g, 1], y0, y1, dtype)
+            for py in range(v_first, v_last + 1):
+                dv = mu_v - (ti.cast(py, dtype) + ti.cast(0.5, dtype))
+                for px in range(u_first, u_last + 1):
+                    if k < last[v, py, px]:
+                        du = mu_u - (ti.cast(px, dtype) + ti.cast(0.5, dtype))
+                        power = -ti.cast(0.5, dtype) * (qa * du * du + qc * dv * dv) - qb * du * dv
+                        if power >= ti.cast(power_min, dtype):
+                            raw = ti.cast(opacity, dtype) * ti.exp(power)
+                            a = ti.min(ti.cast(alpha_max, dtype), raw)
+                            if a >= ti.cast(alpha_min, dtype):
+                                one_minus = ti.cast(1.0, dtype) - a
+                                trans = trans_scratch[v, py, px] / one_minus  # T_k
+                                suffix = suffix_scratch[v, py, px]
+                                da_alpha = t_final[v, py, px] / one_minus
+                                da_depth = trans * z - suffix / one_minus
+                                dz_depth = a * trans
+                                dpower_da = a if raw < ti.cast(alpha_max, dtype) else ti.cast(0.0, dtype)
+                                d_mu_u = -(qa * du + qb * dv)
+                                d_mu_v = -(qb * du + qc * dv)
+                                for c in ti.static(range(n_channels)):
+                                    ga = grad_alpha[c, v, py, px]
+                                    gd = grad_depth_acc[c, v, py, px]
+                                    gp = (ga * da_alpha + gd * da_depth) * dpower_da
+                                    acc[c, 0] += gp * d_mu_u
+                                    acc[c, 1] += gp * d_mu_v
+                                    acc[c, 2] += -ti.cast(0.5, dtype) * gp * du * du
+                                    acc[c, 3] += -gp * du * dv
+                                    acc[c, 4] += -ti.cast(0.5, dtype) * gp * dv * dv
+                                    acc[c, 5] += gd * dz_depth
+                                trans_scratch[v, py, px] = trans
+                                suffix_scratch[v, py, px] = suffix + a * trans * z
+            for c in ti.static(range(n_channels)):
+                for j in ti.static(range(6)):
+                    grad_gauss[c, g, j] += acc[c, j]
+
+
 def _ti_dtype(dtype: torch.dtype):
     return ti.f64 if dtype == torch.float64 else ti.f32
 
@@ -152,6 +305,14 @@ def ensure_runtime(cfg: RenderConfig) -> str:
     return init_taichi(resolve_device(cfg.device))
 
 
+def use_tile_kernels(cfg: RenderConfig) -> bool:
+    """Gaussian-major tile kernels on CPU (few threads, no atomics per pixel); pixel-parallel
+    kernels on CUDA (many threads), unless RenderConfig.kernel names one."""
+    if cfg.kernel != "auto":
+        return cfg.kernel == "tile"
+    return ensure_runtime(cfg) == "cpu"
+
+
 def composite_forward(params: torch.Tensor, bins: TileBins, n_views: int, height: int, width: int,
                       cfg: RenderConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """params: [V*N, 6] (detached). Returns final transmittance, accumulated depth D [V, H, W]
@@ -164,6 +325,12 @@ def composite_forward(params: torch.Tensor, bins: TileBins, n_views: int, height
     last = torch.zeros(n_views, height, width, dtype=torch.int32, device=params.device)
     if bins.pair_count > 0:
         c = _kernel_constants(cfg)
+        if use_tile_kernels(cfg):
+            _composite_forward_tiles(params, bins.half_extent, bins.point_list, bins.tile_ranges, t_final, depth_acc,
+                                     last, bins.tile_size, bins.tiles_x, bins.tiles_y, c["opacity"], c["alpha_min"],
+                                     c["alpha_max"], c["power_min"], float(cfg.transmittance_min),
+                                     _ti_dtype(params.dtype))
+            return t_final, depth_acc, last
         _composite_forward(params, bins.point_list, bins.tile_ranges, t_final, depth_acc, last,
                            bins.tile_size, bins.tiles_x, bins.tiles_y, c["opacity"], c["alpha_min"],
                            c["alpha_max"], c["power_min"], float(cfg.transmittance_min), _ti_dtype(params.dtype))
@@ -178,6 +345,16 @@ def composite_backward(params: torch.Tensor, bins: TileBins, t_final: torch.Tens
     grad = torch.zeros(grad_alpha.shape[0], params.shape[0], 6, dtype=params.dtype, device=params.device)
     if bins.pair_count > 0:
         c = _kernel_constants(cfg)
+        if use_tile_kernels(cfg):
+            _composite_backward_tiles(params, bins.half_extent, bins.point_list, bins.tile_ranges,
+                                      t_final.contiguous(), last.contiguous(),
+                                      grad_alpha.to(params.dtype).contiguous(),
+                                      grad_depth_acc.to(params.dtype).contiguous(),
+                                      torch.empty_like(t_final), torch.empty_like(t_final), grad,
+                                      bins.tile_size, bins.tiles_x, bins.tiles_y, c["opacity"], c["alpha_min"],
+                                      c["alpha_max"], c["power_min"], int(grad_alpha.shape[0]),
+                                      _ti_dtype(params.dtype))
+            return grad
         _composite_backward(params, bins.point_list, bins.tile_ranges, t_final.contiguous(), last.contiguous(),
                             grad_alpha.to(params.dtype).contiguous(), grad_depth_acc.to(params.dtype).contiguous(),
                             grad, bins.tile_size, bins.tiles_x, bins.tiles_y, c["opacity"], c["alpha_min"],

@@ -17,6 +17,7 @@ import torch
 class TileBins:
     point_list: torch.Tensor  # [M] int32: flattened (view * N + gaussian) index, grouped by tile, front to back
     tile_ranges: torch.Tensor  # [V * tiles_y * tiles_x, 2] int32: [start, end) into point_list
+    half_extent: torch.Tensor  # [V * N, 2] half width/height of each entry's cutoff box (pixels)
     tiles_x: int
     tiles_y: int
     tile_size: int
@@ -49,7 +50,7 @@ def bin_gaussians(means2d: torch.Tensor, half_extent: torch.Tensor, depth: torch
         if ids.numel() == 0:
             return TileBins(torch.zeros(0, dtype=torch.int32, device=device),
                             torch.zeros(n_tiles_total, 2, dtype=torch.int32, device=device),
-                            tiles_x, tiles_y, tile_size)
+                            half_extent.reshape(-1, 2).contiguous(), tiles_x, tiles_y, tile_size)
         # Depth rank over all visible entries: within one tile all entries share a view, so a
         # global rank orders each tile front to back.
         rank = torch.empty_like(ids)
@@ -68,4 +69,5 @@ def bin_gaussians(means2d: torch.Tensor, half_extent: torch.Tensor, depth: torch
         per_tile = torch.bincount(tile_id, minlength=n_tiles_total)
         ends = torch.cumsum(per_tile, 0)
         tile_ranges = torch.stack([ends - per_tile, ends], dim=1).to(torch.int32)
-        return TileBins(point_list.contiguous(), tile_ranges.contiguous(), tiles_x, tiles_y, tile_size)
+        return TileBins(point_list.contiguous(), tile_ranges.contiguous(), half_extent.reshape(-1, 2).contiguous(),
+                        tiles_x, tiles_y, tile_size)
