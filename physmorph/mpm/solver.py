@@ -18,8 +18,9 @@ grid mass of x_T (same quadratic B-spline as physmorph.grid.splat_mass) with the
 Backward: the adjoint of each substep is written by hand (reverse of G2P, grid update, P2G);
 the per-substep particle state (x, v, C, F) is stored in the forward and the grid is recomputed
 in the backward. The derivative of the rotation R (which Taichi's autodiff cannot do for
-ti.svd) uses the SVD formula dR = U X V^T, X_ij = (M_ij - M_ji) / (s_i + s_j), M = U^T dFe V,
-with the denominator floored for the singular/inverted cases s_i + s_j -> 0.
+ti.svd) is hand-written: the SVD formula dR = U X V^T, X_ij = (M_ij - M_ji) / (s_i + s_j),
+written without U, V as dR = R omega^, (tr S - S) omega = axial(R^T dFe - dFe^T R), S = R^T Fe,
+with the pair sums s_i + s_j (eigenvalues of tr S - S) floored for the singular/inverted cases.
 """
 
 
@@ -66,40 +67,82 @@ def _cofactor_diff(F, dF):
 
 
 def _make_stress_funcs(dtype, mu: float, lam: float):
-    """Fixed-corotated P(Fe) and its differential dP(Fe)[dFe] for one float type."""
+    """Fixed-corotated P(Fe), its polar factors and the differential dP(Fe)[dFe], for one float
+    type. Returns (stress, polar, stress_and_diff, stress_and_diff_polar)."""
+    newton_steps = 2 if dtype == ti.f64 else 0
+    # Python float constants would enter kernels as f32; typed constants keep float64 exact
+    two_mu = 2.0 * mu
+
+    @ti.func
+    def skew_solve(S, gap, rhs):
+        """omega with (tr(S) I - S) omega = rhs; the eigenvalues of that matrix are the pair
+        sums s_i + s_j of the signed singular values; the smallest one, gap, is floored."""
+        Mt = S.trace() * ti.Matrix.identity(dtype, 3) - S
+        floor = _ROT_DENOM_FLOOR * ti.sqrt((S * S).sum()) + 1e-30
+        if gap < floor:
+            Mt += (floor - gap) * ti.Matrix.identity(dtype, 3)
+        return Mt.inverse() @ rhs
+
+    @ti.func
+    def axial(W):
+        return ti.Vector([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+
+    @ti.func
+    def hat(w):
+        return ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype)
+
+    @ti.func
+    def polar(Fe):
+        """Fe = R S with det R = +1 (inversion-aware): ti.svd gives R = U V^T; in float64 two
+        Newton steps on the symmetry of R^T Fe polish it (ti.svd is only ~1e-6 accurate), each
+        R <- R exp(omega^), (tr S - S) omega = axial(S - S^T)."""
+        U, sig, V = ti.svd(Fe, dtype)
+        R = U @ V.transpose()
+        gap = sig[1, 1] + sig[2, 2]  # ti.svd sorts s0 >= s1 >= |s2|: smallest pair sum
+        for _ in ti.static(range(newton_steps)):
+            S0 = R.transpose() @ Fe
+            om = skew_solve(0.5 * (S0 + S0.transpose()), gap, axial(S0))
+            th2 = om.dot(om)
+            th = ti.sqrt(th2)
+            a = 1.0 - th2 / 6.0
+            b = 0.5 - th2 / 24.0
+            if th > 1e-4:
+                a = ti.sin(th) / th
+                b = (1.0 - ti.cos(th)) / th2
+            K = hat(om)
+            R = R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K))
+        S = R.transpose() @ Fe
+        return R, 0.5 * (S + S.transpose()), gap
 
     @ti.func
     def stress(Fe):
         """P = 2 mu (Fe - R) + lam (J - 1) cof(Fe)  (Stomakhin et al. 2012)."""
-        U, sig, V = ti.svd(Fe, dtype)
-        R = U @ V.transpose()
-        J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-        return 2.0 * mu * (Fe - R) + lam * (J - 1.0) * _cofactor(Fe)
+        R, S, gap = polar(Fe)
+        cof = _cofactor(Fe)
+        J = (cof * Fe).sum() / 3.0  # det Fe = Fe : cof(Fe) / 3
+        return dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
+
+    @ti.func
+    def stress_and_diff_polar(Fe, R, S, gap, dFe):
+        """(P(Fe), dP[dFe]) with the polar factors given. dR = R omega^ with
+        (tr S - S) omega = axial(R^T dFe - dFe^T R) (floored pair sums: singular guard).
+        dP is the Hessian of Psi applied to dFe, hence self-adjoint: the same map gives the
+        reverse-mode product  Fe_bar = dP[P_bar]."""
+        cof = _cofactor(Fe)
+        J = (cof * Fe).sum() / 3.0
+        P = dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
+        om = skew_solve(S, gap, axial(R.transpose() @ dFe))
+        dR = R @ hat(om)
+        dJ = (cof * dFe).sum()
+        dP = dtype(two_mu) * (dFe - dR) + dtype(lam) * (dJ * cof + (J - 1.0) * _cofactor_diff(Fe, dFe))
+        return P, dP
 
     @ti.func
     def stress_and_diff(Fe, dFe):
-        """(P(Fe), dP[dFe]); dP is the Hessian of Psi applied to dFe, hence self-adjoint:
-        the same map gives the reverse-mode product  Fe_bar = dP[P_bar]."""
-        U, sig, V = ti.svd(Fe, dtype)
-        R = U @ V.transpose()
-        J = sig[0, 0] * sig[1, 1] * sig[2, 2]
-        cof = _cofactor(Fe)
-        P = 2.0 * mu * (Fe - R) + lam * (J - 1.0) * cof
-        M = U.transpose() @ dFe @ V
-        smax = ti.max(ti.abs(sig[0, 0]), ti.abs(sig[1, 1]), ti.abs(sig[2, 2]))
-        floor = _ROT_DENOM_FLOOR * smax + 1e-30
-        X = ti.Matrix.zero(dtype, 3, 3)
-        for i, j in ti.static(((0, 1), (0, 2), (1, 2))):
-            den = ti.max(sig[i, i] + sig[j, j], floor)
-            xij = (M[i, j] - M[j, i]) / den
-            X[i, j] = xij
-            X[j, i] = -xij
-        dR = U @ X @ V.transpose()
-        dJ = (cof * dFe).sum()
-        dP = 2.0 * mu * (dFe - dR) + lam * (dJ * cof + (J - 1.0) * _cofactor_diff(Fe, dFe))
-        return P, dP
+        R, S, gap = polar(Fe)
+        return stress_and_diff_polar(Fe, R, S, gap, dFe)
 
-    return stress, stress_and_diff
+    return stress, polar, stress_and_diff, stress_and_diff_polar
 
 
 @ti.data_oriented
@@ -150,7 +193,15 @@ class MPMSolver:
         self.target_m = ti.field(f, shape=(R, R, R))
         self.loss_acc = ti.field(ti.f64, shape=())
         self.norm_acc = ti.field(ti.f64, shape=())
-        self._stress, self._stress_and_diff = _make_stress_funcs(f, cfg.mu, cfg.lam)
+        # per-particle scratch of the substep being reversed: affine A, Fe and its SVD, so
+        # the backward computes each SVD once (O(N) memory, not stored per substep)
+        self.A_s = mat.field(shape=N)
+        self.Fe_s = mat.field(shape=N)
+        self.R_s = mat.field(shape=N)
+        self.S_s = mat.field(shape=N)
+        self.gap_s = ti.field(f, shape=N)
+        (self._stress, self._polar, self._stress_and_diff,
+         self._stress_and_diff_polar) = _make_stress_funcs(f, cfg.mu, cfg.lam)
         # compile-time constants of the kernels
         self._dx = cfg.dx
         self._inv_dx = 1.0 / cfg.dx
@@ -160,6 +211,7 @@ class MPMSolver:
         # positions are clamped so the 3x3x3 stencil never leaves the grid: x_g in [1, res - 2]
         self._x_min = cfg.domain_lo + 1.0 * cfg.dx
         self._x_max = cfg.domain_lo + (R - 2.0) * cfg.dx
+        self._clip_on = cfg.control_clip > 0
         self._has_target = False
         self._loaded = False
         self._forward_done = False
@@ -173,14 +225,14 @@ class MPMSolver:
     @ti.func
     def _stencil(self, xp):
         """Quadratic B-spline: base node, fractional offset fx, weights w[axis][k], dw/dx."""
-        xg = (xp - self._lo) * self._inv_dx
+        xg = (xp - self.dtype(self._lo)) * self.dtype(self._inv_dx)
         base = ti.floor(xg - 0.5, ti.i32)
         fx = xg - ti.cast(base, self.dtype)
         # rows: stencil offset 0..2, columns: axis (dynamic loops over the 27 nodes keep the
         # kernels small to compile)
         w = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
-        dw = ti.Matrix.rows([(fx - 1.5) * self._inv_dx, -2.0 * (fx - 1.0) * self._inv_dx,
-                             (fx - 0.5) * self._inv_dx])
+        dw = ti.Matrix.rows([(fx - 1.5) * self.dtype(self._inv_dx), -2.0 * (fx - 1.0) * self.dtype(self._inv_dx),
+                             (fx - 0.5) * self.dtype(self._inv_dx)])
         return base, fx, w, dw
 
     @ti.func
@@ -189,8 +241,8 @@ class MPMSolver:
         slot = t if ti.static(self.cfg.control == "per_substep") else 0
         Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
         P = self._stress(Fe)
-        k = 4.0 * self._inv_dx * self._inv_dx
-        A = (-self.cfg.dt * self.vol[p] * k) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
+        k = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
+        A = (-self.dtype(self.cfg.dt) * self.vol[p] * k) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
         return A, Fe
 
     @ti.kernel
@@ -206,10 +258,10 @@ class MPMSolver:
             xp = self.x[t, p]
             base, fx, w, dw_unused = self._stencil(xp)
             A, Fe_unused = self._affine(t, p)
-            mom = self.mass[p] * (1.0 - self.cfg.dt * self.cfg.drag) * self.v[t, p]
+            mom = self.mass[p] * (1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)) * self.v[t, p]
             for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
                 wt = w[i, 0] * w[j, 1] * w[k, 2]
                 self.grid_mv[base + off] += wt * (mom + A @ dpos)
                 self.grid_m[base + off] += wt * self.mass[p]
@@ -245,17 +297,17 @@ class MPMSolver:
             nC = ti.Matrix.zero(self.dtype, 3, 3)
             for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
                 wt = w[i, 0] * w[j, 1] * w[k, 2]
                 gv = self.grid_v[base + off]
                 nv += wt * gv
-                nC += (4.0 * self._inv_dx * self._inv_dx * wt) * gv.outer_product(dpos)
+                nC += (4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx) * wt) * gv.outer_product(dpos)
             Fo = self.F[t, p]
-            Fn = (ti.Matrix.identity(self.dtype, 3) + self.cfg.dt * nC) @ Fo
+            Fn = (ti.Matrix.identity(self.dtype, 3) + self.dtype(self.cfg.dt) * nC) @ Fo
             self.v[t + 1, p] = nv
             self.C[t + 1, p] = nC
-            self.x[t + 1, p] = ti.math.clamp(xp + self.cfg.dt * nv, self._x_min, self._x_max)
-            self.F[t + 1, p] = (1.0 - self.cfg.smoothing) * Fn + self.cfg.smoothing * Fo
+            self.x[t + 1, p] = ti.math.clamp(xp + self.dtype(self.cfg.dt) * nv, self.dtype(self._x_min), self.dtype(self._x_max))
+            self.F[t + 1, p] = (1.0 - self.dtype(self.cfg.smoothing)) * Fn + self.dtype(self.cfg.smoothing) * Fo
 
     @ti.kernel
     def _splat_final(self):
@@ -302,18 +354,45 @@ class MPMSolver:
             self.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
 
     @ti.kernel
+    def _p2g_recompute(self, t: ti.i32):
+        """_p2g for the backward: also saves A, Fe and the SVD of Fe in the scratch fields."""
+        slot = t if ti.static(self.cfg.control == "per_substep") else 0
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
+        for p in range(self.n):
+            xp = self.x[t, p]
+            base, fx, w, dw_unused = self._stencil(xp)
+            Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
+            R, S, gap = self._polar(Fe)
+            cof = _cofactor(Fe)
+            J = (cof * Fe).sum() / 3.0
+            P = 2.0 * self.dtype(self.cfg.mu) * (Fe - R) + self.dtype(self.cfg.lam) * (J - 1.0) * cof
+            A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
+            self.A_s[p] = A
+            self.Fe_s[p] = Fe
+            self.R_s[p] = R
+            self.S_s[p] = S
+            self.gap_s[p] = gap
+            mom = self.mass[p] * (1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)) * self.v[t, p]
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off = ti.Vector([i, j, k])
+                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
+                wt = w[i, 0] * w[j, 1] * w[k, 2]
+                self.grid_mv[base + off] += wt * (mom + A @ dpos)
+                self.grid_m[base + off] += wt * self.mass[p]
+
+    @ti.kernel
     def _g2p_backward(self, t: ti.i32):
         """Reverse of _g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t."""
-        s = self.cfg.smoothing
-        dt = self.cfg.dt
-        kq = 4.0 * self._inv_dx * self._inv_dx
+        s = self.dtype(self.cfg.smoothing)
+        dt = self.dtype(self.cfg.dt)
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
             xn = self.x[t + 1, p]
             xbar_n = self.x_adj[p]
             for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
-                if xn[a] <= self._x_min or xn[a] >= self._x_max:
+                if xn[a] <= self.dtype(self._x_min) or xn[a] >= self.dtype(self._x_max):
                     xbar_n[a] = 0.0
             Fo = self.F[t, p]
             Cn = self.C[t + 1, p]
@@ -325,7 +404,7 @@ class MPMSolver:
             xbar = xbar_n
             for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
                 wt = w[i, 0] * w[j, 1] * w[k, 2]
                 gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
                                 w[i, 0] * w[j, 1] * dw[k, 2]])
@@ -360,13 +439,14 @@ class MPMSolver:
     @ti.kernel
     def _p2g_backward(self, t: ti.i32):
         """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t."""
-        dt = self.cfg.dt
-        kq = 4.0 * self._inv_dx * self._inv_dx
-        damp = 1.0 - dt * self.cfg.drag
+        dt = self.dtype(self.cfg.dt)
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
+        damp = 1.0 - dt * self.dtype(self.cfg.drag)
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
-            A, Fe = self._affine(t, p)
+            A = self.A_s[p]
+            Fe = self.Fe_s[p]
             mp = self.mass[p]
             mom = mp * damp * self.v[t, p]
             vbar = ti.Vector.zero(self.dtype, 3)
@@ -374,7 +454,7 @@ class MPMSolver:
             xbar = ti.Vector.zero(self.dtype, 3)
             for i, j, k in ti.ndrange(3, 3, 3):
                 off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self._dx
+                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
                 wt = w[i, 0] * w[j, 1] * w[k, 2]
                 gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
                                 w[i, 0] * w[j, 1] * dw[k, 2]])
@@ -384,7 +464,7 @@ class MPMSolver:
                 Abar += wt * mvb.outer_product(dpos)
                 xbar += gw * (mvb.dot(mom + A @ dpos) + mb * mp) - wt * (A.transpose() @ mvb)
             tau_bar = (-dt * self.vol[p] * kq) * Abar
-            P, dP = self._stress_and_diff(Fe, tau_bar @ Fe)  # P_bar = tau_bar Fe
+            P, dP = self._stress_and_diff_polar(Fe, self.R_s[p], self.S_s[p], self.gap_s[p], tau_bar @ Fe)  # P_bar = tau_bar Fe
             Fe_bar = tau_bar.transpose() @ P + dP
             Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
             self.x_adj[p] += xbar
@@ -432,8 +512,8 @@ class MPMSolver:
     @ti.kernel
     def _adam(self, lr_t: ti.f64):
         """Adam (Kingma & Ba) on dFc; lr_t already carries the bias corrections."""
-        b1 = self.cfg.adam_beta1
-        b2 = self.cfg.adam_beta2
+        b1 = self.dtype(self.cfg.adam_beta1)
+        b2 = self.dtype(self.cfg.adam_beta2)
         for s, p in self.ctrl:
             g = self.ctrl_grad[s, p]
             m = b1 * self.adam_m[s, p] + (1.0 - b1) * g
@@ -442,10 +522,10 @@ class MPMSolver:
             self.adam_v[s, p] = v
             step = ti.Matrix.zero(self.dtype, 3, 3)
             for a, b in ti.static(ti.ndrange(3, 3)):
-                step[a, b] = m[a, b] / (ti.sqrt(v[a, b]) + self._eps_hat)
+                step[a, b] = m[a, b] / (ti.sqrt(v[a, b]) + self.dtype(self._eps_hat))
             c = self.ctrl[s, p] - ti.cast(lr_t, self.dtype) * step
-            if ti.static(self.cfg.control_clip > 0):
-                c = ti.math.clamp(c, -self.cfg.control_clip, self.cfg.control_clip)
+            if ti.static(self._clip_on):
+                c = ti.math.clamp(c, -self.dtype(self.cfg.control_clip), self.dtype(self.cfg.control_clip))
             self.ctrl[s, p] = c
 
     # ------------------------------------------------------------------ public API
@@ -531,7 +611,7 @@ class MPMSolver:
             self._loss_backward()
         for t in reversed(range(self.cfg.substeps)):
             self._clear_grid()
-            self._p2g(t)
+            self._p2g_recompute(t)
             self._grid_update()
             self._clear_grid_adj()
             self._g2p_backward(t)
@@ -676,3 +756,41 @@ class MPMSolver:
                 raise MPMDivergenceError(
                     f"{name} became non-finite (NaN/Inf or |{name}| > {_BLOWUP:g}) at substep "
                     f"{t - 1} (particle {p})")
+
+
+_stress_kernels: dict = {}
+
+
+def evaluate_stress(Fe: np.ndarray,  # [N, 3, 3]
+                    dFe: np.ndarray,  # [N, 3, 3]
+                    mu: float, lam: float, precision: str = "float64") -> tuple[np.ndarray, np.ndarray]:
+    """Run the solver's Taichi stress P(Fe) and differential dP(Fe)[dFe] on arrays (for tests
+    and diagnostics). Returns (P [N, 3, 3], dP [N, 3, 3]) as float64."""
+    if not _runtime_ready():
+        init_taichi("cpu")
+    dtype = ti.f64 if precision == "float64" else ti.f32
+    npd = np.float64 if precision == "float64" else np.float32
+    key = (precision, float(mu), float(lam))
+    if key not in _stress_kernels:
+        _, _, stress_and_diff, _ = _make_stress_funcs(dtype, float(mu), float(lam))
+        mat = ti.types.matrix(3, 3, dtype)
+
+        @ti.kernel
+        def run(Fe: ti.types.ndarray(dtype=mat, ndim=1), dFe: ti.types.ndarray(dtype=mat, ndim=1),
+                P: ti.types.ndarray(dtype=mat, ndim=1), dP: ti.types.ndarray(dtype=mat, ndim=1)):
+            for p in range(Fe.shape[0]):
+                P[p], dP[p] = stress_and_diff(Fe[p], dFe[p])
+
+        _stress_kernels[key] = run
+    Fe = np.ascontiguousarray(Fe, dtype=npd).reshape(-1, 3, 3)
+    dFe = np.ascontiguousarray(dFe, dtype=npd).reshape(-1, 3, 3)
+    P = np.zeros_like(Fe)
+    dP = np.zeros_like(Fe)
+    _stress_kernels[key](Fe, dFe, P, dP)
+    return P.astype(np.float64), dP.astype(np.float64)
+
+
+def _runtime_ready() -> bool:
+    from ..taichi_runtime import taichi_state
+
+    return bool(taichi_state())
