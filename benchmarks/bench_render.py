@@ -69,10 +69,10 @@ def run_fast(n: int, res: str, reps: int) -> dict:
     from physmorph.render.api import _to_tensors, splat
 
     width, height = RESOLUTIONS[res]
+    base = _rss_mb()  # after imports and Taichi start-up: growth = scene + renderer
     x, F, sigma0, cams, target = make_scene(n, width, height)
     cfg = RenderConfig()
     render_and_grad(x, F, sigma0, cams, target, cfg)  # warm-up: Taichi compile / offline cache
-    base = _rss_mb()
     fwd, both = [], []
     for _ in range(reps):
         t = time.perf_counter()
@@ -153,13 +153,15 @@ def main() -> None:
     ap.add_argument("--chunks", type=int, default=3, help="dense reference: timed chunks")
     ap.add_argument("--quick", action="store_true", help="320x180 with 5K and 20K Gaussians only")
     ap.add_argument("--thread-list", default="1,2")
+    ap.add_argument("--resolutions", default=",".join(RESOLUTIONS), help="comma list of 320x180,960x540")
+    ap.add_argument("--counts", default=",".join(str(c) for c in COUNTS), help="comma list of Gaussian counts")
     args = ap.parse_args()
     if args.child:
         child(args)
         return
-    resolutions = ["320x180"] if args.quick else list(RESOLUTIONS)
-    counts = COUNTS[:2] if args.quick else COUNTS
-    header = (f"{'image':>8} {'N':>7} {'thr':>3} {'pairs':>9} {'fwd s':>7} {'fwd+bwd s':>9} {'RSS MB':>7} "
+    resolutions = ["320x180"] if args.quick else args.resolutions.split(",")
+    counts = COUNTS[:2] if args.quick else tuple(int(c) for c in args.counts.split(","))
+    header = (f"{'image':>8} {'N':>7} {'thr':>3} {'pairs':>9} {'fwd s':>7} {'fwd+bwd s':>9} {'RSS MB':>7} {'+MB':>5} "
               f"{'dense fwd+bwd s (extrap.)':>25} {'speed-up':>8}")
     print(f"8 views; dense reference extrapolated from {args.chunks} x {args.chunk} timed pixels")
     print(header)
@@ -173,7 +175,7 @@ def main() -> None:
                     dense_txt = f"{dense['dense_fwdbwd_s']:.1f} (full: {dense['dense_full_memory_gb']:.0f} GB)"
                     speed = f"{dense['dense_fwdbwd_s'] / fast['fwdbwd_s']:.0f}x"
                 print(f"{res:>8} {n:>7} {threads:>3} {fast['pairs']:>9} {fast['fwd_s']:>7.3f} {fast['fwdbwd_s']:>9.3f} "
-                      f"{fast['peak_rss_mb']:>7.0f} {dense_txt:>25} {speed:>8}", flush=True)
+                      f"{fast['peak_rss_mb']:>7.0f} {fast['rss_growth_mb']:>5.0f} {dense_txt:>25} {speed:>8}", flush=True)
 
 
 if __name__ == "__main__":

@@ -437,3 +437,14 @@ def test_shade_produces_an_image():
     np.testing.assert_allclose(rgb[0, 0], 1.0)  # background corner
     # Head light from the upper left: the upper-left of the sphere is brighter than the lower right.
     assert rgb[14, 14].sum() > rgb[26, 26].sum()
+
+
+def test_auto_device_and_per_particle_sigma0():
+    """device="auto" falls back to what is available; sigma0 may be given per particle."""
+    cams = small_cameras(1)
+    x, F = random_scene(6, 12, spread=0.5)
+    a_scalar, _ = render_views(x, F, 0.3, cams, RenderConfig(device="auto"))
+    a_array, _ = render_views(x, F, np.full(6, 0.3), cams, RenderConfig(device="auto"))
+    np.testing.assert_allclose(a_scalar, a_array, atol=1e-6)
+    a_small, _ = render_views(x, F, np.full(6, 0.1), cams, RenderConfig(device="auto"))
+    assert a_small.sum() < a_scalar.sum()
