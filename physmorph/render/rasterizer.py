@@ -194,18 +194,19 @@ def _composite_forward_tiles(
             for py in range(v_first, v_last + 1):
                 dv = mu_v - (ti.cast(py, dtype) + ti.cast(0.5, dtype))
                 for px in range(u_first, u_last + 1):
-                    du = mu_u - (ti.cast(px, dtype) + ti.cast(0.5, dtype))
-                    power = -ti.cast(0.5, dtype) * (qa * du * du + qc * dv * dv) - qb * du * dv
-                    if power >= ti.cast(power_min, dtype):
-                        a = ti.min(ti.cast(alpha_max, dtype), ti.cast(opacity, dtype) * ti.exp(power))
-                        trans = t_final[v, py, px]
-                        if a >= ti.cast(alpha_min, dtype) and trans >= ti.cast(t_min, dtype):
-                            depth_acc[v, py, px] += a * trans * z
-                            trans *= ti.cast(1.0, dtype) - a
-                            t_final[v, py, px] = trans
-                            last[v, py, px] = k + 1
-                            if trans < ti.cast(t_min, dtype):
-                                remaining -= 1
+                    trans = t_final[v, py, px]
+                    if trans >= ti.cast(t_min, dtype):  # terminated pixels cost one load
+                        du = mu_u - (ti.cast(px, dtype) + ti.cast(0.5, dtype))
+                        power = -ti.cast(0.5, dtype) * (qa * du * du + qc * dv * dv) - qb * du * dv
+                        if power >= ti.cast(power_min, dtype):
+                            a = ti.min(ti.cast(alpha_max, dtype), ti.cast(opacity, dtype) * ti.exp(power))
+                            if a >= ti.cast(alpha_min, dtype):
+                                depth_acc[v, py, px] += a * trans * z
+                                trans *= ti.cast(1.0, dtype) - a
+                                t_final[v, py, px] = trans
+                                last[v, py, px] = k + 1
+                                if trans < ti.cast(t_min, dtype):
+                                    remaining -= 1
 
 
 @ti.kernel
