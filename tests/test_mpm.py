@@ -423,7 +423,11 @@ def test_divergence_raises_naming_quantity_and_substep(solver20):
 
 def test_injected_adjoint_validation(solver3, state):
     solver3.load_state(state)
+    solver3.set_control(random_control(solver3.cfg, state.n))
+    with pytest.raises(RuntimeError, match="forward"):
+        solver3.backward()  # no trajectory of this dFc yet
     solver3.forward()
+    assert np.array_equal(solver3.state_at(0).Fp, state.Fp)
     with pytest.raises(MPMStateError, match="grad_F_final"):
         solver3.backward(np.zeros((state.n, 3)))
     g = np.zeros((state.n, 3))

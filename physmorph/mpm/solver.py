@@ -215,7 +215,9 @@ class MPMSolver:
         self._has_target = False
         self._loaded = False
         self._forward_done = False
+        self._forward_current = False  # the stored trajectory is that of the current dFc/state
         self._grad_norm = float("nan")
+        self._Fp = None
         self._last_loss: float | None = None
         self._adam_step = 0
         self._log_eps = 0.0
@@ -539,6 +541,7 @@ class MPMSolver:
             raise MPMStateError("target grid mass must be finite and >= 0")
         self.target_m.from_numpy(m.astype(self.np_dtype))
         self._has_target = True
+        self._forward_current = False  # the cached loss refers to the old target
 
     def load_state(self, state: ParticleState) -> None:
         """Set the frame's initial state (x, v, F, C at t = 0 and the constants Fp, m, V0)."""
@@ -556,9 +559,11 @@ class MPMSolver:
         self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
         self.mass.from_numpy(st.mass.astype(dt_))
         self.vol.from_numpy(st.volume.astype(dt_))
+        self._Fp = st.Fp.copy()
         self._log_eps = float(self.cfg.log_mass_eps * st.mass.mean())
         self._loaded = True
         self._forward_done = False
+        self._forward_current = False
         if not self.cfg.warm_start:
             self.reset_control()
 
@@ -569,6 +574,7 @@ class MPMSolver:
         self.adam_m.fill(0.0)
         self.adam_v.fill(0.0)
         self._adam_step = 0
+        self._forward_current = False
 
     def forward(self) -> float:
         """T substeps from the loaded state with the current dFc; returns the mass loss (or nan
@@ -579,8 +585,10 @@ class MPMSolver:
             self._p2g(t)
             self._grid_update()
             self._g2p(t)
+        self._forward_current = False
         self._check_finite_rollout()
         self._forward_done = True
+        self._forward_current = True
         if self._has_target:
             self._clear_grid()
             self._splat_final()
@@ -594,8 +602,8 @@ class MPMSolver:
                  grad_x_final: np.ndarray | None = None) -> None:  # [N, 3]
         """Reverse the last forward: d(L + <gF, F_T> + <gx, x_T>)/d(dFc) into the control
         gradient, and the adjoint of the initial state (see initial_state_gradients)."""
-        if not self._forward_done:
-            raise RuntimeError("backward needs a forward() first")
+        if not self._forward_current:
+            raise RuntimeError("backward needs a forward() of the current state and dFc first")
         N = self.n
         gx = np.zeros((N, 3)) if grad_x_final is None else self._check_adjoint(grad_x_final, (N, 3), "grad_x_final")
         gF = np.zeros((N, 3, 3)) if grad_F_final is None else self._check_adjoint(grad_F_final, (N, 3, 3), "grad_F_final")
@@ -631,6 +639,7 @@ class MPMSolver:
         # folded bias correction: lr_t = lr sqrt(1 - b2^k) / (1 - b1^k), eps_hat = eps sqrt(1 - b2^k)
         lr_t = self.cfg.learning_rate * np.sqrt(1.0 - b2 ** k) / (1.0 - b1 ** k)
         self._adam(lr_t)
+        self._forward_current = False
 
     @property
     def _eps_hat(self) -> float:
@@ -659,8 +668,11 @@ class MPMSolver:
                 "delta_E_percent": 100.0 * (losses[0] - loss_final) / losses[0] if losses[0] > 0 else 0.0}
 
     def rollout(self) -> ParticleState:
-        """Forward with the current dFc and return the state at t = T."""
-        self.forward()
+        """Forward with the current dFc and return the state at t = T (the forward is skipped
+        when the stored trajectory already belongs to the current state, dFc and target, e.g.
+        right after optimize_control)."""
+        if not self._forward_current:
+            self.forward()
         return self.state_at(self.cfg.substeps)
 
     def mass_loss(self) -> float:
@@ -674,10 +686,10 @@ class MPMSolver:
         T = self.cfg.substeps
         if not 0 <= t <= T:
             raise IndexError(f"substep t must be in [0, {T}], got {t}")
+        self._require_loaded()
         x, v, F, C = self._export_raw(t)
-        Fp = np.linalg.inv(self.Fp_inv.to_numpy().astype(np.float64))
         return ParticleState(x=x.astype(np.float64), v=v.astype(np.float64), F=F.astype(np.float64),
-                             C=C.astype(np.float64), Fp=Fp,
+                             C=C.astype(np.float64), Fp=self._Fp.copy(),
                              mass=self.mass.to_numpy().astype(np.float64),
                              volume=self.vol.to_numpy().astype(np.float64))
 
@@ -696,6 +708,7 @@ class MPMSolver:
         if dFc.shape != shape or not np.isfinite(dFc).all():
             raise MPMStateError(f"dFc must be finite with shape {shape}, got {dFc.shape}")
         self.ctrl.from_numpy(dFc.astype(self.np_dtype))
+        self._forward_current = False
 
     def control_gradient(self) -> np.ndarray:  # [Tc, N, 3, 3]
         return self.ctrl_grad.to_numpy().astype(np.float64)
