@@ -281,6 +281,8 @@ def test_one_substep_gradients_match_fd(state):
     s = make(cfg64(substeps=1), state)
     s.set_control(random_control(s.cfg, state.n))
     _fd_check(s, state, n_checks=8)
+    gF = 50.0 * np.random.default_rng(12).normal(size=(state.n, 3, 3))
+    _fd_check(s, state, gF=gF, n_checks=6, seed=7)
 
 
 def test_three_substep_gradients_match_fd(solver3, state):

@@ -21,6 +21,15 @@ Design decisions (documented here and in the docstrings they refer to):
 * Boundary: on the 3-cell layer of each face the outward grid velocity component is zeroed;
   particle positions are additionally clamped to [lo + dx, lo + (res - 2) dx] so the stencil
   never leaves the grid.
+* Frame API: optimize_control runs J x (forward, backward, Adam) and a last forward with the
+  updated dFc, so loss_final is the loss of the trajectory rollout() then returns without
+  recomputing it. backward() adds the injected adjoints g^F (on F_T, pre-scaled by gamma) and
+  g^x (on x_T) to the mass-loss adjoint. Extra entry points for tests/diagnostics: forward,
+  backward, adam_step, control/set_control/control_gradient, initial_state_gradients,
+  state_at(t), grid_mass, solver.evaluate_stress.
+* float64: Python constants are passed to kernels as typed constants, and the rotation from
+  ti.svd (only ~1e-6 accurate, even in f64) is polished by two Newton steps on sym(R^T Fe), so a
+  float64 solver is float64-accurate (finite-difference checks agree to ~1e-8).
 * Stability: the config refuses dt > cfl dx / c (c = P-wave speed, cfl = 0.5 by default) and
   warns above 80 % of it; a non-finite or exploding (|.| > 1e8) x, v or F after a rollout raises
   MPMDivergenceError naming the quantity, substep and particle.
