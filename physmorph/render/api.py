@@ -117,12 +117,20 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     losses = render_losses(alpha_leaf, depth_leaf, t_alpha, t_depth, t_sdt, cfg)
 
     # dL_c / d(alpha, D) for each loss c, then one rasterizer backward with a channel per loss.
-    g_alpha, g_depth = [], []
-    for name in LOSS_NAMES:
-        ga, gd = torch.autograd.grad(losses[name], (alpha_leaf, depth_leaf), allow_unused=True)
-        g_alpha.append(ga if ga is not None else torch.zeros_like(alpha_leaf))
-        g_depth.append(gd if gd is not None else torch.zeros_like(depth_leaf))
-    g_params = composite_backward(sp.params, sp.bins, t_final, last, torch.stack(g_alpha), torch.stack(g_depth), cfg)
+    g_alpha = torch.zeros((len(LOSS_NAMES),) + tuple(alpha_leaf.shape), dtype=dt, device=dev)
+    g_depth = torch.zeros_like(g_alpha)
+    for c, name in enumerate(LOSS_NAMES):
+        ga, gd = torch.autograd.grad(losses[name], (alpha_leaf, depth_leaf), allow_unused=True,
+                                     retain_graph=c + 1 < len(LOSS_NAMES))
+        if ga is not None:
+            g_alpha[c] = ga
+        if gd is not None:
+            g_depth[c] = gd
+        del ga, gd
+    loss_values = {k: float(v.detach()) for k, v in losses.items()}
+    del losses  # frees the loss graph's pixel-sized buffers before the rasterizer backward
+    g_params = composite_backward(sp.params, sp.bins, t_final, last, g_alpha, g_depth, cfg)
+    del g_alpha, g_depth
 
     inputs = (Ft, xt) if want_grad_x else (Ft,)
     per_loss_F, per_loss_x = {}, {}
@@ -148,7 +156,6 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
         alpha = alpha_leaf.detach()
         mse = alpha_mse(alpha, t_alpha)
         depth = expected_depth(alpha, depth_acc, cfg.alpha_min)
-    loss_values = {k: float(v.detach()) for k, v in losses.items()}
     loss_values["total"] = loss_values["dt"] + weights["iou"] * loss_values["iou"] + weights["depth"] * loss_values["depth"]
     return RenderResult(
         alpha=alpha.double().cpu().numpy(),
