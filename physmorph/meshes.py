@@ -419,13 +419,16 @@ def _volume_ok(m: trimesh.Trimesh, raw_volume: float, tol: float) -> bool:
 
 
 def normalize_mesh(mesh: trimesh.Trimesh, size: float) -> tuple[trimesh.Trimesh, float, np.ndarray]:
-    """Centre the bounding box on the origin and scale the longest extent to ``size``.
+    """Put the volume centroid at the origin and scale the longest extent to ``size``.
 
+    The centroid, not the bounding-box centre: the morph's control acts through internal
+    stress, which cannot move a body's centre of mass, so source and target must share it.
     Returns (mesh, scale, translation) with x_new = scale * x_old + translation.
     """
     lo, hi = mesh.bounds
     scale = float(size / np.max(hi - lo))
-    translation = -scale * 0.5 * (lo + hi)
+    centroid = np.asarray(mesh.center_mass if mesh.is_volume else 0.5 * (lo + hi), dtype=np.float64)
+    translation = -scale * centroid
     out = mesh.copy()
     out.apply_transform(np.diag([scale, scale, scale, 1.0]))
     out.apply_translation(translation)

@@ -156,18 +156,6 @@ class RunFile:
         return frame, data
 
 
-def _solver_optimizer_state(solver: MPMSolver) -> dict:
-    return {"control": solver.control(), "adam_m": solver.adam_m.to_numpy().astype(np.float64),
-            "adam_v": solver.adam_v.to_numpy().astype(np.float64), "adam_step": int(solver._adam_step)}
-
-
-def _restore_optimizer_state(solver: MPMSolver, data: dict) -> None:
-    solver.set_control(data["control"])
-    solver.adam_m.from_numpy(data["adam_m"].astype(solver.np_dtype))
-    solver.adam_v.from_numpy(data["adam_v"].astype(solver.np_dtype))
-    solver._adam_step = int(data["adam_step"])
-
-
 def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None, g_x: np.ndarray | None) -> float:
     """Scale c such that the injected adjoint's dFc gradient has norm gamma x the mass loss's.
 
@@ -208,7 +196,11 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     tree = cKDTree(target.surface_points)
     N = len(parts.x)
     solver = MPMSolver(cfg.mpm, N)
-    solver.set_target_grid_mass(target.grid_mass)
+    # MPM conserves mass, so a target of another total mass cannot be matched: the squared loss
+    # would then be lowered by smearing the excess thinly. The target's mass distribution is
+    # rescaled to the source's total mass (its shape is what is matched).
+    mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
+    solver.set_target_grid_mass(target.grid_mass * mass_ratio)
     run = RunFile(partial, cams.count)
     lo, hi = cfg.mpm.domain_lo, cfg.mpm.domain_hi
     record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
@@ -243,17 +235,17 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
                            mass=parts.mass.copy(), volume=parts.volume.copy())
         mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi)
         g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
-        run.create({"experiment": name, "method": cfg.method, "config_record": record, "n_particles": N,
+        run.create({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "config_record": record, "n_particles": N,
                     "sigma0": parts.sigma0, "views": cams.count, "frames_planned": cfg.frames})
         m, per_view = metrics_for(st, mask)
         # Frame 0's physics loss is that of the unmoved source.
         run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
-                                              "injection_scale": float("nan"), **_solver_optimizer_state(solver)})
+                                              "injection_scale": float("nan"), **solver.optimizer_state()})
         start = 1
     else:
         st = ParticleState(**{k: ck[k] for k in ("x", "v", "F", "C", "Fp", "mass", "volume")})
         mask, g_F, g_x = ck["mask"].astype(bool), ck["g_F"], ck["g_x"]
-        _restore_optimizer_state(solver, ck)
+        solver.set_optimizer_state(ck)
         start = resumed_from + 1
         log(f"[{name}] resuming after frame {resumed_from}/{cfg.frames}")
 
@@ -317,7 +309,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
         run.append(k, scal, per_view, st, save, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
-                                                  "injection_scale": scale, **_solver_optimizer_state(solver)})
+                                                  "injection_scale": scale, **solver.optimizer_state()})
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)

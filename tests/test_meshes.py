@@ -110,7 +110,7 @@ def test_letters_are_closed_solids_with_right_topology(tmp_path, glyph, genus):
     assert len(mesh.split(only_watertight=False)) == 1
     np.testing.assert_allclose(mesh.extents.max(), 16.0, rtol=1e-9)
     np.testing.assert_allclose(mesh.extents[2], 0.3 * 16.0, rtol=1e-9)  # default extrusion depth
-    np.testing.assert_allclose(mesh.bounds.sum(axis=0), 0.0, atol=1e-9)  # bbox centred
+    np.testing.assert_allclose(mesh.center_mass, 0.0, atol=1e-9)  # volume centroid at the origin
     # Curves are drawn finely: the S outline has many segments.
     if glyph == "S":
         assert summary["n_vertices"] > 200
@@ -133,7 +133,7 @@ def test_all_benchmark_shapes_come_out_watertight(tmp_path, mesh_dir):
         assert mesh.is_watertight and mesh.is_winding_consistent, spec.name
         assert len(mesh.split(only_watertight=False)) == 1, spec.name  # no component dropped or left over
         np.testing.assert_allclose(mesh.extents.max(), spec.size, rtol=1e-9, err_msg=spec.name)
-        np.testing.assert_allclose(mesh.bounds.sum(axis=0), 0.0, atol=1e-9, err_msg=spec.name)
+        np.testing.assert_allclose(mesh.center_mass, 0.0, atol=1e-9, err_msg=spec.name)
         assert abs(mesh.volume - summary["raw_volume"]) <= 0.03 * summary["raw_volume"], spec.name
         with h5py.File(out) as f:
             assert bool(f.attrs["watertight"])

@@ -599,9 +599,12 @@ class MPMSolver:
         return self._last_loss
 
     def backward(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
-                 grad_x_final: np.ndarray | None = None) -> None:  # [N, 3]
+                 grad_x_final: np.ndarray | None = None,  # [N, 3]
+                 include_mass_loss: bool = True) -> None:
         """Reverse the last forward: d(L + <gF, F_T> + <gx, x_T>)/d(dFc) into the control
-        gradient, and the adjoint of the initial state (see initial_state_gradients)."""
+        gradient, and the adjoint of the initial state (see initial_state_gradients).
+        ``include_mass_loss=False`` pulls back the injected adjoints alone (the morph loop uses
+        it to compare their size with the mass loss's without float32 cancellation)."""
         if not self._forward_current:
             raise RuntimeError("backward needs a forward() of the current state and dFc first")
         N = self.n
@@ -612,7 +615,7 @@ class MPMSolver:
         self.v_adj.fill(0.0)
         self.C_adj.fill(0.0)
         self._zero_ctrl_grad()
-        if self._has_target:
+        if self._has_target and include_mass_loss:
             self._clear_grid()
             self._splat_final()
             self._mass_loss(self._log_eps)
@@ -630,6 +633,24 @@ class MPMSolver:
         if not np.isfinite(gn):
             raise MPMDivergenceError("the dFc gradient became non-finite (NaN/Inf) in the backward pass")
         self._grad_norm = float(np.sqrt(gn))
+
+    def optimizer_state(self) -> dict:
+        """dFc, the Adam moments and step count: everything needed to resume the optimization."""
+        return {"control": self.control(), "adam_m": self.adam_m.to_numpy().astype(np.float64),
+                "adam_v": self.adam_v.to_numpy().astype(np.float64), "adam_step": int(self._adam_step)}
+
+    def set_optimizer_state(self, state: dict) -> None:
+        """Restore what :meth:`optimizer_state` returned."""
+        self.set_control(state["control"])
+        shape = (self.cfg.n_control_slots, self.n, 3, 3)
+        for key in ("adam_m", "adam_v"):
+            arr = np.asarray(state[key], dtype=np.float64)
+            if arr.shape != shape or not np.isfinite(arr).all():
+                raise MPMStateError(f"{key} must be finite with shape {shape}, got {arr.shape}")
+        self.adam_m.from_numpy(np.asarray(state["adam_m"]).astype(self.np_dtype))
+        self.adam_v.from_numpy(np.asarray(state["adam_v"]).astype(self.np_dtype))
+        self._adam_step = int(state["adam_step"])
+        self._forward_current = False
 
     def adam_step(self) -> None:
         """One Adam step on dFc with the gradient of the last backward."""
