@@ -9,11 +9,17 @@ include: "workflow/rules/common.smk"
 rule all:
     input:
         table_inputs(),
+        figure_outputs(),
 
 
 rule tables:
     input:
         table_inputs(),
+
+
+rule figures:
+    input:
+        figure_outputs(),
 
 
 include: "workflow/rules/fetch_mesh.smk"
@@ -22,3 +28,4 @@ include: "workflow/rules/sample_particles.smk"
 include: "workflow/rules/rasterize_target.smk"
 include: "workflow/rules/morph.smk"
 include: "workflow/rules/tables.smk"
+include: "workflow/rules/figures.smk"

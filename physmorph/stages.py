@@ -60,3 +60,11 @@ def tables_stage(names: list[str], runs: list[str], out_dir: str) -> dict:
     from physmorph.tables import build_tables
 
     return build_tables(dict(zip(names, runs)), out_dir)
+
+
+def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target_cfg: dict,
+                  out_dir: str) -> list:
+    from physmorph.figures import build_figures
+
+    return build_figures({n: Path(p) for n, p in zip(names, runs)}, {s: Path(p) for s, p in zip(shapes, targets)},
+                         target_cfg, Path(out_dir))

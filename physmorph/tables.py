@@ -67,15 +67,17 @@ def drag_table(m: dict[str, dict]) -> pd.DataFrame:
 
 
 def source_table(m: dict[str, dict]) -> pd.DataFrame:
+    """Best alpha MSE per source, then mean, sample std and sigma/mu % of each column."""
     rows = [{"experiment": n, "paper_best": p, "best": float(np.nanmin(m[n]["alpha_mse"])) if n in m else np.nan}
             for n, p in PAPER_SOURCES.items()]
-    df = pd.DataFrame(rows)
+    stats = {}
     for col in ("paper_best", "best"):
-        vals = df[col].dropna().to_numpy()
-        s = spread(vals) if len(vals) > 1 else {"mean": np.nan, "std": np.nan, "cv_percent": np.nan}
-        df.loc[len(df)] = {"experiment": f"{col}: mean / std / cv%", col: np.nan}
-        df.loc[len(df) - 1, col] = f"{s['mean']:.4f} / {s['std']:.4f} / {s['cv_percent']:.1f}"
-    return df
+        vals = np.array([r[col] for r in rows], dtype=float)
+        vals = vals[np.isfinite(vals)]
+        stats[col] = spread(vals) if len(vals) > 1 else {"mean": np.nan, "std": np.nan, "cv_percent": np.nan}
+    for key, label in (("mean", "mean"), ("std", "std"), ("cv_percent", "sigma/mu %")):
+        rows.append({"experiment": label, "paper_best": stats["paper_best"][key], "best": stats["best"][key]})
+    return pd.DataFrame(rows)
 
 
 def plasticity_table(m: dict[str, dict]) -> pd.DataFrame:

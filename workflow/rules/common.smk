@@ -2,7 +2,7 @@
 from physmorph.config import SamplingConfig, validate_config, experiment, shape_entry
 
 PM = validate_config(config)
-from physmorph.metrics import TABLE_NAMES as TABLES
+from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 RES = SamplingConfig.from_config(PM).tag
 
 
@@ -30,3 +30,7 @@ def table_inputs():
     runs = [f"results/runs/{name}.h5" for name in PM["tables"].get("experiments", [])]
     tables = [f"results/tables/{t}.md" for t in TABLES] if runs else []
     return [p for s in sorted(shapes) for p in shape_data(s)] + runs + tables
+
+
+def figure_outputs():
+    return [f"results/figures/{f}.png" for f in FIGURES] if PM["tables"].get("experiments") else []

@@ -1,0 +1,162 @@
+"""The paper's figures from run files (PNG): morph sequences, loss curves, gradient coverage.
+
+Sequences render the saved particle states as Phong-shaded Gaussians from one ring camera at
+twice the target image size. Curves read the per-frame metrics of the runs. Runs that were not
+made in this profile are left out of a figure (a figure with none of its runs says so).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from physmorph.cameras import ring_cameras
+from physmorph.config import TargetConfig
+from physmorph.metrics import FIGURE_NAMES
+from physmorph.morph import read_metrics
+
+FIGURE_RUNS = {
+    "sequences_main": ["iso_bunny_full", "iso_cow_full", "iso_duck_full"],
+    "sequences_cross_shape": ["duck_cow_full", "cow_bunny_full", "cow_duck_full", "duck_bunny_full"],
+    "sequences_letters": ["iso_A_full", "cow_S_full", "duck_C_full"],
+    "drag_ablation": ["iso_bunny_physics_only", "iso_bunny_full_d05", "iso_bunny_full"],
+    "trajectory_divergence": ["iso_duck_physics_only", "iso_duck_full"],
+    "plasticity_effect": ["iso_bunny_f_inject", "iso_bunny_full"],
+    "optimization_traces": ["iso_bunny_full"],
+    "gradient_coverage": ["iso_bunny_full"],
+}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _saved_frames(f: h5py.File) -> list[str]:
+    return sorted(f["states"]) if "states" in f else []
+
+
+def figure_cameras(target: dict, scale: int = 2):
+    t = TargetConfig(**target)
+    return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
+
+
+def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view: int = 1, columns: int = 6) -> None:
+    """One row per run: ``columns`` saved frames from the first to the last, shaded Gaussians."""
+    from physmorph.render import RenderConfig, shade
+
+    plt = _plt()
+    cams = figure_cameras(target_cfg)
+    rows = [(n, p) for n, p in runs.items() if p is not None and Path(p).exists()]
+    fig, axes = plt.subplots(max(len(rows), 1), columns, figsize=(2.2 * columns, 1.4 * max(len(rows), 1) + 0.3), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for r, (name, path) in enumerate(rows):
+        with h5py.File(path) as f:
+            frames = _saved_frames(f)
+            pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, columns).round().astype(int))]
+            sigma0 = float(f.attrs["sigma0"])
+            for c, fr in enumerate(pick):
+                g = f["states"][fr]
+                img = shade(g["x"][()].astype(np.float64), g["F"][()].astype(np.float64), sigma0, cams, view, RenderConfig())
+                axes[r, c].imshow(img)
+                k = int(fr.replace("frame_", ""))
+                axes[r, c].set_title(f"{name}  k={k}" if c == 0 else f"k={k}", fontsize=7)
+    if not rows:
+        axes[0, 0].text(0, 0.5, "no runs of this figure in this profile", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def curves_figure(runs: dict[str, Path], panels: list[tuple[str, str]], out_png: Path, title: str,
+                  logy: tuple[str, ...] = ()) -> None:
+    """One panel per (metric key, label); one line per run. Metrics are indexed by frame."""
+    plt = _plt()
+    data = {n: read_metrics(p) for n, p in runs.items() if p is not None and Path(p).exists()}
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.0), squeeze=False)
+    for ax, (key, label) in zip(axes[0], panels):
+        for name, m in data.items():
+            if key == "fp_det_range":
+                ax.fill_between(np.arange(len(m["fp_det_min"])), m["fp_det_min"], m["fp_det_max"], alpha=0.3, label=name)
+                continue
+            y = m[key] if key in m else None
+            if y is not None:
+                ax.plot(np.arange(len(y)), y, label=name, lw=1.4)
+        ax.set_xlabel("frame")
+        ax.set_title(label, fontsize=9)
+        if key in logy:
+            ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    if data:
+        axes[0, 0].legend(fontsize=7)
+    fig.suptitle(title if data else f"{title} (no runs of this figure in this profile)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def coverage_figure(run: Path | None, target_h5: Path | None, out_png: Path, camera_counts=(1, 4, 8)) -> None:
+    """Per-particle |dL/dF| (log colour) on the run's last saved state with 1, 4 and 8 cameras."""
+    from physmorph.render import RenderConfig, RenderTarget, render_and_grad
+    from physmorph.targets import load_target
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(camera_counts), figsize=(3.6 * len(camera_counts), 3.2), squeeze=False)
+    if run is None or not Path(run).exists() or target_h5 is None:
+        axes[0, 0].text(0, 0.5, "run not made in this profile", fontsize=8)
+        fig.savefig(out_png, dpi=110)
+        plt.close(fig)
+        return
+    t = load_target(target_h5)
+    with h5py.File(run) as f:
+        last = _saved_frames(f)[-1]
+        x = f["states"][last]["x"][()].astype(np.float64)
+        F = f["states"][last]["F"][()].astype(np.float64)
+        sigma0 = float(f.attrs["sigma0"])
+    V = t.cameras.count
+    uv, _ = t.cameras.project(x)
+    for ax, n in zip(axes[0], camera_counts):
+        views = list(np.linspace(0, V, n, endpoint=False).astype(int)) if n < V else list(range(V))
+        res = render_and_grad(x, F, sigma0, t.cameras.subset(views), RenderTarget(t.alpha[views], t.depth[views], t.sdt[views]), RenderConfig())
+        g = np.linalg.norm(res.grad_F.reshape(len(x), -1), axis=1)
+        order = np.argsort(g)
+        sc = ax.scatter(uv[2, order, 0], uv[2, order, 1], c=np.log10(g[order] + 1e-12), s=3, cmap="turbo")
+        ax.set_xlim(0, t.cameras.width)
+        ax.set_ylim(t.cameras.height, 0)
+        ax.set_aspect("equal")
+        ax.set_title(f"{n} camera{'s' if n > 1 else ''}: {100 * np.mean(g > 1e-3 * g.max()):.0f}% of particles guided", fontsize=8)
+        ax.axis("off")
+        fig.colorbar(sc, ax=ax, fraction=0.04, label="log10 |dL/dF|")
+    fig.suptitle(f"render-gradient coverage on {Path(run).stem} ({last})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: dict, out_dir: Path) -> list[Path]:
+    """Every figure of FIGURE_NAMES as out_dir/{name}.png."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sel = {name: {r: runs.get(r) for r in rs} for name, rs in FIGURE_RUNS.items()}
+    for name in ("sequences_main", "sequences_cross_shape", "sequences_letters"):
+        sequence_figure(sel[name], target_cfg, out / f"{name}.png")
+    curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], out / "drag_ablation.png",
+                  "drag ablation: iso -> bunny")
+    curves_figure(sel["trajectory_divergence"], [("physics_loss", "physics (mass) loss"), ("alpha_mse", "alpha MSE")],
+                  out / "trajectory_divergence.png", "trajectory divergence: iso -> duck", logy=("physics_loss",))
+    curves_figure(sel["plasticity_effect"], [("alpha_mse", "alpha MSE"), ("physics_loss", "physics loss"),
+                                             ("fp_det_range", "det Fp range")], out / "plasticity_effect.png",
+                  "Chamfer plasticity: with (full) and without (f_inject)", logy=("physics_loss",))
+    curves_figure(sel["optimization_traces"], [("alpha_mse", "alpha MSE"), ("grad_F_norm", "|dL/dF|"),
+                                               ("loss_render", "render loss"), ("physics_loss", "physics loss")],
+                  out / "optimization_traces.png", "optimization traces: iso -> bunny (full)",
+                  logy=("grad_F_norm", "physics_loss"))
+    coverage_figure(runs.get("iso_bunny_full"), targets.get("bunny"), out / "gradient_coverage.png")
+    return [out / f"{n}.png" for n in FIGURE_NAMES]
