@@ -22,6 +22,12 @@ rule figures:
         figure_outputs(),
 
 
+rule tradeoff:
+    input:
+        "results/tradeoff/tradeoff.md",
+        "results/tradeoff/pareto.png",
+
+
 include: "workflow/rules/fetch_mesh.smk"
 include: "workflow/rules/prepare_mesh.smk"
 include: "workflow/rules/sample_particles.smk"
@@ -29,3 +35,4 @@ include: "workflow/rules/rasterize_target.smk"
 include: "workflow/rules/morph.smk"
 include: "workflow/rules/tables.smk"
 include: "workflow/rules/figures.smk"
+include: "workflow/rules/tradeoff.smk"

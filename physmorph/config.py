@@ -91,6 +91,8 @@ def validate_config(cfg: dict) -> dict:
     for i, shape in enumerate(cfg["tables"].get("shapes", [])):
         if shape not in shapes:
             raise ConfigError(f"config key 'tables.shapes[{i}]': unknown shape '{shape}'")
+    if "tradeoff" in cfg and cfg["tradeoff"]["experiment"] not in cfg["experiments"]:
+        raise ConfigError(f"config key 'tradeoff.experiment': unknown experiment '{cfg['tradeoff']['experiment']}'")
     for i, name in enumerate(cfg["tables"].get("experiments", [])):
         if name not in cfg["experiments"]:
             raise ConfigError(f"config key 'tables.experiments[{i}]': unknown experiment '{name}'")

@@ -68,3 +68,23 @@ def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets:
 
     return build_figures({n: Path(p) for n, p in zip(names, runs)}, {s: Path(p) for s, p in zip(shapes, targets)},
                          target_cfg, Path(out_dir))
+
+
+def tradeoff_point_stage(config: dict, point: str, particles_h5: str, target_h5: str, output: str) -> dict:
+    from physmorph.config import validate_config
+    from physmorph.morph import morph_config, run_morph
+    from physmorph.tradeoff import point_config, tradeoff_points
+
+    cfg = validate_config(config)
+    pcfg = point_config(cfg, tradeoff_points(cfg)[point])
+    mcfg = morph_config(pcfg, cfg["tradeoff"]["experiment"])
+    record = {"tradeoff_point": point, "morph": mcfg.to_dict()}
+    return run_morph(particles_h5, target_h5, output, mcfg, name=f"tradeoff {point}", config_record=record)
+
+
+def tradeoff_stage(config: dict, names: list[str], runs: list[str], out_dir: str):
+    from physmorph.config import validate_config
+    from physmorph.tradeoff import build_tradeoff, tradeoff_points
+
+    points = tradeoff_points(validate_config(config))
+    return build_tradeoff(points, {n: Path(p) for n, p in zip(names, runs)}, Path(out_dir))

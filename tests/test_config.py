@@ -15,7 +15,7 @@ def test_profiles_validate(profile):
 
 def test_profile_overlay_merges_nested_keys():
     cfg = load_config(BASE, "config/test.yaml")
-    assert cfg["sampling"]["grid_res"] == 16
+    assert cfg["sampling"]["ppc_surface"] == 1
     assert cfg["sampling"]["density"] == 75.0  # inherited from the default profile
 
 

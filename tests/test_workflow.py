@@ -48,7 +48,7 @@ def test_unknown_experiment_is_named(tmp_path):
 
 def test_tables_on_test_profile(tmp_path, mesh_dir):
     wd = _workdir(tmp_path)
-    out = _run(wd, "tables", "figures", "--configfile", "config/test.yaml", "--config", f"mesh_dir={mesh_dir}",
+    out = _run(wd, "tables", "figures", "tradeoff", "--configfile", "config/test.yaml", "--config", f"mesh_dir={mesh_dir}",
                check=False)
     assert out.returncode == 0, out.stderr[-4000:]
     for shape in ("iso", "bunny"):
@@ -73,9 +73,16 @@ def test_tables_on_test_profile(tmp_path, mesh_dir):
         md = (wd / f"results/tables/{name}.md").read_text().splitlines()
         assert md[0].startswith("|") and set(md[1]) <= set("|-")
         assert "\\begin{tabular}" in (wd / f"results/tables/{name}.tex").read_text()
+    # Speed/accuracy study: base + one point per changed knob value, Pareto front marked.
+    trade = pd.read_csv(wd / "results/tradeoff/tradeoff.csv")
+    assert set(trade["name"]) == {"base", "cameras-2", "image-32x24"}
+    assert trade["pareto"].any() and (trade["time_s"] > 0).all() and np.isfinite(trade["best_alpha_mse"]).all()
+    assert (wd / "results/targets/bunny_32x1x1_32x24.h5").exists()
+    assert "accuracy per second" in (wd / "results/tradeoff/tradeoff.md").read_text()
     # Figures: real PNGs.
-    for png in ("sequences_main", "drag_ablation", "optimization_traces", "gradient_coverage"):
-        data = (wd / f"results/figures/{png}.png").read_bytes()
+    for png in ("figures/sequences_main", "figures/drag_ablation", "figures/optimization_traces",
+                "figures/gradient_coverage", "tradeoff/pareto"):
+        data = (wd / f"results/{png}.png").read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
 
 

@@ -1,0 +1,3 @@
+from physmorph.stages import tradeoff_stage
+
+tradeoff_stage(snakemake.config, snakemake.params.names, snakemake.input.runs, "results/tradeoff")
