@@ -4,12 +4,15 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 CORES ?= 2
+# torch's CPU build (2.13.0+cpu) is not on PyPI: pip finds it through PIP_FIND_LINKS / a local
+# wheel directory (these machines keep it in /opt/wheels) or the PyTorch CPU wheel index.
+WHEELS := $(if $(wildcard /opt/wheels),--find-links /opt/wheels,)
 
 .PHONY: venv tables figures tradeoff test dag clean-venv
 
 $(STAMP): environment.lock pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install --quiet --no-deps -r environment.lock
+	$(VENV)/bin/python -m pip install --quiet --no-deps $(WHEELS) -r environment.lock
 	$(VENV)/bin/python -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
