@@ -54,7 +54,7 @@ class MorphConfig:
     frames: int = 30
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
     gamma_x: float = 0.1  # render-x gain (position_inject only), relative
-    cameras: int | None = None  # use the first n of the target's cameras (None: all)
+    cameras: int | None = None  # render-loss views, evenly spaced on the ring (None: all)
     save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
     metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
     max_F_norm: float = 50.0  # divergence bound on |F|_max entries
@@ -190,8 +190,12 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     target = load_target(target_h5)
     if target.grid.res != cfg.mpm.grid_res:
         raise ValueError(f"{target_h5}: target grid {target.grid.res}^3 does not match mpm.grid_res {cfg.mpm.grid_res}")
-    cams = target.cameras if cfg.cameras is None else target.cameras.subset(list(range(min(cfg.cameras, target.cameras.count))))
-    views = list(range(cams.count))
+    # The render loss sees `cfg.cameras` views evenly spaced around the ring; the alpha-MSE metric
+    # always uses every target view, so runs with different camera counts stay comparable.
+    V = target.cameras.count
+    n_loss = V if cfg.cameras is None else min(cfg.cameras, V)
+    views = sorted(set(np.linspace(0, V, n_loss, endpoint=False).astype(int).tolist()))
+    cams = target.cameras.subset(views)
     rtarget = RenderTarget(target.alpha[views], target.depth[views], target.sdt[views])
     tree = cKDTree(target.surface_points)
     N = len(parts.x)
@@ -201,14 +205,14 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     # rescaled to the source's total mass (its shape is what is matched).
     mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
     solver.set_target_grid_mass(target.grid_mass * mass_ratio)
-    run = RunFile(partial, cams.count)
+    run = RunFile(partial, V)
     lo, hi = cfg.mpm.domain_lo, cfg.mpm.domain_hi
     record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
 
     def metrics_for(st: ParticleState, mask: np.ndarray) -> tuple[dict, np.ndarray]:
         sel = slice(None) if cfg.metric_all_particles else mask
-        alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, cams, cfg.render)
-        per_view = ((alpha - rtarget.alpha) ** 2).mean(axis=(1, 2))
+        alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
+        per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
         det = np.linalg.det(st.Fp)
         d, _ = tree.query(st.x, k=1)
         return {"alpha_mse": float(per_view.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
@@ -236,7 +240,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi)
         g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
         run.create({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "config_record": record, "n_particles": N,
-                    "sigma0": parts.sigma0, "views": cams.count, "frames_planned": cfg.frames})
+                    "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames})
         m, per_view = metrics_for(st, mask)
         # Frame 0's physics loss is that of the unmoved source.
         run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,

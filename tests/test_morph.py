@@ -128,3 +128,11 @@ def test_position_injection_runs_and_records_its_outcome(tiny):
     status = str(m["attrs"]["status"])
     assert status == "complete" or status.startswith("diverged: frame")
     assert np.all(m["grad_x_norm"][1:len(m["alpha_mse"])] > 0)
+
+
+def test_camera_subset_for_the_loss_but_every_view_for_the_metric(tiny):
+    out = _run(tiny, "iso_bunny_full", "two_cameras.h5", frames=1, cameras=2)
+    m = read_metrics(out)
+    assert list(m["attrs"]["loss_views"]) == [0, 4]  # evenly spaced on the ring of 8
+    assert m["alpha_mse_views"].shape == (2, 8)
+    assert np.allclose(m["alpha_mse_views"].mean(axis=1), m["alpha_mse"])
