@@ -242,7 +242,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         run.create({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "config_record": record, "n_particles": N,
                     "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames})
         m, per_view = metrics_for(st, mask)
-        # Frame 0's physics loss is that of the unmoved source.
+        # Frame 0 is the unmoved source: it has metrics but no physics step (its losses are NaN).
         run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
                                               "injection_scale": float("nan"), **solver.optimizer_state()})
         start = 1
