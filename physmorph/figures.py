@@ -23,6 +23,7 @@ FIGURE_RUNS = {
     "sequences_letters": ["iso_A_full", "cow_S_full", "duck_C_full"],
     "drag_ablation": ["iso_bunny_physics_only", "iso_bunny_full_d05", "iso_bunny_full"],
     "trajectory_divergence": ["iso_duck_physics_only", "iso_duck_full"],
+    "trajectory_frames": ["iso_duck_physics_only", "iso_duck_full"],
     "plasticity_effect": ["iso_bunny_f_inject", "iso_bunny_full"],
     "optimization_traces": ["iso_bunny_full"],
     "gradient_coverage": ["iso_bunny_full"],
@@ -47,8 +48,10 @@ def figure_cameras(target: dict, scale: int = 2):
     return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
 
 
-def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view: int = 1, columns: int = 6) -> None:
-    """One row per run: ``columns`` saved frames from the first to the last, shaded Gaussians."""
+def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view: int = 1, columns: int = 6,
+                    frames: list[int] | None = None) -> None:
+    """One row per run: ``columns`` saved frames from the first to the last (or the saved frames
+    nearest to ``frames``), shaded Gaussians."""
     from physmorph.render import RenderConfig, shade
 
     plt = _plt()
@@ -59,8 +62,12 @@ def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view
         ax.axis("off")
     for r, (name, path) in enumerate(rows):
         with h5py.File(path) as f:
-            frames = _saved_frames(f)
-            pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, columns).round().astype(int))]
+            saved = _saved_frames(f)
+            if frames is None:
+                pick = [saved[i] for i in np.unique(np.linspace(0, len(saved) - 1, columns).round().astype(int))]
+            else:
+                numbers = np.array([int(fr.replace("frame_", "")) for fr in saved])
+                pick = list(dict.fromkeys(saved[int(np.argmin(np.abs(numbers - k)))] for k in frames))
             sigma0 = float(f.attrs["sigma0"])
             for c, fr in enumerate(pick):
                 g = f["states"][fr]
@@ -151,6 +158,9 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
                   "drag ablation: iso -> bunny")
     curves_figure(sel["trajectory_divergence"], [("physics_loss", "physics (mass) loss"), ("alpha_mse", "alpha MSE")],
                   out / "trajectory_divergence.png", "trajectory divergence: iso -> duck", logy=("physics_loss",))
+    # The paper shows frames 10, 15 and 19 side by side; the saved frames nearest to them.
+    sequence_figure(sel["trajectory_frames"], target_cfg, out / "trajectory_frames.png", columns=3,
+                    frames=[10, 15, 19])
     curves_figure(sel["plasticity_effect"], [("alpha_mse", "alpha MSE"), ("physics_loss", "physics loss"),
                                              ("fp_det_range", "det Fp range")], out / "plasticity_effect.png",
                   "Chamfer plasticity: with (full) and without (f_inject)", logy=("physics_loss",))

@@ -18,7 +18,8 @@ import numpy as np
 TABLE_NAMES = ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing")
 # The figures `snakemake figures` writes (physmorph.figures builds them).
 FIGURE_NAMES = ("sequences_main", "sequences_cross_shape", "sequences_letters", "drag_ablation",
-                "trajectory_divergence", "plasticity_effect", "optimization_traces", "gradient_coverage")
+                "trajectory_divergence", "trajectory_frames", "plasticity_effect", "optimization_traces",
+                "gradient_coverage")
 
 
 def matched_convergence_frame(baseline: np.ndarray, fraction: float = 0.9) -> int:  # baseline [K+1]
