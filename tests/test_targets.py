@@ -78,3 +78,45 @@ def test_splat_mass_conserves_mass():
     gm = splat_mass(x, m, grid)
     assert gm.sum() == pytest.approx(m.sum(), rel=1e-12)
     assert gm.min() >= 0
+
+
+def test_rasterize_target_bad_input_leaves_nothing(tmp_path):
+    from physmorph.config import SamplingConfig, TargetConfig
+    from physmorph.h5io import StageInputError
+    from physmorph.targets import rasterize_target
+
+    bad = tmp_path / "mesh.h5"
+    bad.write_bytes(b"not an hdf5 file")
+    out, png = tmp_path / "t.h5", tmp_path / "t.png"
+    with pytest.raises(StageInputError, match="mesh.h5"):
+        rasterize_target(bad, out, SamplingConfig(16, 1, 1, 75.0, 0.7), TargetConfig(width=16, height=12), preview_png=png)
+    assert not out.exists() and not png.exists() and not list(tmp_path.glob("*.partial"))
+
+
+def test_target_file_round_trip_and_missing_field(tmp_path):
+    import h5py
+
+    from physmorph.config import SamplingConfig, TargetConfig
+    from physmorph.h5io import StageInputError
+    from physmorph.meshes import ShapeSpec, prepare_mesh
+    from physmorph.targets import load_target, rasterize_target
+
+    prepare_mesh(ShapeSpec("iso", "isosphere", size=10.0), None, tmp_path / "iso.h5")
+    tc = TargetConfig(cameras=4, width=24, height=16, supersample=1, surface_points=500)
+    summary = rasterize_target(tmp_path / "iso.h5", tmp_path / "t.h5", SamplingConfig(16, 1, 1, 75.0, 0.7), tc)
+    t = load_target(tmp_path / "t.h5")
+    assert t.alpha.shape == (4, 16, 24) and t.cameras.count == 4 and t.surface_points.shape == (500, 3)
+    # The grid mass is the target's own particle sampling splatted with the MPM's B-spline.
+    from physmorph.grid import Grid, splat_mass
+    from physmorph.meshes import load_mesh
+    from physmorph.particles import sample_volume
+
+    x, vol, _ = sample_volume(load_mesh(tmp_path / "iso.h5"), Grid(16), 1, 1, 0)
+    np.testing.assert_allclose(t.grid_mass, splat_mass(x, 75.0 * vol, Grid(16)), rtol=1e-12)
+    assert t.grid_mass.sum() == pytest.approx(75.0 * t.volume, rel=0.1)  # coarse grid 16: ~7 % over
+    assert np.all((t.sdt < 0) == (t.alpha >= 0.5))
+    assert summary["views"] == 4
+    with h5py.File(tmp_path / "t.h5", "a") as f:
+        del f["sdt"]
+    with pytest.raises(StageInputError, match="missing field 'sdt'"):
+        load_target(tmp_path / "t.h5")
