@@ -23,7 +23,7 @@ def test_points_change_one_knob_each():
             continue
         changed = [k for k in ("grid_res", "ppc_surface", "width", "cameras", "grad_iters") if getattr(p, k) != getattr(base, k)]
         assert len(changed) == 1, name
-    assert "grid_res-48" in pts and "cameras-1" in pts and "image-320x180" in pts
+    assert "grid_res-64" in pts and "cameras-1" in pts and "image-320x180" in pts
 
 
 def test_unknown_knob_is_named():
