@@ -209,6 +209,9 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     lo, hi = cfg.mpm.domain_lo, cfg.mpm.domain_hi
     record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
 
+    # The mask is only built where something uses it (a switched-off component costs nothing).
+    need_mask = cfg.method != "physics_only" or not cfg.metric_all_particles
+
     def metrics_for(st: ParticleState, mask: np.ndarray) -> tuple[dict, np.ndarray]:
         sel = slice(None) if cfg.metric_all_particles else mask
         alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
@@ -218,7 +221,8 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         return {"alpha_mse": float(per_view.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
                 "fp_anisotropy_max": float(_anisotropy(st.Fp).max()),
                 "elastic_energy": float(elastic_energy(st, cfg.mpm)), "total_volume": float(total_volume(st)),
-                "mask_size": int(mask.sum()), "mask_fraction": float(mask.mean()),
+                "mask_size": int(mask.sum()) if need_mask else np.nan,
+                "mask_fraction": float(mask.mean()) if need_mask else np.nan,
                 "chamfer": float(d.mean())}, per_view
 
     resumed_from = None
@@ -237,7 +241,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         st = ParticleState(x=parts.x.copy(), v=np.zeros((N, 3)), F=np.tile(np.eye(3), (N, 1, 1)),
                            C=np.zeros((N, 3, 3)), Fp=np.tile(np.eye(3), (N, 1, 1)),
                            mass=parts.mass.copy(), volume=parts.volume.copy())
-        mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi)
+        mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi) if need_mask else np.zeros(N, bool)
         g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
         run.create({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "config_record": record, "n_particles": N,
                     "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames})
@@ -283,7 +287,8 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
         t1 = time.time()
         # Surface mask on the new state.
-        mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask)
+        if need_mask:
+            mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask)
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],

@@ -57,6 +57,7 @@ def test_full_beats_physics_only_on_the_tiny_setup(tiny_runs):
     # Render gradients were computed for the injecting method only.
     assert np.all(tiny_runs["full"]["grad_F_norm"][1:] > 0)
     assert np.isnan(tiny_runs["physics_only"]["grad_F_norm"][1:]).all()
+    assert np.isnan(tiny_runs["physics_only"]["mask_size"]).all()  # no mask built where none is used
 
 
 def test_run_records_metrics_and_provenance(tiny_runs):
