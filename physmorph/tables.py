@@ -126,12 +126,12 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path) -> dict[str, 
               "timing": timing_table(m)}
     for name, df in tables.items():
         df.to_csv(out / f"{name}.csv", index=False)
-        (out / f"{name}.md").write_text(_markdown(df))
+        (out / f"{name}.md").write_text(markdown_table(df))
         (out / f"{name}.tex").write_text(df.to_latex(index=False, float_format="%.4g", na_rep="--"))
     return tables
 
 
-def _markdown(df: pd.DataFrame) -> str:
+def markdown_table(df: pd.DataFrame) -> str:
     """A GitHub table without the optional tabulate dependency."""
     def fmt(v):
         if isinstance(v, float):

@@ -109,7 +109,7 @@ def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
 def build_tradeoff(points: dict[str, TradeoffPoint], runs: dict[str, Path], out_dir: Path) -> pd.DataFrame:
     """Write tradeoff.csv, tradeoff.md (with the knob ranking) and pareto.png; return the table."""
     from physmorph.morph import read_metrics
-    from physmorph.tables import _markdown
+    from physmorph.tables import markdown_table
 
     rows = []
     for name, path in runs.items():
@@ -123,8 +123,8 @@ def build_tradeoff(points: dict[str, TradeoffPoint], runs: dict[str, Path], out_
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "tradeoff.csv", index=False)
     rank = knob_ranking(df)
-    (out / "tradeoff.md").write_text("## Points\n\n" + _markdown(df) + "\n## Which knob buys the most accuracy per second\n\n"
-                                     + _markdown(rank))
+    (out / "tradeoff.md").write_text("## Points\n\n" + markdown_table(df) + "\n## Which knob buys the most accuracy per second\n\n"
+                                     + markdown_table(rank))
     import matplotlib
 
     matplotlib.use("Agg")
