@@ -505,3 +505,100 @@ def test_optimizer_state_round_trip(solver3, state):
     np.testing.assert_array_equal(s.control(), ctrl_a)
     with pytest.raises(MPMStateError, match="adam_m"):
         s.set_optimizer_state({**saved, "adam_m": saved["adam_m"][:, :1]})
+
+
+# ----------------------------------------------------------------------------- control carried in F
+@pytest.fixture(scope="module")
+def solver3_in_F(state):
+    """As solver3, with dFc carried in F (F_new = (I + dt C') (F + dFc))."""
+    return make(cfg64(control_in_F=True), state)
+
+
+def test_control_in_F_rollout_matches_torch_reference(solver3_in_F, state):
+    s = solver3_in_F
+    ctrl = random_control(s.cfg, state.n)
+    s.load_state(state)
+    s.set_control(ctrl)
+    s.forward()
+    states = ref.rollout_torch(*(ref.as_torch(a) for a in (state.x, state.v, state.C, state.F)), ref.as_torch(ctrl),
+                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), s.cfg)
+    got = s.state_at(3)
+    np.testing.assert_allclose(got.F, states[3][3].numpy(), rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(got.x, states[3][0].numpy(), rtol=1e-7, atol=1e-9)
+    # and it differs from the stress-only rollout by the carried control, first order in dFc
+    plain = ref.rollout_torch(*(ref.as_torch(a) for a in (state.x, state.v, state.C, state.F)), ref.as_torch(ctrl),
+                              ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg64())
+    assert np.abs(got.F - plain[3][3].numpy()).max() > 1e-3
+
+
+def test_control_in_F_gradients_match_fd(solver3_in_F, state):
+    s = solver3_in_F
+    s.set_control(random_control(s.cfg, state.n))
+    _fd_check(s, state, n_checks=8, seed=5)
+    gF = 50.0 * np.random.default_rng(21).normal(size=(state.n, 3, 3))
+    _fd_check(s, state, gF=gF, n_checks=6, seed=6)
+
+
+def test_control_in_F_gradients_match_torch_autograd(solver3_in_F, state):
+    s = solver3_in_F
+    ctrl = random_control(s.cfg, state.n)
+    gF = np.random.default_rng(8).normal(size=(state.n, 3, 3))
+    s.load_state(state)
+    s.set_control(ctrl)
+    s.forward()
+    s.backward(gF, None)
+    c = ref.as_torch(ctrl, True)
+    states = ref.rollout_torch(*(ref.as_torch(a) for a in (state.x, state.v, state.C, state.F)), c,
+                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), s.cfg)
+    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(s.target_m.to_numpy()), s.cfg)
+    (loss + (states[-1][3] * ref.as_torch(gF)).sum()).backward()
+    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+
+
+# ----------------------------------------------------------------------------- normalised GD
+def test_normalized_gd_line_search_decreases_the_objective_monotonically(state):
+    """Each accepted step lowers mass loss + <gF, F_T>; a step size too large for any decrease
+    within line_search_iters halvings is undone (the control is left unchanged)."""
+    cfg = cfg64(substeps=5, optimizer="normalized_gd", learning_rate=0.01, line_search_iters=10)
+    st = ball_state(perturb=False)
+    s = make(cfg, st)
+    s.set_target_grid_mass(stretched_target(st, cfg, stretch=(1.06, 0.97, 0.97)))
+    gF = 10.0 * np.random.default_rng(2).normal(size=(st.n, 3, 3))
+    s.reset_control()
+    s.load_state(st)
+    objs = []
+    for _ in range(6):
+        s.optimize_control(grad_F_final=gF, iters=1)
+        objs.append(s.mass_loss() + float((gF * s.state_at(cfg.substeps).F).sum()))
+    assert all(b <= a for a, b in zip(objs, objs[1:])) and objs[-1] < objs[0]
+    # line search exhausted (one try at a huge step): nothing changes
+    big = MPMConfig(**{**cfg.__dict__, "learning_rate": 1e3, "line_search_iters": 1})
+    s2 = make(big, st)
+    s2.set_target_grid_mass(stretched_target(st, cfg, stretch=(1.06, 0.97, 0.97)))
+    s2.reset_control()
+    s2.load_state(st)
+    stats = s2.optimize_control(iters=1)
+    assert stats["iters"] == 0 and np.abs(s2.control()).max() == 0.0
+    assert stats["loss_final"] == pytest.approx(stats["loss_initial"], rel=1e-12)
+
+
+def test_normalized_gd_keeps_relative_gradient_sizes(state):
+    """The step is -alpha g / rms(g): proportional to the gradient (unlike Adam's per-entry sign-like step)."""
+    cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4)
+    s = make(cfg, state)
+    s.reset_control()
+    s.load_state(state)
+    s.forward()
+    s.backward()
+    g = s.control_gradient()
+    s.optimize_control(iters=1)
+    step = s.control()
+    rms = np.sqrt(np.mean(g * g))
+    np.testing.assert_allclose(step, -1e-4 * g / rms, rtol=1e-9, atol=1e-15)
+
+
+def test_optimizer_config_is_checked():
+    with pytest.raises(MPMConfigError, match="optimizer"):
+        cfg64(optimizer="sgd")
+    with pytest.raises(MPMConfigError, match="line_search_iters"):
+        cfg64(line_search_iters=0)

@@ -35,6 +35,7 @@ class CFLWarning(UserWarning):
 
 CONTROL_MODES = ("per_substep", "per_frame")
 MASS_LOSSES = ("squared", "log")
+OPTIMIZERS = ("adam", "normalized_gd")
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,16 @@ class MPMConfig:
         load_state call reset_control.
     cfl: the solver refuses dt > cfl * dx / c with c = sqrt((lambda + 2 mu) / rho) the
         P-wave speed, and warns (CFLWarning) above cfl_warn_fraction of that step.
+    control_in_F: False: dFc enters the stress only, Fe = (F + dFc) Fp^-1, and F is advected by the
+        grid velocity alone (an actuation). True (the authors' published code, DiffMPMLib3D):
+        dFc is also carried in the deformation gradient, F_new = (I + dt C') (F + dFc), then
+        smoothed with the pre-control F, F' = (1 - s) F_new + s F; the render adjoint on F_T
+        then reaches dFc to first order.
+    optimizer: "adam" (per-entry normalised steps, moments kept across frames with warm_start)
+        or "normalized_gd" (the authors' code: dFc <- dFc - alpha g / rms(g), a step whose
+        per-entry RMS is alpha = learning_rate, so relative gradient sizes are kept; a
+        backtracking line search halves alpha up to line_search_iters times until the frame's
+        objective, mass loss + injected linear terms, decreases, else the step is undone).
     control_clip: if > 0, dFc entries are clamped to [-control_clip, control_clip] after each
         Adam step (0 = off, the paper's behaviour).
     """
@@ -67,7 +78,10 @@ class MPMConfig:
     drag: float = 0.9
     smoothing: float = 0.955
     control: str = "per_substep"
+    control_in_F: bool = False
     learning_rate: float = 0.01
+    optimizer: str = "adam"
+    line_search_iters: int = 10
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
@@ -114,6 +128,9 @@ class MPMConfig:
         need(0 <= self.adam_beta1 < 1 and 0 <= self.adam_beta2 < 1 and self.adam_eps > 0,
              f"Adam needs 0 <= beta1, beta2 < 1 and eps > 0, got {self.adam_beta1}, "
              f"{self.adam_beta2}, {self.adam_eps}")
+        need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        need(isinstance(self.line_search_iters, int) and self.line_search_iters >= 1,
+             f"line_search_iters must be an int >= 1, got {self.line_search_iters!r}")
         need(self.log_mass_eps > 0, f"log_mass_eps must be > 0, got {self.log_mass_eps}")
         need(self.control_clip >= 0, f"control_clip must be >= 0, got {self.control_clip}")
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl}")

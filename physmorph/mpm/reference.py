@@ -84,7 +84,7 @@ def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig):
     x_min = cfg.domain_lo + cfg.dx
     x_max = cfg.domain_lo + (R - 2.0) * cfg.dx
     nx = torch.clamp(x + dt * nv, x_min, x_max)
-    Fn = (torch.eye(3, dtype=x.dtype) + dt * nC) @ F
+    Fn = (torch.eye(3, dtype=x.dtype) + dt * nC) @ (F + dFc if cfg.control_in_F else F)
     nF = (1.0 - cfg.smoothing) * Fn + cfg.smoothing * F
     return nx, nv, nC, nF
 

@@ -9,6 +9,7 @@ One substep t (state s_t = (x, v, C, F), control dFc_t, constants Fp, m, V0):
     grid: v_I = mv_I / m_I, outward component zeroed on the BOUNDARY_CELLS layer of each face
     G2P:  v' = sum_I w_Ip v_I,  C' = 4/dx^2 sum_I w_Ip v_I (x_I - x_p)^T,  x' = x + dt v'
           F_new = (I + dt C') F,   F' = (1 - s) F_new + s F
+    (with control_in_F: F_new = (I + dt C') (F + dFc_t), the authors' code)
 
 P = 2 mu (Fe - R) + lam (J - 1) cof(Fe), with cof(Fe) = J Fe^-T written with cross products
 so it stays finite for singular Fe. The control dFc enters the stress only (it acts like an
@@ -305,7 +306,10 @@ class MPMSolver:
                 nv += wt * gv
                 nC += (4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx) * wt) * gv.outer_product(dpos)
             Fo = self.F[t, p]
-            Fn = (ti.Matrix.identity(self.dtype, 3) + self.dtype(self.cfg.dt) * nC) @ Fo
+            Fh = Fo
+            if ti.static(self.cfg.control_in_F):
+                Fh = Fo + self.ctrl[t if ti.static(self.cfg.control == "per_substep") else 0, p]
+            Fn = (ti.Matrix.identity(self.dtype, 3) + self.dtype(self.cfg.dt) * nC) @ Fh
             self.v[t + 1, p] = nv
             self.C[t + 1, p] = nC
             self.x[t + 1, p] = ti.math.clamp(xp + self.dtype(self.cfg.dt) * nv, self.dtype(self._x_min), self.dtype(self._x_max))
@@ -396,12 +400,18 @@ class MPMSolver:
             for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
                 if xn[a] <= self.dtype(self._x_min) or xn[a] >= self.dtype(self._x_max):
                     xbar_n[a] = 0.0
-            Fo = self.F[t, p]
+            slot = t if ti.static(self.cfg.control == "per_substep") else 0
+            Fh = self.F[t, p]
+            if ti.static(self.cfg.control_in_F):
+                Fh += self.ctrl[slot, p]
             Cn = self.C[t + 1, p]
             Fbar_n = self.F_adj[p]
             Fbar_new = (1.0 - s) * Fbar_n
-            Fbar = s * Fbar_n + (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
-            Cbar = self.C_adj[p] + dt * Fbar_new @ Fo.transpose()
+            Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
+            Fbar = s * Fbar_n + Fh_bar
+            if ti.static(self.cfg.control_in_F):
+                self.ctrl_grad[slot, p] += Fh_bar
+            Cbar = self.C_adj[p] + dt * Fbar_new @ Fh.transpose()
             vbar = self.v_adj[p] + dt * xbar_n
             xbar = xbar_n
             for i, j, k in ti.ndrange(3, 3, 3):
@@ -678,6 +688,8 @@ class MPMSolver:
         J = self.cfg.grad_iters if iters is None else int(iters)
         if J < 1:
             raise ValueError(f"iters must be >= 1, got {J}")
+        if self.cfg.optimizer == "normalized_gd":
+            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J)
         losses = []
         for _ in range(J):
             losses.append(self.forward())
@@ -687,6 +699,59 @@ class MPMSolver:
         return {"loss_initial": losses[0], "loss_final": loss_final, "losses": losses,
                 "grad_norm": self._grad_norm, "iters": J,
                 "delta_E_percent": 100.0 * (losses[0] - loss_final) / losses[0] if losses[0] > 0 else 0.0}
+
+    def _objective(self, grad_F_final, grad_x_final) -> float:
+        """Forward, then mass loss + <gF, F_T> + <gx, x_T> (what the backward differentiates)."""
+        J = self.forward()
+        if grad_F_final is not None or grad_x_final is not None:
+            x, _, F, _ = self._export_raw(self.cfg.substeps)
+            if grad_F_final is not None:
+                J += float((np.asarray(grad_F_final) * F).sum())
+            if grad_x_final is not None:
+                J += float((np.asarray(grad_x_final) * x).sum())
+        return J
+
+    def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int) -> dict:
+        """Normalised gradient descent with backtracking (DiffMPMLib3D's optimiser): per
+        iteration dFc <- dFc - alpha g / rms(g), alpha starting at learning_rate and halved
+        until the objective decreases (at most line_search_iters tries; else the step is undone
+        and the frame's optimisation stops)."""
+        losses = []
+        obj = self._objective(grad_F_final, grad_x_final)
+        loss_initial = self._last_loss
+        alpha = self.cfg.learning_rate
+        accepted = 0
+        for _ in range(iters):
+            losses.append(self._last_loss)
+            self.backward(grad_F_final, grad_x_final)
+            g = self.control_gradient()
+            rms = float(np.sqrt(np.mean(g * g)))
+            if not rms > 0:
+                break
+            base = self.control()
+            found = False
+            for _ in range(self.cfg.line_search_iters):
+                self.set_control(base - alpha * g / rms)
+                try:
+                    trial = self._objective(grad_F_final, grad_x_final)
+                except MPMDivergenceError:  # a step so large the rollout blows up: shorten it
+                    trial = float("inf")
+                if trial < obj:
+                    obj, found = trial, True
+                    break
+                alpha *= 0.5
+            if not found:
+                self.set_control(base)
+                self.forward()
+                break
+            accepted += 1
+        if not self._forward_current:
+            self.forward()
+        loss_final = self._last_loss
+        self._ls_alpha = alpha
+        return {"loss_initial": loss_initial, "loss_final": loss_final, "losses": losses,
+                "grad_norm": self._grad_norm, "iters": accepted, "step": alpha,
+                "delta_E_percent": 100.0 * (loss_initial - loss_final) / loss_initial if loss_initial > 0 else 0.0}
 
     def rollout(self) -> ParticleState:
         """Forward with the current dFc and return the state at t = T (the forward is skipped

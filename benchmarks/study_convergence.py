@@ -1,0 +1,109 @@
+"""Convergence study driver: run one experiment of the default profile with config overrides and
+append its reachable-gap numbers to docs/convergence/runs.csv (the study's raw record).
+
+    python benchmarks/study_convergence.py iso_bunny_full --tag baseline
+    python benchmarks/study_convergence.py iso_bunny_full --tag lr003 --set mpm.learning_rate=0.003
+    python benchmarks/study_convergence.py iso_bunny_full iso_cow_full --frames 20 --set morph.gamma=0.3
+
+Needs the prepared particles and targets of the profile under results/ (e.g.
+`snakemake --cores 2 results/particles/iso_32x2x1.h5 results/targets/bunny_32x2x1.h5`).
+Each row: alpha MSE at frame 0 / best / final, the ceiling (the target's own particles at rest),
+the share of the reachable gap closed at the best and last frame, silhouette IoU, Chamfer, wall.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from physmorph.config import SamplingConfig, load_config
+from physmorph.morph import morph_config, read_metrics, run_morph
+from physmorph.particles import load_particles
+from physmorph.quality import ceiling_metrics, gap_closed
+from physmorph.targets import load_target
+
+REPO = Path(__file__).resolve().parent.parent
+CSV = REPO / "docs" / "convergence" / "runs.csv"
+COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_frame", "a_final", "ceiling",
+           "closed_best", "closed_final", "iou0", "iou_best", "iou_final", "ceiling_iou", "chamfer0",
+           "chamfer_final", "fp_det_min", "status", "wall_s"]
+
+
+def parse_set(items: list[str]) -> dict:
+    out: dict = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        node = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = yaml.safe_load(value)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("experiments", nargs="+")
+    ap.add_argument("--tag", required=True)
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--set", action="append", default=[], help="dotted.key=value (YAML value)")
+    ap.add_argument("--profile", default=None, help="extra config file merged on config/config.yaml")
+    ap.add_argument("--workdir", default="/tmp/physmorph_study")
+    ap.add_argument("--no-csv", action="store_true")
+    args = ap.parse_args()
+    overrides = parse_set(args.set)
+    if args.frames:
+        overrides.setdefault("morph", {})["frames"] = args.frames
+    files = [REPO / "config" / "config.yaml"] + ([Path(args.profile)] if args.profile else [])
+    cfg = load_config(*files, overrides=overrides)
+    res = SamplingConfig.from_config(cfg).tag
+    for name in args.experiments:
+        exp = cfg["experiments"][name]
+        mc = morph_config(cfg, name)
+        mc = type(mc)(**{**{f: getattr(mc, f) for f in mc.__dataclass_fields__}, "progress": False})
+        parts = REPO / "results" / "particles" / f"{exp['source']}_{res}.h5"
+        tpath = REPO / "results" / "targets" / f"{exp['target']}_{res}.h5"
+        out = Path(args.workdir) / args.tag / f"{name}.h5"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.unlink(missing_ok=True)
+        Path(str(out) + ".partial").unlink(missing_ok=True)
+        t0 = time.time()
+        run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True))
+        wall = time.time() - t0
+        m = read_metrics(out)
+        target = load_target(tpath)
+        tp = load_particles(REPO / "results" / "particles" / f"{exp['target']}_{res}.h5")
+        src_sigma = load_particles(parts).sigma0
+        ceil = ceiling_metrics(tp.x, src_sigma, target.cameras, target.alpha, mc.render)
+        a = m["alpha_mse"]
+        k = int(np.nanargmin(a))
+        iou = m.get("iou", np.full_like(a, np.nan))
+        row = {"tag": args.tag, "experiment": name, "frames": len(a) - 1, "overrides": json.dumps(overrides, sort_keys=True),
+               "a0": a[0], "a_best": a[k], "best_frame": k, "a_final": a[-1], "ceiling": ceil["alpha_mse"],
+               "closed_best": gap_closed(a[0], a[k], ceil["alpha_mse"]),
+               "closed_final": gap_closed(a[0], a[-1], ceil["alpha_mse"]),
+               "iou0": iou[0], "iou_best": np.nanmax(iou), "iou_final": iou[-1], "ceiling_iou": ceil["iou"],
+               "chamfer0": m["chamfer"][0], "chamfer_final": m["chamfer"][-1],
+               "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall}
+        row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
+        print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
+        curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])
+        print(f"  alpha curve: {curve}", flush=True)
+        if not args.no_csv:
+            new = not CSV.exists()
+            with CSV.open("a", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=COLUMNS)
+                if new:
+                    w.writeheader()
+                w.writerow(row)
+
+
+if __name__ == "__main__":
+    main()
