@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 from physmorph.h5io import peak_rss_mb, write_provenance
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
 from physmorph.particles import load_particles
+from physmorph.quality import silhouette_iou
 from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
 from physmorph.surface import SurfaceMaskConfig, update_surface_mask
@@ -77,7 +78,7 @@ class MorphConfig:
 
 # Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
 SCALARS = (
-    "alpha_mse", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
+    "alpha_mse", "iou", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
     "loss_depth", "loss_render", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
     "mask_fraction", "chamfer", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
@@ -216,9 +217,10 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         sel = slice(None) if cfg.metric_all_particles else mask
         alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
+        iou = silhouette_iou(alpha, target.alpha)
         det = np.linalg.det(st.Fp)
         d, _ = tree.query(st.x, k=1)
-        return {"alpha_mse": float(per_view.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
+        return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
                 "fp_anisotropy_max": float(_anisotropy(st.Fp).max()),
                 "elastic_energy": float(elastic_energy(st, cfg.mpm)), "total_volume": float(total_volume(st)),
                 "mask_size": int(mask.sum()) if need_mask else np.nan,
