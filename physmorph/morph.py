@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from physmorph.h5io import peak_rss_mb, write_provenance
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
 from physmorph.particles import load_particles
-from physmorph.quality import silhouette_iou
+from physmorph.quality import gap_closed, silhouette_iou
 from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
 from physmorph.surface import SurfaceMaskConfig, update_surface_mask
@@ -55,6 +55,10 @@ class MorphConfig:
     frames: int = 30
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
     gamma_x: float = 0.1  # render-x gain (position_inject only), relative
+    # "first_frame": c = gamma |grad mass| / |grad inject| measured once (see calibrate_injection);
+    # "every_frame": measured again each frame, so the injection stays gamma of the mass
+    # gradient as the mass loss converges (one more backward pass per frame)
+    injection_calibration: str = "first_frame"
     cameras: int | None = None  # render-loss views, evenly spaced on the ring (None: all)
     save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
     metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
@@ -69,6 +73,8 @@ class MorphConfig:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.injection_calibration not in ("first_frame", "every_frame"):
+            raise ValueError(f"injection_calibration must be first_frame or every_frame, got {self.injection_calibration!r}")
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
 
@@ -78,8 +84,8 @@ class MorphConfig:
 
 # Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
 SCALARS = (
-    "alpha_mse", "iou", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
-    "loss_depth", "loss_render", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
+    "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
+    "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
     "mask_fraction", "chamfer", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
@@ -99,6 +105,40 @@ def _check_state(st: ParticleState, frame: int, cfg: MorphConfig) -> None:
         if big.max() > bound:
             p = int(np.argmax(big))
             raise MorphDivergenceError(f"frame {frame}: |{name}| = {big[p]:.3g} exceeds {bound:g} (particle {p})")
+
+
+class StabilityMonitor:
+    """Warns (once per streak) when a run leaves the stable region: many particles' Fp pinned at
+    a clamp bound of the isochoric projection (det bounds or anisotropy) for ``pinned_frames``
+    frames in a row, or alpha MSE rising for ``rising_frames`` frames in a row."""
+
+    def __init__(self, plasticity: PlasticityConfig, log, pinned_share: float = 0.01, pinned_frames: int = 5,
+                 rising_frames: int = 8):
+        self.cfg, self.log = plasticity, log
+        self.pinned_share, self.pinned_frames, self.rising_frames = pinned_share, pinned_frames, rising_frames
+        self.pinned_streak = self.rising_streak = 0
+        self.last_alpha = None
+
+    def update(self, frame: int, Fp: np.ndarray, alpha_mse: float) -> list[str]:  # Fp [N, 3, 3]
+        out = []
+        lo, hi = self.cfg.det_bounds
+        det = np.linalg.det(Fp)
+        tol = 1e-3
+        pinned = (det <= lo * (1 + tol)) | (det >= hi * (1 - tol)) | (_anisotropy(Fp) >= self.cfg.max_anisotropy * (1 - tol))
+        share = float(pinned.mean())
+        self.pinned_streak = self.pinned_streak + 1 if share >= self.pinned_share else 0
+        if self.pinned_streak == self.pinned_frames:
+            out.append(f"frame {frame}: {100 * share:.1f} % of particles have Fp pinned at a clamp bound "
+                       f"(det in [{lo:g}, {hi:g}], anisotropy <= {self.cfg.max_anisotropy:g}) for "
+                       f"{self.pinned_frames} frames; plasticity.eta may be too large")
+        rising = self.last_alpha is not None and alpha_mse > self.last_alpha
+        self.last_alpha = alpha_mse
+        self.rising_streak = self.rising_streak + 1 if rising else 0
+        if self.rising_streak == self.rising_frames:
+            out.append(f"frame {frame}: alpha MSE rose for {self.rising_frames} frames in a row (now {alpha_mse:.4g})")
+        for msg in out:
+            self.log(msg)
+        return out
 
 
 class RunFile:
@@ -147,6 +187,12 @@ class RunFile:
                     c.attrs[k] = v
             f.attrs["frames_completed"] = frame
             f.attrs["peak_rss_mb"] = max(float(f.attrs.get("peak_rss_mb", 0.0)), peak_rss_mb())
+
+    def add_warnings(self, messages: list[str]) -> None:
+        """Append to the run's ``warnings`` attribute (a JSON list of strings)."""
+        with h5py.File(self.path, "a") as f:
+            old = json.loads(f.attrs.get("warnings", "[]"))
+            f.attrs["warnings"] = json.dumps(old + list(messages))
 
     def read_checkpoint(self) -> tuple[int, dict]:
         with h5py.File(self.path, "r") as f:
@@ -198,6 +244,8 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     views = sorted(set(np.linspace(0, V, n_loss, endpoint=False).astype(int).tolist()))
     cams = target.cameras.subset(views)
     rtarget = RenderTarget(target.alpha[views], target.depth[views], target.sdt[views])
+    # The best any morph of these particles can render: the target's own sampling at rest.
+    ceiling = float(getattr(target, "ceiling_alpha_mse", np.nan))
     tree = cKDTree(target.surface_points)
     N = len(parts.x)
     solver = MPMSolver(cfg.mpm, N)
@@ -246,8 +294,11 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi) if need_mask else np.zeros(N, bool)
         g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
         run.create({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "config_record": record, "n_particles": N,
-                    "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames})
+                    "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames,
+                    "ceiling_alpha_mse": ceiling, "ceiling_iou": float(getattr(target, "ceiling_iou", np.nan))})
         m, per_view = metrics_for(st, mask)
+        a0 = m["alpha_mse"]
+        m["gap_closed"] = 0.0
         # Frame 0 is the unmoved source: it has metrics but no physics step (its losses are NaN).
         run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
                                               "injection_scale": float("nan"), **solver.optimizer_state()})
@@ -256,6 +307,8 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         st = ParticleState(**{k: ck[k] for k in ("x", "v", "F", "C", "Fp", "mass", "volume")})
         mask, g_F, g_x = ck["mask"].astype(bool), ck["g_F"], ck["g_x"]
         solver.set_optimizer_state(ck)
+        with h5py.File(partial, "r") as f:
+            a0 = float(f["metrics"]["alpha_mse"][0])
         start = resumed_from + 1
         log(f"[{name}] resuming after frame {resumed_from}/{cfg.frames}")
 
@@ -265,15 +318,18 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     want_grad = inject_F or inject_x
     status = "complete"
     frame_times = []
+    monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
     for k in range(start, cfg.frames + 1):
         t0 = time.time()
         # A. physics
         solver.load_state(st)
         try:
-            if want_grad and np.isnan(scale) and (np.any(g_F) or np.any(g_x)):
+            recalibrate = np.isnan(scale) or cfg.injection_calibration == "every_frame"
+            if want_grad and recalibrate and (np.any(g_F) or np.any(g_x)):
                 scale = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,
                                             g_F if inject_F else None, g_x if inject_x else None)
-                log(f"[{name}] injection scale calibrated at frame {k}: {scale:.4g}")
+                if cfg.injection_calibration == "first_frame":
+                    log(f"[{name}] injection scale calibrated at frame {k}: {scale:.4g}")
             c = 0.0 if np.isnan(scale) else scale
             stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
                                             grad_x_final=c * g_x if inject_x else None)
@@ -293,7 +349,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
             mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask)
         t2 = time.time()
         # B. render (gradients only where a method uses them)
-        scal = {"physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
+        scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
                 "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"]}
         if want_grad:
             res = render_and_grad(st.x[mask], st.F[mask], parts.sigma0, cams, rtarget, cfg.render, want_grad_x=inject_x)
@@ -316,7 +372,11 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
                 raise MorphDivergenceError(f"{exc} (completed frames are kept in {partial})") from exc
         t4 = time.time()
         m, per_view = metrics_for(st, mask)
+        m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
+        new_warnings = monitor.update(k, st.Fp, m["alpha_mse"])
+        if new_warnings:
+            run.add_warnings(new_warnings)
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
         run.append(k, scal, per_view, st, save, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
@@ -324,7 +384,8 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)
-            log(f"[{name}] frame {k}/{cfg.frames}  alpha_mse {scal['alpha_mse']:.4f}  "
+            log(f"[{name}] frame {k}/{cfg.frames}  alpha_mse {scal['alpha_mse']:.4f} "
+                f"(gap closed {100 * scal['gap_closed']:.0f} %)  "
                 f"physics {stats['loss_initial']:.4g}->{stats['loss_final']:.4g}  "
                 f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s")
     with h5py.File(partial, "a") as f:

@@ -8,10 +8,14 @@ particles can do much better. A run reports the share of the reachable gap it cl
     gap_closed(a_k) = (a_0 - a_k) / (a_0 - a_ceiling),
 
 1 when it renders as well as the target's own particles, 0 when no better than the source,
-negative when worse. When the source already renders as well as the ceiling (a_0 - a_ceiling is
-within ``tol`` of 0, e.g. a run whose source is its target) there is nothing to close: the share
-is 1 while a_k stays within ``tol`` of the ceiling, else (a_ceiling - a_k) / tol, which is
-bounded and negative (it never divides by a vanishing gap).
+negative when worse. When the source already renders about as well as the ceiling (e.g. a run
+whose source is its target) the gap vanishes and the ratio would blow up, so the starting value is
+raised to at least ceiling + tol (tol = ``rel_tol`` x ceiling):
+
+    a0' = max(a_0, a_ceiling + tol),   gap_closed(a_k) = (a0' - a_k) / (a0' - a_ceiling).
+
+This equals the plain ratio whenever the gap exceeds tol, is continuous in a_0, has a
+denominator >= tol, and gives 1 for a run that stays at the ceiling.
 """
 
 from __future__ import annotations
@@ -21,8 +25,8 @@ import numpy as np
 from physmorph.cameras import Cameras
 from physmorph.render import RenderConfig, render_views
 
-# Gaps below this (alpha MSE units) count as "nothing to close".
-GAP_TOL = 1e-4
+# tol of gap_closed relative to the ceiling.
+GAP_REL_TOL = 0.1
 
 
 def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
@@ -36,15 +40,12 @@ def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
     return np.where(union > 0, inter / np.maximum(union, 1.0), 1.0)
 
 
-def gap_closed(a0: float, a: np.ndarray | float, ceiling: float, tol: float = GAP_TOL) -> np.ndarray | float:
-    """Share of the reachable gap closed, (a0 - a) / (a0 - ceiling); see the module docstring."""
+def gap_closed(a0: float, a: np.ndarray | float, ceiling: float, rel_tol: float = GAP_REL_TOL) -> np.ndarray | float:
+    """Share of the reachable gap closed, (a0' - a) / (a0' - ceiling); see the module docstring."""
     a = np.asarray(a, dtype=float)
-    gap = float(a0) - float(ceiling)
-    if gap > tol:
-        out = (float(a0) - a) / gap
-    else:
-        excess = a - max(float(ceiling), float(a0))
-        out = np.where(excess <= tol, 1.0, 1.0 - (excess - tol) / tol)
+    tol = max(rel_tol * float(ceiling), 1e-9)
+    start = max(float(a0), float(ceiling) + tol)
+    out = (start - a) / (start - float(ceiling))
     return float(out) if out.ndim == 0 else out
 
 

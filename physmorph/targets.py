@@ -23,6 +23,7 @@ from scipy import ndimage
 from physmorph.cameras import Cameras, ring_cameras
 from physmorph.config import SamplingConfig, TargetConfig
 from physmorph.grid import Grid, splat_mass
+from physmorph.render import RenderConfig
 from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
 
 
@@ -39,6 +40,9 @@ class Target:
     grid: Grid
     volume: float
     shape: str
+    # the best reachable: the target's own particle sampling rendered at rest (physmorph.quality)
+    ceiling_alpha_mse: float = float("nan")
+    ceiling_iou: float = float("nan")
 
 
 def signed_distance_transform(mask: np.ndarray) -> np.ndarray:  # mask [H, W] bool -> [H, W]
@@ -100,6 +104,7 @@ def rasterize_target(
     seed: int = 0,
     preview_png: str | Path | None = None,
     config: dict | None = None,
+    render: RenderConfig | None = None,
 ) -> dict:
     """Write the target HDF5 for one shape at one resolution; returns a summary dict."""
     from physmorph.meshes import load_mesh
@@ -115,10 +120,17 @@ def rasterize_target(
     sdt = np.stack([signed_distance_transform(a >= 0.5) for a in alpha])
     x, vol, _ = sample_volume(mesh, grid, sampling.ppc_surface, sampling.ppc_interior, seed)
     grid_mass = splat_mass(x, sampling.density * vol, grid)
+    from physmorph.particles import mean_nn_distance
+    from physmorph.quality import ceiling_metrics
+
+    # The ceiling: these same particles (the target's own sampling) rendered at rest.
+    ceiling_sigma0 = sampling.sigma_scale * mean_nn_distance(x)
+    ceiling = ceiling_metrics(x, ceiling_sigma0, cams, alpha, render if render is not None else RenderConfig())
     surface_points, _ = trimesh.sample.sample_surface(mesh, target_cfg.surface_points, seed=seed)
     summary = dict(shape=shape, views=cams.count, width=cams.width, height=cams.height,
                    coverage=[float(a.mean()) for a in alpha], grid_mass_total=float(grid_mass.sum()),
-                   surface_points=int(len(surface_points)), volume=float(mesh.volume))
+                   surface_points=int(len(surface_points)), volume=float(mesh.volume),
+                   ceiling_alpha_mse=ceiling["alpha_mse"], ceiling_iou=ceiling["iou"])
     with atomic_h5(out_h5, config=config) as f:
         cams.to_h5(f.create_group("cameras"))
         f.create_dataset("alpha", data=alpha.astype(np.float32), compression="gzip")
@@ -126,6 +138,9 @@ def rasterize_target(
         f.create_dataset("sdt", data=sdt.astype(np.float32), compression="gzip")
         f.create_dataset("grid_mass", data=grid_mass, compression="gzip")
         f.create_dataset("surface_points", data=np.asarray(surface_points, dtype=np.float64))
+        f.create_dataset("ceiling_alpha_mse_views", data=ceiling["alpha_mse_views"])
+        f.create_dataset("ceiling_iou_views", data=ceiling["iou_views"])
+        f.attrs.update(ceiling_alpha_mse=ceiling["alpha_mse"], ceiling_iou=ceiling["iou"], ceiling_sigma0=ceiling_sigma0)
         f.attrs.update(shape=shape, grid_res=grid.res, lo=grid.lo, hi=grid.hi, dx=grid.dx,
                        sdt_units="pixels", depth_convention="z_cam of first hit at pixel centre, 0 = no hit",
                        volume=float(mesh.volume), density=sampling.density, seed=seed)
@@ -154,7 +169,8 @@ def load_target(path: str | Path) -> Target:
         pts = read_field(f, "surface_points", (3,))
         return Target(cams, fields["alpha"].astype(np.float64), fields["depth"].astype(np.float64),
                       fields["sdt"].astype(np.float64), grid_mass, pts, grid,
-                      float(read_attr(f, "volume")), str(read_attr(f, "shape")))
+                      float(read_attr(f, "volume")), str(read_attr(f, "shape")),
+                      float(read_attr(f, "ceiling_alpha_mse")), float(read_attr(f, "ceiling_iou")))
 
 
 def silhouette_preview(alpha: np.ndarray, png: str | Path, title: str = "") -> None:  # alpha [V, H, W]
