@@ -1,0 +1,35 @@
+"""The reachable-gap measure (physmorph.quality): share of the gap closed and silhouette IoU."""
+
+import numpy as np
+import pytest
+
+from physmorph.quality import gap_closed, silhouette_iou
+
+
+def test_gap_closed_is_the_plain_ratio_when_there_is_a_gap():
+    assert gap_closed(0.06, 0.06, 0.01) == pytest.approx(0.0)
+    assert gap_closed(0.06, 0.035, 0.01) == pytest.approx(0.5)
+    assert gap_closed(0.06, 0.01, 0.01) == pytest.approx(1.0)
+    assert gap_closed(0.06, 0.085, 0.01) == pytest.approx(-0.5)
+    np.testing.assert_allclose(gap_closed(0.06, np.array([0.06, 0.035, 0.01]), 0.01), [0.0, 0.5, 1.0])
+
+
+def test_gap_closed_stays_bounded_when_the_source_is_at_the_ceiling():
+    """Source == target: a0 ~ ceiling; staying there counts as ~1, drifting away is bounded."""
+    c = 0.01
+    for a0 in (c, c * 1.0001, c * 0.999):
+        assert 0.85 < gap_closed(a0, a0, c) < 1.05  # above 1 only when a0 is below the ceiling
+        worse = gap_closed(a0, a0 + 0.005, c)
+        assert np.isfinite(worse) and -10 < worse < 0
+    # continuous in a0 across the point where the plain ratio takes over (gap = 0.1 x ceiling)
+    assert gap_closed(c * 1.1 - 1e-12, c * 1.05, c) == pytest.approx(gap_closed(c * 1.1 + 1e-12, c * 1.05, c), abs=1e-6)
+
+
+def test_silhouette_iou():
+    a = np.zeros((2, 4, 4))
+    t = np.zeros((2, 4, 4))
+    a[0, :2, :] = 1.0  # 8 pixels
+    t[0, :, :2] = 1.0  # 8 pixels, 4 shared
+    np.testing.assert_allclose(silhouette_iou(a, t), [4 / 12, 1.0])  # view 1: both empty
+    assert silhouette_iou(t, t)[0] == 1.0
+    assert silhouette_iou(0.4 * t, t)[0] == 0.0  # below the 0.5 threshold
