@@ -1,12 +1,15 @@
 """The paper's figures from run files (PNG): morph sequences, loss curves, gradient coverage.
 
 Sequences render the saved particle states as Phong-shaded Gaussians from one ring camera at
-twice the target image size. Curves read the per-frame metrics of the runs. Runs that were not
-made in this profile are left out of a figure (a figure with none of its runs says so).
+twice the target image size, with the target itself in a last column and the share of the
+reachable gap closed (physmorph.quality) over the last frame. Curves read the per-frame metrics
+of the runs. Runs that were not made in this profile are left out of a figure (a figure with
+none of its runs says so).
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import h5py
@@ -48,16 +51,49 @@ def figure_cameras(target: dict, scale: int = 2):
     return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
 
 
+def run_target_shape(f: h5py.File, name: str) -> str:
+    """The target shape of a run: its config record's experiment, else the name's second part
+    (experiments are named {source}_{target}_{method}...)."""
+    try:
+        return str(json.loads(f.attrs["config_record"])["experiment"]["target"])
+    except (KeyError, TypeError, ValueError):
+        parts = name.split("_")
+        return parts[1] if len(parts) > 1 else ""
+
+
+def _share_closed(f: h5py.File, k: int) -> float:
+    """Share of the reachable gap closed at frame k (physmorph.quality.gap_closed); nan for a run
+    file without the ceiling."""
+    from physmorph.quality import gap_closed
+
+    ceiling = float(f.attrs.get("ceiling_alpha_mse", np.nan))
+    if "metrics" not in f or "alpha_mse" not in f["metrics"] or not np.isfinite(ceiling):
+        return np.nan
+    a = f["metrics"]["alpha_mse"][()]
+    return gap_closed(float(a[0]), float(a[min(k, len(a) - 1)]), ceiling) if len(a) else np.nan
+
+
+def target_image(target_h5: Path, view: int) -> np.ndarray:
+    """The target's own coverage alpha of ``view`` as a grey silhouette on white, [H, W, 3]."""
+    with h5py.File(target_h5) as f:
+        alpha = f["alpha"][view].astype(np.float64)
+    return 1.0 - 0.55 * alpha[..., None] * np.ones(3)
+
+
 def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view: int = 1, columns: int = 6,
-                    frames: list[int] | None = None) -> None:
+                    frames: list[int] | None = None, targets: dict[str, Path] | None = None) -> list[list[str]]:
     """One row per run: ``columns`` saved frames from the first to the last (or the saved frames
-    nearest to ``frames``), shaded Gaussians."""
+    nearest to ``frames``), shaded Gaussians. With ``targets`` (target shape -> target HDF5) a last
+    column shows each run's target (its exact coverage alpha in the same view) and the last frame's
+    title gives the share of the reachable gap closed there (physmorph.quality). Returns the panel
+    titles, one list per row."""
     from physmorph.render import RenderConfig, shade
 
     plt = _plt()
     cams = figure_cameras(target_cfg)
     rows = [(n, p) for n, p in runs.items() if p is not None and Path(p).exists()]
-    fig, axes = plt.subplots(max(len(rows), 1), columns, figsize=(2.2 * columns, 1.4 * max(len(rows), 1) + 0.3), squeeze=False)
+    ncols = columns + (targets is not None)
+    fig, axes = plt.subplots(max(len(rows), 1), ncols, figsize=(2.2 * ncols, 1.4 * max(len(rows), 1) + 0.3), squeeze=False)
     for ax in axes.flat:
         ax.axis("off")
     for r, (name, path) in enumerate(rows):
@@ -74,12 +110,27 @@ def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view
                 img = shade(g["x"][()].astype(np.float64), g["F"][()].astype(np.float64), sigma0, cams, view, RenderConfig())
                 axes[r, c].imshow(img)
                 k = int(fr.replace("frame_", ""))
-                axes[r, c].set_title(f"{name}  k={k}" if c == 0 else f"k={k}", fontsize=7)
+                title = f"{name}  k={k}" if c == 0 else f"k={k}"
+                if targets is not None and c == len(pick) - 1 and c > 0:
+                    closed = _share_closed(f, k)
+                    if np.isfinite(closed):
+                        title += f"  {100 * closed:.0f}% of gap"
+                axes[r, c].set_title(title, fontsize=7)
+            shape = run_target_shape(f, name) if targets is not None else ""
+        if targets is not None:
+            t_h5 = targets.get(shape)
+            if t_h5 is not None and Path(t_h5).exists():
+                axes[r, -1].imshow(target_image(Path(t_h5), view), interpolation="bilinear")
+                axes[r, -1].set_title(f"target ({shape})", fontsize=7)
+            else:
+                axes[r, -1].set_title(f"target ({shape}): not made", fontsize=7)
     if not rows:
         axes[0, 0].text(0, 0.5, "no runs of this figure in this profile", fontsize=8)
     fig.tight_layout()
     fig.savefig(out_png, dpi=110)
+    titles = [[ax.get_title() for ax in row] for row in axes]
     plt.close(fig)
+    return titles
 
 
 def curves_figure(runs: dict[str, Path], panels: list[tuple[str, str]], out_png: Path, title: str,
@@ -153,7 +204,7 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
     out.mkdir(parents=True, exist_ok=True)
     sel = {name: {r: runs.get(r) for r in rs} for name, rs in FIGURE_RUNS.items()}
     for name in ("sequences_main", "sequences_cross_shape", "sequences_letters"):
-        sequence_figure(sel[name], target_cfg, out / f"{name}.png")
+        sequence_figure(sel[name], target_cfg, out / f"{name}.png", targets=targets)
     curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], out / "drag_ablation.png",
                   "drag ablation: iso -> bunny")
     curves_figure(sel["trajectory_divergence"], [("physics_loss", "physics (mass) loss"), ("alpha_mse", "alpha MSE")],

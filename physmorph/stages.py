@@ -39,11 +39,17 @@ def sample_particles_stage(mesh_h5: str, output: str, preview: str, sampling: Sa
 
 
 def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling: SamplingConfig,
-                           target: dict, seed: int) -> dict:
+                           target: dict, seed: int, render: dict | None = None) -> dict:
+    """``render``: the config's ``render:`` section (physmorph.render.RenderConfig fields), used for
+    the ceiling (the target's own particles rendered at rest); always rendered on the CPU."""
+    from physmorph.render import RenderConfig
     from physmorph.targets import rasterize_target
 
-    return rasterize_target(mesh_h5, output, sampling, TargetConfig(**target), seed,
-                            preview_png=preview, config={"sampling": sampling.__dict__, "target": target})
+    render = dict(render or {})
+    rcfg = RenderConfig(**{**render, "device": "cpu"})
+    return rasterize_target(mesh_h5, output, sampling, TargetConfig(**target), seed, preview_png=preview,
+                            config={"sampling": sampling.__dict__, "target": target, "render": render},
+                            render=rcfg)
 
 
 def morph_stage(config: dict, name: str, particles_h5: str, target_h5: str, output: str) -> dict:

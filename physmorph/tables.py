@@ -2,6 +2,10 @@
 
 Each table reads experiments by name (the names of config/config.yaml). An experiment that was
 not run in this profile shows as empty cells, so a partial profile still produces every table.
+The convergence table has one row per run and reports, besides raw alpha MSE (which depends on
+image size, particle count and sigma0), the share of the reachable gap closed: how far each run
+got from its start towards the ceiling, its target's own particles rendered at rest
+(physmorph.quality; SPEC.md section 5).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import pandas as pd
 from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
                                rebound_percent, spread)
 from physmorph.morph import read_metrics
+from physmorph.quality import gap_closed
 
 
 # The paper's figures (SPEC.md section 5).
@@ -27,7 +32,41 @@ SHAPE_RUNS = ("duck_cow_full", "cow_bunny_full", "cow_duck_full", "iso_A_full", 
 
 
 def _load(runs: dict[str, str | Path]) -> dict[str, dict]:
-    return {name: read_metrics(path) for name, path in runs.items() if path is not None and Path(path).exists()}
+    """Metrics of every run file that exists, each with its path under 'path'."""
+    return {name: {**read_metrics(path), "path": str(path)} for name, path in runs.items()
+            if path is not None and Path(path).exists()}
+
+
+def _ceiling(r: dict, key: str = "ceiling_alpha_mse") -> float:
+    """The run's ceiling attribute (copied from its target); a run without one names its file."""
+    value = float(r["attrs"].get(key, np.nan))
+    if not np.isfinite(value):
+        raise ValueError(f"{r.get('path', '?')}: run file has no '{key}' attribute (made before the ceiling was "
+                         "stored): rerun the rasterize_target stage of its target and then its morph")
+    return value
+
+
+def _closed_percent(r: dict) -> tuple[float, float]:
+    """Share (%) of the reachable gap closed at the best (lowest alpha MSE) and at the last frame."""
+    a = np.asarray(r["alpha_mse"], dtype=float)
+    c = _ceiling(r)
+    return 100.0 * gap_closed(a[0], a[int(np.nanargmin(a))], c), 100.0 * gap_closed(a[0], a[-1], c)
+
+
+def paper_alpha_mse(name: str) -> tuple[float, str]:
+    """The paper's alpha MSE for experiment ``name`` and which one it is, or (nan, "")."""
+    if name in PAPER_DRAG:
+        return PAPER_DRAG[name][0], "best (drag ablation)"
+    if name in PAPER_SOURCES:
+        return PAPER_SOURCES[name], "best (source invariance)"
+    for target, (p_phys, p_ours, _) in PAPER_MAIN.items():
+        if name == f"iso_{target}_physics_only":
+            return p_phys, "matched frame (main)"
+        if name == f"iso_{target}_full":
+            return p_ours, "matched frame (main)"
+    if name in PAPER_COMPONENTS:
+        return PAPER_COMPONENTS[name][0], "final (component ablation)"
+    return np.nan, ""
 
 
 def main_table(m: dict[str, dict]) -> pd.DataFrame:
@@ -67,17 +106,49 @@ def drag_table(m: dict[str, dict]) -> pd.DataFrame:
 
 
 def source_table(m: dict[str, dict]) -> pd.DataFrame:
-    """Best alpha MSE per source, then mean, sample std and sigma/mu % of each column."""
-    rows = [{"experiment": n, "paper_best": p, "best": float(np.nanmin(m[n]["alpha_mse"])) if n in m else np.nan}
-            for n, p in PAPER_SOURCES.items()]
+    """Best alpha MSE and share of the reachable gap closed (best, final frame) per source, then
+    mean, sample std and sigma/mu % of each column."""
+    cols = ("paper_best", "best", "closed_best_%", "closed_final_%")
+    rows = []
+    for n, p in PAPER_SOURCES.items():
+        row = {"experiment": n, "paper_best": p, "best": np.nan, "closed_best_%": np.nan, "closed_final_%": np.nan}
+        if n in m:
+            row["best"] = float(np.nanmin(m[n]["alpha_mse"]))
+            row["closed_best_%"], row["closed_final_%"] = _closed_percent(m[n])
+        rows.append(row)
     stats = {}
-    for col in ("paper_best", "best"):
+    for col in cols:
         vals = np.array([r[col] for r in rows], dtype=float)
         vals = vals[np.isfinite(vals)]
         stats[col] = spread(vals) if len(vals) > 1 else {"mean": np.nan, "std": np.nan, "cv_percent": np.nan}
     for key, label in (("mean", "mean"), ("std", "std"), ("cv_percent", "sigma/mu %")):
-        rows.append({"experiment": label, "paper_best": stats["paper_best"][key], "best": stats["best"][key]})
+        rows.append({"experiment": label, **{col: stats[col][key] for col in cols}})
     return pd.DataFrame(rows)
+
+
+def convergence_table(m: dict[str, dict]) -> pd.DataFrame:
+    """One row per run: alpha MSE at frame 0, best (and its frame) and final frame, the ceiling
+    (the target's own particles at rest, physmorph.quality), the share of the reachable gap closed
+    at the best and final frame (%), silhouette IoU at frame 0, its maximum and final frame, the
+    ceiling IoU, and the paper's alpha MSE for the experiment where it has one (and which one)."""
+    rows = []
+    for name, r in m.items():
+        a = np.asarray(r["alpha_mse"], dtype=float)
+        k = int(np.nanargmin(a))
+        closed_best, closed_final = _closed_percent(r)
+        iou = np.asarray(r["iou"], dtype=float) if "iou" in r else np.full(len(a), np.nan)
+        has_iou = bool(np.isfinite(iou).any())
+        paper, paper_which = paper_alpha_mse(name)
+        rows.append({"experiment": name, "method": str(r["attrs"].get("method", "")), "frames": len(a) - 1,
+                     "alpha_mse_0": a[0], "alpha_mse_best": a[k], "best_frame": k, "alpha_mse_final": a[-1],
+                     "ceiling": _ceiling(r), "closed_best_%": closed_best, "closed_final_%": closed_final,
+                     "iou_0": iou[0], "iou_best": float(np.nanmax(iou)) if has_iou else np.nan, "iou_final": iou[-1],
+                     "ceiling_iou": float(r["attrs"].get("ceiling_iou", np.nan)),
+                     "paper_alpha_mse": paper, "paper_which": paper_which})
+    columns = ["experiment", "method", "frames", "alpha_mse_0", "alpha_mse_best", "best_frame", "alpha_mse_final",
+               "ceiling", "closed_best_%", "closed_final_%", "iou_0", "iou_best", "iou_final", "ceiling_iou",
+               "paper_alpha_mse", "paper_which"]
+    return pd.DataFrame(rows, columns=columns)
 
 
 def plasticity_table(m: dict[str, dict]) -> pd.DataFrame:
@@ -123,11 +194,13 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path) -> dict[str, 
     out.mkdir(parents=True, exist_ok=True)
     tables = {"main": main_table(m), "ablation_components": components_table(m), "ablation_drag": drag_table(m),
               "source_invariance": source_table(m), "plasticity": plasticity_table(m), "shapes": shapes_table(m),
-              "timing": timing_table(m)}
+              "timing": timing_table(m), "convergence": convergence_table(m)}
+    assert set(tables) == set(TABLE_NAMES), "physmorph.metrics.TABLE_NAMES lists the tables written here"
     for name, df in tables.items():
         df.to_csv(out / f"{name}.csv", index=False)
         (out / f"{name}.md").write_text(markdown_table(df))
-        (out / f"{name}.tex").write_text(df.to_latex(index=False, float_format="%.4g", na_rep="--"))
+        # escape: column names and labels carry _ and % (a LaTeX comment otherwise)
+        (out / f"{name}.tex").write_text(df.to_latex(index=False, float_format="%.4g", na_rep="--", escape=True))
     return tables
 
 

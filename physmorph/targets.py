@@ -40,9 +40,12 @@ class Target:
     grid: Grid
     volume: float
     shape: str
-    # the best reachable: the target's own particle sampling rendered at rest (physmorph.quality)
-    ceiling_alpha_mse: float = float("nan")
-    ceiling_iou: float = float("nan")
+    # The best reachable (physmorph.quality): the target's own particle sampling rendered at rest
+    # (F = I) with the same renderer, cameras and sigma0, against ``alpha``.
+    ceiling_alpha_mse: float  # mean over views
+    ceiling_iou: float  # mean silhouette IoU over views
+    ceiling_alpha_mse_views: np.ndarray  # [V]
+    ceiling_iou_views: np.ndarray  # [V]
 
 
 def signed_distance_transform(mask: np.ndarray) -> np.ndarray:  # mask [H, W] bool -> [H, W]
@@ -108,7 +111,8 @@ def rasterize_target(
 ) -> dict:
     """Write the target HDF5 for one shape at one resolution; returns a summary dict."""
     from physmorph.meshes import load_mesh
-    from physmorph.particles import sample_volume
+    from physmorph.particles import mean_nn_distance, sample_volume
+    from physmorph.quality import ceiling_metrics
 
     mesh = load_mesh(mesh_h5)
     with open_h5(mesh_h5) as f:
@@ -120,17 +124,17 @@ def rasterize_target(
     sdt = np.stack([signed_distance_transform(a >= 0.5) for a in alpha])
     x, vol, _ = sample_volume(mesh, grid, sampling.ppc_surface, sampling.ppc_interior, seed)
     grid_mass = splat_mass(x, sampling.density * vol, grid)
-    from physmorph.particles import mean_nn_distance
-    from physmorph.quality import ceiling_metrics
-
-    # The ceiling: these same particles (the target's own sampling) rendered at rest.
-    ceiling_sigma0 = sampling.sigma_scale * mean_nn_distance(x)
+    # The ceiling: these same particles (the target's own sampling) rendered at rest with the
+    # sigma0 sample_particles gives them, the same renderer settings and these cameras.
+    ceiling_sigma0 = float(sampling.sigma_scale * mean_nn_distance(x))
     ceiling = ceiling_metrics(x, ceiling_sigma0, cams, alpha, render if render is not None else RenderConfig())
     surface_points, _ = trimesh.sample.sample_surface(mesh, target_cfg.surface_points, seed=seed)
     summary = dict(shape=shape, views=cams.count, width=cams.width, height=cams.height,
                    coverage=[float(a.mean()) for a in alpha], grid_mass_total=float(grid_mass.sum()),
                    surface_points=int(len(surface_points)), volume=float(mesh.volume),
-                   ceiling_alpha_mse=ceiling["alpha_mse"], ceiling_iou=ceiling["iou"])
+                   ceiling_alpha_mse=ceiling["alpha_mse"], ceiling_iou=ceiling["iou"], ceiling_sigma0=float(ceiling_sigma0),
+                   ceiling_alpha_mse_views=[float(v) for v in ceiling["alpha_mse_views"]],
+                   ceiling_iou_views=[float(v) for v in ceiling["iou_views"]])
     with atomic_h5(out_h5, config=config) as f:
         cams.to_h5(f.create_group("cameras"))
         f.create_dataset("alpha", data=alpha.astype(np.float32), compression="gzip")
@@ -167,10 +171,16 @@ def load_target(path: str | Path) -> Target:
         grid = Grid(res, float(read_attr(f, "lo")), float(read_attr(f, "hi")))
         grid_mass = read_field(f, "grid_mass", (res, res, res))
         pts = read_field(f, "surface_points", (3,))
+        try:
+            ceiling = {name: float(read_attr(f, name)) for name in ("ceiling_alpha_mse", "ceiling_iou")}
+            ceiling.update({name: read_field(f, name, (cams.count,)).astype(np.float64)
+                            for name in ("ceiling_alpha_mse_views", "ceiling_iou_views")})
+        except StageInputError as exc:
+            raise StageInputError(f"{exc} (a target written before the ceiling was stored: "
+                                  "rerun the rasterize_target stage)") from exc
         return Target(cams, fields["alpha"].astype(np.float64), fields["depth"].astype(np.float64),
                       fields["sdt"].astype(np.float64), grid_mass, pts, grid,
-                      float(read_attr(f, "volume")), str(read_attr(f, "shape")),
-                      float(read_attr(f, "ceiling_alpha_mse")), float(read_attr(f, "ceiling_iou")))
+                      float(read_attr(f, "volume")), str(read_attr(f, "shape")), **ceiling)
 
 
 def silhouette_preview(alpha: np.ndarray, png: str | Path, title: str = "") -> None:  # alpha [V, H, W]

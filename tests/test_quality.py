@@ -33,3 +33,24 @@ def test_silhouette_iou():
     np.testing.assert_allclose(silhouette_iou(a, t), [4 / 12, 1.0])  # view 1: both empty
     assert silhouette_iou(t, t)[0] == 1.0
     assert silhouette_iou(0.4 * t, t)[0] == 0.0  # below the 0.5 threshold
+
+
+def test_ceiling_metrics_compares_particles_at_rest_with_the_target():
+    """Particles against their own rendering: MSE 0, IoU 1; moved sideways: worse on both."""
+    from physmorph.cameras import ring_cameras
+    from physmorph.quality import ceiling_metrics
+    from physmorph.render import RenderConfig, render_views
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(scale=3.0, size=(400, 3))
+    cams = ring_cameras(count=2, elevation_deg=21.0, fov_y_deg=40.0, width=32, height=24, distance=36.0)
+    F = np.broadcast_to(np.eye(3), (len(x), 3, 3))
+    own, _ = render_views(x, F, 0.8, cams, RenderConfig())
+    same = ceiling_metrics(x, 0.8, cams, own)
+    np.testing.assert_allclose(same["alpha_mse_views"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(same["iou_views"], 1.0)
+    assert same["alpha_mse"] == pytest.approx(0.0, abs=1e-12) and same["iou"] == 1.0
+    moved = ceiling_metrics(x + np.array([0.0, 4.0, 0.0]), 0.8, cams, own)
+    assert moved["alpha_mse_views"].shape == (2,) and np.all(moved["alpha_mse_views"] > 1e-3)
+    assert np.all(moved["iou_views"] < 0.9)
+    assert moved["alpha_mse"] == pytest.approx(moved["alpha_mse_views"].mean())

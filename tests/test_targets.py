@@ -120,3 +120,63 @@ def test_target_file_round_trip_and_missing_field(tmp_path):
         del f["sdt"]
     with pytest.raises(StageInputError, match="missing field 'sdt'"):
         load_target(tmp_path / "t.h5")
+
+
+def test_target_carries_its_ceiling(tmp_path):
+    """The ceiling is the target's own particle sampling (sigma0 = sigma_scale x mean NN distance,
+    as sample_particles) rendered at rest with the config's renderer, against the target alpha."""
+    import json
+
+    import h5py
+
+    from physmorph.config import SamplingConfig
+    from physmorph.h5io import StageInputError
+    from physmorph.meshes import ShapeSpec, load_mesh, prepare_mesh
+    from physmorph.particles import mean_nn_distance, sample_volume
+    from physmorph.quality import ceiling_metrics
+    from physmorph.render import RenderConfig
+    from physmorph.stages import rasterize_target_stage
+    from physmorph.targets import load_target
+
+    prepare_mesh(ShapeSpec("iso", "isosphere", size=20.0), None, tmp_path / "iso.h5")
+    sampling = SamplingConfig(16, 1, 1, 75.0, 0.7)
+    tcfg = dict(cameras=2, width=72, height=48, supersample=1, surface_points=200)
+    out = tmp_path / "t.h5"
+    summary = rasterize_target_stage(tmp_path / "iso.h5", out, tmp_path / "t.png", sampling, tcfg, 0)
+    t = load_target(out)
+    assert t.ceiling_alpha_mse_views.shape == (2,) and t.ceiling_iou_views.shape == (2,)
+    assert t.ceiling_alpha_mse == pytest.approx(t.ceiling_alpha_mse_views.mean(), rel=1e-9)
+    assert t.ceiling_iou == pytest.approx(t.ceiling_iou_views.mean(), rel=1e-9)
+    assert summary["ceiling_alpha_mse"] == pytest.approx(t.ceiling_alpha_mse) and summary["ceiling_iou"] == pytest.approx(t.ceiling_iou)
+    # A mesh's own particles render close to its exact coverage: silhouettes overlap well and
+    # the alpha MSE is a small fraction of that of an empty image (mean alpha^2).
+    assert 0.8 < t.ceiling_iou <= 1.0
+    assert 0.0 < t.ceiling_alpha_mse < 0.15 * np.mean(t.alpha**2)
+    # Recomputed independently: the same sampling, sigma0 and default renderer.
+    x, _, _ = sample_volume(load_mesh(tmp_path / "iso.h5"), Grid(16), 1, 1, 0)
+    sigma0 = 0.7 * mean_nn_distance(x)
+    ref = ceiling_metrics(x, sigma0, t.cameras, t.alpha, RenderConfig())
+    np.testing.assert_allclose(t.ceiling_alpha_mse_views, ref["alpha_mse_views"], rtol=1e-5)
+    np.testing.assert_allclose(t.ceiling_iou_views, ref["iou_views"], rtol=1e-9)
+    with h5py.File(out) as f:
+        assert f.attrs["ceiling_sigma0"] == pytest.approx(sigma0, rel=1e-12)
+
+    # The config's render section reaches the ceiling and the provenance.
+    out2 = tmp_path / "t_op.h5"
+    rasterize_target_stage(tmp_path / "iso.h5", out2, tmp_path / "t_op.png", sampling, tcfg, 0, render={"opacity": 0.3})
+    t2 = load_target(out2)
+    ref2 = ceiling_metrics(x, sigma0, t2.cameras, t2.alpha, RenderConfig(opacity=0.3))
+    np.testing.assert_allclose(t2.ceiling_alpha_mse_views, ref2["alpha_mse_views"], rtol=1e-5)
+    assert abs(t2.ceiling_alpha_mse - t.ceiling_alpha_mse) > 1e-3
+    with h5py.File(out2) as f:
+        assert json.loads(f.attrs["config"])["render"] == {"opacity": 0.3}
+
+    # A target without its ceiling (written before it was stored) names the file and the field.
+    with h5py.File(out, "a") as f:
+        del f.attrs["ceiling_alpha_mse"]
+    with pytest.raises(StageInputError, match=r"t\.h5.*'ceiling_alpha_mse'"):
+        load_target(out)
+    with h5py.File(out2, "a") as f:
+        del f["ceiling_iou_views"]
+    with pytest.raises(StageInputError, match=r"t_op\.h5.*missing field 'ceiling_iou_views'"):
+        load_target(out2)

@@ -69,7 +69,11 @@ def test_tables_on_test_profile(tmp_path, mesh_dir):
     timing = pd.read_csv(wd / "results/tables/timing.csv")
     assert set(timing["experiment"]) == {"iso_bunny_physics_only", "iso_bunny_full"}
     assert (timing["frame_s"] > 0).all() and (timing["peak_rss_mb"] > 0).all()
-    for name in ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing"):
+    conv = pd.read_csv(wd / "results/tables/convergence.csv").set_index("experiment")
+    assert set(conv.index) == {"iso_bunny_physics_only", "iso_bunny_full"}
+    assert (conv["ceiling"] > 0).all() and np.isfinite(conv[["closed_best_%", "closed_final_%"]].to_numpy()).all()
+    for name in ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing",
+                 "convergence"):
         md = (wd / f"results/tables/{name}.md").read_text().splitlines()
         assert md[0].startswith("|") and set(md[1]) <= set("|-")
         assert "\\begin{tabular}" in (wd / f"results/tables/{name}.tex").read_text()

@@ -8,6 +8,7 @@ rule rasterize_target:
     params:
         sampling=lambda wc: SamplingConfig.from_tag(wc.res, PM),
         seed=PM.get("seed", 0),
+        render=PM.get("render", {}),  # the renderer of the ceiling (the target's own particles at rest)
     benchmark:
         "results/benchmarks/rasterize_target/{shape}_{res}.tsv"
     script:

@@ -17,6 +17,7 @@ rule rasterize_target_image:
         sampling=lambda wc: SamplingConfig.from_tag(wc.res, PM),
         target=lambda wc: dict(PM["target"], width=int(wc.img.split("x")[0]), height=int(wc.img.split("x")[1])),
         seed=PM.get("seed", 0),
+        render=PM.get("render", {}),
     script:
         "../scripts/rasterize_target_image.py"
 

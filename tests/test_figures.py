@@ -1,0 +1,54 @@
+"""Sequence figures (physmorph.figures): the target beside the last frame, with the share closed."""
+
+import json
+
+import h5py
+import numpy as np
+
+from physmorph.figures import run_target_shape, sequence_figure
+
+
+def _write_run(path, target, alpha_mse, ceiling=None, frames=(0, 5, 10)):
+    rng = np.random.default_rng(0)
+    x = rng.normal(scale=3.0, size=(200, 3))
+    with h5py.File(path, "w") as f:
+        f.attrs["sigma0"] = 0.8
+        f.attrs["config_record"] = json.dumps({"experiment": {"source": "iso", "target": target, "method": "full"}})
+        if ceiling is not None:
+            f.attrs["ceiling_alpha_mse"] = ceiling
+        f.create_group("metrics")["alpha_mse"] = np.asarray(alpha_mse, dtype=float)
+        for k in frames:
+            g = f.create_group(f"states/frame_{k:04d}")
+            g["x"] = x * (1.0 + 0.02 * k)
+            g["F"] = np.tile(np.eye(3), (len(x), 1, 1))
+    return path
+
+
+def test_run_target_shape_from_record_else_name(tmp_path):
+    with h5py.File(tmp_path / "a.h5", "w") as f:
+        f.attrs["config_record"] = json.dumps({"experiment": {"target": "C"}})
+        assert run_target_shape(f, "duck_S_full") == "C"
+    with h5py.File(tmp_path / "b.h5", "w") as f:
+        assert run_target_shape(f, "duck_S_full") == "S"
+
+
+def test_sequence_figure_shows_the_target_and_the_share_closed(tmp_path):
+    target_cfg = dict(cameras=2, width=16, height=12)
+    # alpha MSE 0.06 -> 0.02 at the last frame (10), ceiling 0.01: 80 % of the gap closed.
+    alpha = np.linspace(0.06, 0.02, 11)
+    run = _write_run(tmp_path / "iso_bunny_full.h5", "bunny", alpha, ceiling=0.01)
+    old = _write_run(tmp_path / "iso_cow_full.h5", "cow", alpha)  # no ceiling: no share shown
+    t_h5 = tmp_path / "bunny_t.h5"
+    with h5py.File(t_h5, "w") as f:
+        f["alpha"] = np.zeros((2, 12, 16), np.float32)
+    png = tmp_path / "seq.png"
+    titles = sequence_figure({"iso_bunny_full": run, "iso_cow_full": old, "iso_duck_full": None}, target_cfg, png,
+                             columns=3, targets={"bunny": t_h5})
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(titles) == 2 and all(len(row) == 4 for row in titles)  # 3 frames + the target
+    assert titles[0][0].startswith("iso_bunny_full") and titles[0][2] == "k=10  80% of gap"
+    assert titles[0][3] == "target (bunny)"
+    assert titles[1][2] == "k=10" and titles[1][3] == "target (cow): not made"
+    # Without targets (trajectory frames) the figure is as before: no extra column.
+    titles = sequence_figure({"iso_bunny_full": run}, target_cfg, png, columns=3)
+    assert titles == [["iso_bunny_full  k=0", "k=5", "k=10"]]
