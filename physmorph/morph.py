@@ -37,7 +37,7 @@ from physmorph.h5io import peak_rss_mb, write_provenance
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
-from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step
+from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step, rebase_control
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
 from physmorph.surface import SurfaceMaskConfig, update_surface_mask
 from physmorph.targets import load_target
@@ -364,7 +364,12 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         t3 = time.time()
         # C. plasticity
         if cfg.method == "full" and k >= cfg.plasticity.start_frame:
-            pl = chamfer_plasticity_step(st.x, st.Fp, target.surface_points, cfg.plasticity, tree)
+            # The deformation the stress sees is F + dFc (the control enters the stress, see
+            # physmorph.mpm.solver): target_rest relaxes Fp toward it, averaged over substeps.
+            F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
+            pl = chamfer_plasticity_step(st.x, st.Fp, target.surface_points, cfg.plasticity, tree, F=F_stress)
+            if cfg.plasticity.continuous_stress:
+                solver.set_control(rebase_control(st.F, solver.control(), st.Fp, pl.Fp))
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
             try:
                 _check_state(st, k, cfg)

@@ -5,8 +5,12 @@ Per frame k >= k0:
 2. smooth d by iterative KNN averaging (k neighbours, ``smooth_iters`` passes);
 3. displacement Jacobian J_i from the particle's k neighbours and its symmetric part
    dFp_i = (J_i + J_i^T) / 2;
-4. Fp_i <- (I + eta_i dFp_i) Fp_i, with eta_i = eta * |d_i| / (|d_i| + median_j |d_j|) (particles
-   already on the target barely change, far ones move at up to eta);
+4. ``update="incremental"`` (eq. 4 as printed): Fp_i <- (I + eta_i dFp_i) Fp_i, with
+   eta_i = eta * |d_i| / (|d_i| + median_j |d_j|) (particles already on the target barely change,
+   far ones move at up to eta);
+   ``update="target_rest"``: Fp_i <- (1 - eta) Fp_i + eta (I + dFp_i) F_i, a relaxation (at the
+   uniform rate eta) toward the rest state that would place the particle's neighbourhood on the
+   target; see below;
 5. damping toward identity Fp <- (1 - d_p) Fp + d_p I;
 6. isochoric projection: singular values of Fp clamped so that det(Fp) stays in ``det_bounds``
    (uniform rescale, which leaves anisotropy unchanged) and max/min <= ``max_anisotropy``.
@@ -16,6 +20,16 @@ returns A M_i for an affine field d = A x + b, where M_i = mean_j e_j e_j^T / |e
 an isotropic neighbourhood): it is a scaled, neighbourhood-biased estimate. ``jacobian="least_squares"``
 (default) right-multiplies by M_i^{-1} so an affine field is recovered exactly;
 ``jacobian="paper"`` keeps the printed form.
+
+Update rule. The printed update integrates the Chamfer field: while the physics has not yet
+closed a gap, every frame adds eta dFp again, so Fp keeps growing after the shape has arrived and
+the stress from Fe = F Fp^-1 then pushes it past the target (an integrator's wind-up; with
+eta = 0.2 the default profile overshoots and pins det Fp at its bound, docs/convergence.md).
+``target_rest`` has a fixed point set by the current state instead of by the history: with the
+particle on the target (dFp = 0) Fp relaxes to F, so Fe -> I and the arrived shape is the rest
+shape (no restoring force, no rebound); away from it Fe -> (I + dFp)^-1, an elastic pull toward
+the target. Nothing accumulates, so eta only sets how fast Fp follows (a time constant of 1/eta
+frames).
 """
 
 from __future__ import annotations
@@ -24,6 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+
+UPDATES = ("incremental", "target_rest")
 
 
 @dataclass(frozen=True)
@@ -36,8 +53,12 @@ class PlasticityConfig:
     det_bounds: tuple[float, float] = (0.5, 2.0)
     max_anisotropy: float = 4.0
     jacobian: str = "least_squares"  # or "paper"
+    update: str = "incremental"  # or "target_rest" (module docstring)
+    continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
 
     def __post_init__(self) -> None:
+        if self.update not in UPDATES:
+            raise ValueError(f"plasticity.update must be one of {UPDATES}, got {self.update!r}")
         if self.jacobian not in ("least_squares", "paper"):
             raise ValueError(f"plasticity.jacobian must be least_squares or paper, got {self.jacobian!r}")
         lo, hi = self.det_bounds
@@ -101,6 +122,26 @@ def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotr
     return np.einsum("nij,nj,njk->nik", U, s, Vt)
 
 
+def rebase_control(
+    F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
+    control: np.ndarray,  # [Tc, N, 3, 3] dFc per control slot
+    Fp_old: np.ndarray,  # [N, 3, 3]
+    Fp_new: np.ndarray,  # [N, 3, 3]
+) -> np.ndarray:  # [Tc, N, 3, 3]
+    """dFc' = (F + dFc) Fp_old^-1 Fp_new - F, so that Fe = (F + dFc) Fp^-1 is the same before and
+    after the Fp update (paper section 3.4: "modifying Fp redefines the material's rest state
+    without creating stress").
+
+    Why: the control here is persistent and enters the stress, so it already holds the achieved
+    deformation; an Fp update that changes Fe is a stress step, and the weakly damped elastic body
+    (period ~4 frames at the default profile) rings after it: the oscillation seen at eta >= 0.05.
+    With the control re-based the step is absorbed, and Fp changes only the reference against
+    which later deformation is measured.
+    """
+    M = np.linalg.solve(Fp_old, Fp_new)  # Fp_old^-1 Fp_new, [N, 3, 3]
+    return np.einsum("tnij,njk->tnik", F[None] + control, M) - F[None]
+
+
 @dataclass
 class PlasticityResult:
     Fp: np.ndarray  # [N, 3, 3]
@@ -115,6 +156,7 @@ def chamfer_plasticity_step(
     target_points: np.ndarray,  # [M, 3]
     cfg: PlasticityConfig,
     target_tree: cKDTree | None = None,
+    F: np.ndarray | None = None,  # [N, 3, 3] deformation gradient, needed by update="target_rest"
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring)."""
     tree = target_tree if target_tree is not None else cKDTree(target_points)
@@ -127,8 +169,16 @@ def chamfer_plasticity_step(
     dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
     mag = np.linalg.norm(d, axis=1)
     scale = np.median(mag)
-    eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
-    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ Fp
+    if cfg.update == "incremental":
+        eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
+        Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ Fp
+    else:
+        if F is None:
+            raise ValueError("plasticity.update='target_rest' needs the deformation gradient F")
+        # Uniform rate: a particle on the target must still relax to F (its dFp is ~0 there).
+        eta = np.full(len(x), cfg.eta)
+        e = eta[:, None, None]
+        Fp_new = (1.0 - e) * Fp + e * ((np.eye(3) + dFp) @ F)
     Fp_new = (1.0 - cfg.damping) * Fp_new + cfg.damping * np.eye(3)
     Fp_new = project_plastic(Fp_new, cfg.det_bounds, cfg.max_anisotropy)
     return PlasticityResult(Fp_new, d, eta, float(np.linalg.norm(d_raw, axis=1).mean()))

@@ -10,6 +10,7 @@ from physmorph.plasticity import (
     displacement_jacobian,
     knn_smooth,
     project_plastic,
+    rebase_control,
 )
 
 
@@ -99,3 +100,68 @@ def test_config_validation():
         PlasticityConfig(det_bounds=(1.2, 2.0))
     with pytest.raises(ValueError, match="jacobian"):
         PlasticityConfig(jacobian="magic")
+    with pytest.raises(ValueError, match="update"):
+        PlasticityConfig(update="magic")
+
+
+# ----------------------------------------------------------------------------- target_rest update
+def _stretch(n):  # [n, 3, 3], a rotated stretch with det 1.05, inside the projection bounds
+    c, s = np.cos(0.3), np.sin(0.3)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    return np.tile(R @ np.diag([1.25, 0.96, 0.875]), (n, 1, 1))
+
+
+def test_target_rest_on_the_target_relaxes_fp_to_f():
+    """A particle on the target (d = 0) has Fp <- (1 - eta) Fp + eta F: one step is that blend
+    exactly, and repeated steps converge to F (Fe -> I: the arrived shape is the rest shape)."""
+    x = _lattice(6)
+    F = _stretch(len(x))
+    Fp = np.tile(np.eye(3), (len(x), 1, 1))
+    cfg = PlasticityConfig(k_neighbors=16, eta=0.2, damping=0.0, update="target_rest")
+    res = chamfer_plasticity_step(x, Fp, x.copy(), cfg, F=F)
+    np.testing.assert_allclose(res.Fp, 0.8 * Fp + 0.2 * F, atol=1e-12)
+    for _ in range(80):
+        res = chamfer_plasticity_step(x, res.Fp, x.copy(), cfg, F=F)
+    np.testing.assert_allclose(res.Fp, F, atol=1e-6)
+
+
+def test_target_rest_does_not_wind_up_where_the_incremental_update_does():
+    """Same state every frame, a gap that the physics does not close: the printed update keeps
+    integrating until det Fp hits its clamp; the target_rest update settles at (I + dFp) F."""
+    x = _lattice(8) - 1.75
+    target = 1.05 * x  # d = 0.05 x: dFp = 0.05 I (see test_stretch_toward_larger_target_grows_fp)
+    F = np.tile(np.eye(3), (len(x), 1, 1))
+    common = dict(k_neighbors=27, smooth_iters=0, eta=0.2, damping=0.0, jacobian="least_squares")
+    out = {}
+    for update in ("incremental", "target_rest"):
+        cfg = PlasticityConfig(update=update, **common)
+        Fp = F.copy()
+        for _ in range(200):
+            Fp = chamfer_plasticity_step(x, Fp, target, cfg, F=F).Fp
+        out[update] = np.linalg.det(Fp)
+    assert np.median(out["incremental"]) == pytest.approx(2.0, rel=1e-6)  # pinned at det_bounds[1]
+    inner = np.all(np.abs(x) < 1.0, axis=1)  # away from the lattice boundary the estimate is exact
+    np.testing.assert_allclose(out["target_rest"][inner], 1.05 ** 3, rtol=1e-6)
+
+
+def test_target_rest_needs_f():
+    x = _lattice(4)
+    with pytest.raises(ValueError, match="deformation gradient"):
+        chamfer_plasticity_step(x, np.tile(np.eye(3), (len(x), 1, 1)), x.copy(),
+                                PlasticityConfig(k_neighbors=8, update="target_rest"))
+
+
+def test_rebase_control_leaves_the_elastic_deformation_unchanged():
+    """(F + dFc') Fp_new^-1 == (F + dFc) Fp_old^-1 for every control slot, and dFc' = dFc when Fp
+    does not change."""
+    rng = np.random.default_rng(1)
+    N, T = 7, 3
+    F = np.eye(3) + 0.2 * rng.standard_normal((N, 3, 3))
+    ctrl = 0.1 * rng.standard_normal((T, N, 3, 3))
+    Fp_old = np.eye(3) + 0.1 * rng.standard_normal((N, 3, 3))
+    Fp_new = np.eye(3) + 0.1 * rng.standard_normal((N, 3, 3))
+    new = rebase_control(F, ctrl, Fp_old, Fp_new)
+    Fe_old = (F[None] + ctrl) @ np.linalg.inv(Fp_old)[None]
+    Fe_new = (F[None] + new) @ np.linalg.inv(Fp_new)[None]
+    np.testing.assert_allclose(Fe_new, Fe_old, atol=1e-12)
+    np.testing.assert_allclose(rebase_control(F, ctrl, Fp_old, Fp_old), ctrl, atol=1e-12)
