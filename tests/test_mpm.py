@@ -597,7 +597,25 @@ def test_normalized_gd_keeps_relative_gradient_sizes(state):
     np.testing.assert_allclose(step, -1e-4 * g / rms, rtol=1e-9, atol=1e-15)
 
 
+def test_normalized_gd_step_clip_bounds_each_entry(state):
+    """With step_clip c the step is -alpha clip(g / rms(g), -c, c): entries under c are the plain
+    normalised step, larger ones are cut to c alpha."""
+    cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=1.5)
+    s = make(cfg, state)
+    s.reset_control()
+    s.load_state(state)
+    s.forward()
+    s.backward()
+    g = s.control_gradient()
+    rms = np.sqrt(np.mean(g * g))
+    assert np.abs(g / rms).max() > 1.5  # the clip is active somewhere
+    s.optimize_control(iters=1)
+    np.testing.assert_allclose(s.control(), -1e-4 * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
+
+
 def test_optimizer_config_is_checked():
+    with pytest.raises(MPMConfigError, match="step_clip"):
+        cfg64(step_clip=-1.0)
     with pytest.raises(MPMConfigError, match="optimizer"):
         cfg64(optimizer="sgd")
     with pytest.raises(MPMConfigError, match="line_search_iters"):

@@ -63,6 +63,9 @@ class MPMConfig:
         per-entry RMS is alpha = learning_rate, so relative gradient sizes are kept; a
         backtracking line search halves alpha up to line_search_iters times until the frame's
         objective, mass loss + injected linear terms, decreases, else the step is undone).
+    step_clip: normalized_gd only: if > 0, each entry of the normalised step g / rms(g) is clamped
+        to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
+        iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
     control_clip: if > 0, dFc entries are clamped to [-control_clip, control_clip] after each
         Adam step (0 = off, the paper's behaviour).
     """
@@ -82,6 +85,7 @@ class MPMConfig:
     learning_rate: float = 0.01
     optimizer: str = "adam"
     line_search_iters: int = 10
+    step_clip: float = 0.0
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
@@ -129,6 +133,7 @@ class MPMConfig:
              f"Adam needs 0 <= beta1, beta2 < 1 and eps > 0, got {self.adam_beta1}, "
              f"{self.adam_beta2}, {self.adam_eps}")
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
         need(isinstance(self.line_search_iters, int) and self.line_search_iters >= 1,
              f"line_search_iters must be an int >= 1, got {self.line_search_iters!r}")
         need(self.log_mass_eps > 0, f"log_mass_eps must be > 0, got {self.log_mass_eps}")

@@ -729,9 +729,12 @@ class MPMSolver:
             if not rms > 0:
                 break
             base = self.control()
+            direction = g / rms
+            if self.cfg.step_clip > 0:
+                direction = np.clip(direction, -self.cfg.step_clip, self.cfg.step_clip)
             found = False
             for _ in range(self.cfg.line_search_iters):
-                self.set_control(base - alpha * g / rms)
+                self.set_control(base - alpha * direction)
                 try:
                     trial = self._objective(grad_F_final, grad_x_final)
                 except MPMDivergenceError:  # a step so large the rollout blows up: shorten it
