@@ -6,7 +6,8 @@ A. physics: J Adam iterations on the control field dFc against the end-layer mas
    full) or on the final x (gamma_x * dL/dx; the position_inject negative control);
 B. render: the surface-masked particles as Gaussians Sigma = sigma0^2 F F^T from V ring cameras;
    losses against the target images; g = dL_render/dF (and dL/dx) kept for frame k+1;
-C. plasticity (method full, k >= k0): Chamfer-guided update of Fp (physmorph.plasticity).
+C. plasticity (method full, k >= k0): Chamfer-guided update of Fp (physmorph.plasticity); with
+   plasticity.continuous_stress the control is re-based so the update leaves Fe unchanged.
 The state at the end of frame k is the initial state of frame k+1.
 
 Methods: physics_only (A without injection), f_inject (A+B), full (A+B+C), position_inject.

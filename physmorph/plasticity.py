@@ -156,7 +156,7 @@ def chamfer_plasticity_step(
     target_points: np.ndarray,  # [M, 3]
     cfg: PlasticityConfig,
     target_tree: cKDTree | None = None,
-    F: np.ndarray | None = None,  # [N, 3, 3] deformation gradient, needed by update="target_rest"
+    F: np.ndarray | None = None,  # [N, 3, 3] the deformation the stress sees (F + dFc), for update="target_rest"
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring)."""
     tree = target_tree if target_tree is not None else cKDTree(target_points)
