@@ -324,3 +324,39 @@ def test_second_writer_of_a_run_is_refused_and_the_first_keeps_its_frames(tiny, 
     assert {p.name: p.read_bytes() for p in partial.glob("*.h5")} == before
     out, log = _run_logged(tiny, "two_writers.h5", **_short(tiny))
     assert "[two_writers.h5] resuming after frame 1/3" in log and read_metrics(out)["attrs"]["status"] == "complete"
+
+
+# ------------------------------------------------------------------------ stability warnings
+def test_stability_monitor_warns_once_per_streak_and_survives_a_resume():
+    from physmorph.plasticity import PlasticityConfig
+
+    pc = PlasticityConfig()
+    lo, hi = pc.det_bounds
+    logged = []
+    mon = morph.StabilityMonitor(pc, log=logged.append, pinned_share=0.5, pinned_frames=3, rising_frames=2)
+    free = np.tile(np.eye(3), (4, 1, 1))
+    pinned = free * lo ** (1 / 3)  # det at the lower clamp bound, isotropic
+    assert mon.update(1, pinned, 0.5) == [] and mon.update(2, pinned, 0.4) == []
+    out = mon.update(3, pinned, 0.3)
+    assert len(out) == 1 and "frame 3: 100.0 % of particles have Fp pinned at a clamp bound" in out[0]
+    assert "plasticity.eta" in out[0] and logged == out
+    assert mon.update(4, pinned, 0.2) == []  # once per streak
+    # alpha MSE rising two frames in a row; the monitor's state goes through a checkpoint.
+    assert mon.update(5, free, 0.25) == []
+    resumed = morph.StabilityMonitor(pc, log=logged.append, pinned_share=0.5, pinned_frames=3, rising_frames=2)
+    resumed.restore(mon.state())
+    out = resumed.update(6, free, 0.3)
+    assert out == ["frame 6: alpha MSE rose for 2 frames in a row (now 0.3)"]
+    assert mon.update(6, free, 0.3) == out  # the uninterrupted monitor says the same
+    assert resumed.update(7, free, 0.1) == [] and resumed.rising_streak == 0
+
+
+def test_stability_warnings_are_recorded_in_the_run_file(tiny, monkeypatch):
+    real = morph.StabilityMonitor.update
+
+    def update(self, frame, Fp, alpha_mse):
+        return real(self, frame, Fp, alpha_mse) + ([f"frame {frame}: test warning"] if frame == 2 else [])
+
+    monkeypatch.setattr(morph.StabilityMonitor, "update", update)
+    out, _ = _run_logged(tiny, "warned.h5", **_short(tiny))
+    assert "frame 2: test warning" in json.loads(read_metrics(out)["attrs"]["warnings"])
