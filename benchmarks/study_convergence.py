@@ -14,6 +14,7 @@ the share of the reachable gap closed at the best and last frame, silhouette IoU
 from __future__ import annotations
 
 import argparse
+import shutil
 import csv
 import json
 import sys
@@ -25,6 +26,7 @@ import yaml
 
 from physmorph.config import SamplingConfig, load_config
 from physmorph.morph import morph_config, read_metrics, run_morph
+from physmorph.runfile import partial_dir
 from physmorph.particles import load_particles
 from physmorph.quality import ceiling_metrics, gap_closed
 from physmorph.targets import load_target
@@ -73,7 +75,7 @@ def main() -> None:
         out = Path(args.workdir) / args.tag / f"{name}.h5"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.unlink(missing_ok=True)
-        Path(str(out) + ".partial").unlink(missing_ok=True)
+        shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
         t0 = time.time()
         run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True))
         wall = time.time() - t0
