@@ -270,6 +270,27 @@ def test_kill_at_every_write_step_of_a_frame_resumes_to_the_uninterrupted_run(ti
     assert attrs["wall_time_s"] == pytest.approx(sum(segments))
 
 
+def test_kill_while_writing_the_finished_file_resumes_to_the_uninterrupted_run(tiny, uninterrupted_short, monkeypatch):
+    """Killed just before the finished file's rename: nothing is lost, the rerun only finishes."""
+    steps = []
+    real = _kill_at(monkeypatch, 4 * len(COMMIT_STEPS) + 2, steps)  # frames 0..3 committed, then write, fsync, rename
+    with pytest.raises(_SigKill):
+        _run_logged(tiny, "killed_finishing.h5", **_short(tiny))
+    assert steps[-3:] == [("write", "killed_finishing.h5.tmp"), ("fsync", "killed_finishing.h5.tmp"),
+                          ("replace", "killed_finishing.h5")]
+    for attr, fn in (("_write_aside", real["write"]), ("_fsync", real["fsync"]), ("_replace", real["replace"])):
+        monkeypatch.setattr(runfile, attr, fn)
+    assert not (tiny[1] / "killed_finishing.h5").exists()
+    rerun_steps = []
+    _kill_at(monkeypatch, 10 ** 9, rerun_steps)  # records, never kills
+    out, log = _run_logged(tiny, "killed_finishing.h5", **_short(tiny))
+    assert "[killed_finishing.h5] resuming after frame 3/3" in log
+    # No frame is committed again: the rerun only writes the finished file.
+    assert [s for s, _ in rerun_steps] == ["write", "fsync", "replace", "fsync"]
+    assert rerun_steps[0] == ("write", "killed_finishing.h5.tmp")
+    _assert_same_run(out, uninterrupted_short)
+
+
 def test_disk_full_during_a_frame_keeps_the_last_frame_and_resumes(tiny, uninterrupted_short, monkeypatch):
     real = runfile._write_aside
     calls = {"n": 0}
