@@ -8,7 +8,7 @@ CORES ?= 2
 # wheel directory (these machines keep it in /opt/wheels) or the PyTorch CPU wheel index.
 WHEELS := $(if $(wildcard /opt/wheels),--find-links /opt/wheels,)
 
-.PHONY: venv tables figures tradeoff test dag clean-venv
+.PHONY: venv tables figures tradeoff test dag recover clean-venv
 
 $(STAMP): environment.lock pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -29,6 +29,15 @@ test: $(STAMP)
 
 dag: $(STAMP)
 	$(VENV)/bin/snakemake -n --cores $(CORES) tables
+
+# After a kill (SIGKILL, power loss, OOM): unlock the directory Snakemake left locked and rerun
+# what was incomplete; a killed morph resumes from its last committed frame. Only while no other
+# Snakemake runs here. E.g. make recover TARGET=figures ARGS="--configfile config/test.yaml"
+TARGET ?= tables
+ARGS ?=
+recover: $(STAMP)
+	$(VENV)/bin/snakemake --unlock $(TARGET) $(ARGS)
+	$(VENV)/bin/snakemake --cores $(CORES) --rerun-incomplete $(TARGET) $(ARGS)
 
 clean-venv:
 	rm -rf $(VENV)

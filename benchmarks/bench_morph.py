@@ -13,6 +13,7 @@ Taichi compilation) and the peak RSS.
 from __future__ import annotations
 
 import argparse
+import shutil
 import dataclasses
 import os
 import time
@@ -22,6 +23,7 @@ import numpy as np
 
 from physmorph.config import SamplingConfig, load_config
 from physmorph.morph import morph_config, read_metrics, run_morph
+from physmorph.runfile import partial_dir
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
 REPO = Path(__file__).resolve().parent.parent
@@ -58,7 +60,7 @@ def main() -> None:
                              plasticity=dataclasses.replace(mc.plasticity, start_frame=1))
     out = wd / "run.h5"
     out.unlink(missing_ok=True)
-    Path(str(out) + ".partial").unlink(missing_ok=True)
+    shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
     run_morph(wd / f"p_{exp['source']}.h5", wd / f"t_{exp['target']}.h5", out, mc, name=args.experiment)
     m = read_metrics(out)
     sel = slice(2, None) if args.frames > 1 else slice(1, None)

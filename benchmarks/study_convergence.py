@@ -14,6 +14,7 @@ the share of the reachable gap closed at the best and last frame, silhouette IoU
 from __future__ import annotations
 
 import argparse
+import shutil
 import csv
 import json
 import sys
@@ -26,6 +27,7 @@ import yaml
 from physmorph.config import SamplingConfig, load_config
 from physmorph.morph import morph_config, read_metrics, run_morph
 from physmorph.quality import gap_closed
+from physmorph.runfile import partial_dir
 
 REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "convergence" / "runs.csv"
@@ -71,7 +73,7 @@ def main() -> None:
         out = Path(args.workdir) / args.tag / f"{name}.h5"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.unlink(missing_ok=True)
-        Path(str(out) + ".partial").unlink(missing_ok=True)
+        shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
         t0 = time.time()
         run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True))
         wall = time.time() - t0

@@ -18,7 +18,7 @@ import numpy as np
 from physmorph.cameras import ring_cameras
 from physmorph.config import TargetConfig
 from physmorph.metrics import FIGURE_NAMES
-from physmorph.morph import read_metrics
+from physmorph.runfile import read_metrics
 
 FIGURE_RUNS = {
     "sequences_main": ["iso_bunny_full", "iso_cow_full", "iso_duck_full"],

@@ -1,11 +1,19 @@
-"""HDF5 helpers: atomic writes, provenance attributes and reads that fail with clear errors.
+"""HDF5 helpers: atomic writes, provenance attributes, content checksums and reads that fail
+with clear errors.
 
-Every stage output is written to ``<path>.partial`` and renamed into place only when complete,
-so a killed or failing stage never leaves a file that looks finished.
+Every stage output is written to ``<path>.partial``, stamped with a content checksum (the last
+thing written), flushed to disk (fsync) and renamed into place only when complete, so a killed or
+failing stage never leaves a file that looks finished. Readers verify the checksum, so a file whose
+bytes changed afterwards (zero-filled blocks, a torn copy, an edit) is refused with its name.
+
+The checksum (``content_sha256``) is the SHA-256 of every attribute and dataset in a fixed order
+(names, dtypes, shapes and bytes), computed from the file as stored; it leaves out only itself.
 """
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import json
 import os
 import resource
@@ -17,6 +25,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
+CHECKSUM_ATTR = "content_sha256"
+# Attributes a checksum never covers (the checksums themselves).
+_CHECKSUM_ATTRS = frozenset({CHECKSUM_ATTR, "metrics_sha256"})
+_HASH_BLOCK_BYTES = 1 << 26  # datasets are hashed in row blocks of about this size
 
 PROVENANCE_PACKAGES = ("numpy", "scipy", "torch", "taichi", "trimesh", "h5py", "scikit-image", "pymeshfix")
 
@@ -57,9 +70,120 @@ def write_provenance(f: h5py.File, config: dict | None, started: float) -> None:
     f.attrs["physmorph_version"] = __import__("physmorph").__version__
 
 
+class StageInputError(ValueError):
+    """An input file is missing, corrupt or lacks a field; the message names file and field."""
+
+
+def _hash_value(h: "hashlib._Hash", value) -> None:
+    """Feed one attribute value (str, bytes, number, array) into ``h`` unambiguously."""
+    if isinstance(value, str):
+        data = b"s" + value.encode("utf-8")
+    elif isinstance(value, bytes):
+        data = b"b" + value
+    else:
+        a = np.asarray(value)
+        if a.dtype.kind in "OSUV":  # strings and objects: their printed form
+            data = b"o" + repr(a.tolist()).encode("utf-8")
+        else:
+            data = f"{a.dtype.str}{a.shape}".encode() + np.ascontiguousarray(a).tobytes()
+    h.update(len(data).to_bytes(8, "little"))
+    h.update(data)
+
+
+def _hash_attrs(h: "hashlib._Hash", name: str, attrs: h5py.AttributeManager) -> None:
+    for key in sorted(k for k in attrs.keys() if k not in _CHECKSUM_ATTRS):
+        _hash_value(h, f"attr {name}@{key}")
+        _hash_value(h, attrs[key])
+
+
+def _hash_dataset(h: "hashlib._Hash", ds: h5py.Dataset) -> None:
+    _hash_value(h, f"{ds.dtype.str}{ds.shape}")
+    if ds.dtype.kind in "OSUV" or ds.ndim == 0 or ds.size == 0:
+        _hash_value(h, ds[()])
+        return
+    row_bytes = max(1, ds.size // ds.shape[0] * ds.dtype.itemsize)
+    step = max(1, _HASH_BLOCK_BYTES // row_bytes)
+    for i in range(0, ds.shape[0], step):  # C order: the blocks' bytes concatenate to the whole
+        h.update(np.ascontiguousarray(ds[i:i + step]).tobytes())
+
+
+def content_checksum(f: h5py.File | h5py.Group, only: str | None = None) -> str:
+    """SHA-256 of the attributes and datasets under ``f`` (see the module docstring).
+
+    ``only``: hash the root attributes and just the objects under this member (e.g. "metrics"),
+    for a cheap check of the part a reader uses.
+    """
+    h = hashlib.sha256()
+    _hash_attrs(h, "/", f.attrs)
+    names: list[str] = []
+    f.visit(names.append)
+    for name in sorted(names):
+        if only is not None and name != only and not name.startswith(only + "/"):
+            continue
+        obj = f[name]
+        _hash_value(h, f"{'dataset' if isinstance(obj, h5py.Dataset) else 'group'} {name}")
+        _hash_attrs(h, name, obj.attrs)
+        if isinstance(obj, h5py.Dataset):
+            _hash_dataset(h, obj)
+    return h.hexdigest()
+
+
+def stamp_checksum(f: h5py.File) -> str:
+    """Write ``content_sha256`` of everything already in ``f``; call it last."""
+    f.flush()
+    digest = content_checksum(f)
+    f.attrs[CHECKSUM_ATTR] = digest
+    return digest
+
+
+def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete it and rerun the stage that writes it") -> str | None:
+    """Check ``content_sha256`` against the file's content; StageInputError naming the file when it
+    differs, is unreadable or (``required``) is missing. Returns the checksum (None if absent)."""
+    path = f.filename
+    try:
+        stored = f.attrs.get(CHECKSUM_ATTR)
+    except (OSError, RuntimeError, KeyError) as exc:
+        raise StageInputError(f"{path}: its content checksum is unreadable ({exc}); the file is damaged: {remedy}") from exc
+    if stored is None:
+        if required:
+            raise StageInputError(f"{path}: no content checksum ('{CHECKSUM_ATTR}'): it was written by an older physmorph "
+                                  f"or damaged; {remedy}")
+        return None
+    try:
+        actual = content_checksum(f)
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        raise StageInputError(f"{path}: unreadable content ({exc}); the file is damaged (torn or overwritten): {remedy}") from exc
+    if actual != str(stored):
+        raise StageInputError(f"{path}: content does not match its checksum (stored {str(stored)[:12]}..., computed "
+                              f"{actual[:12]}...): the file changed after it was written (zero-filled, torn or edited); {remedy}")
+    return actual
+
+
+def stored_checksum(path: str | os.PathLike) -> str:
+    """The verified content checksum of a stage output (identity of its content, for run keys)."""
+    with open_h5(path) as f:
+        return str(f.attrs[CHECKSUM_ATTR])
+
+
+def fsync_path(path: str | os.PathLike) -> None:
+    """Flush a closed file's data (or a directory entry's rename) to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def disk_full_message(path: str | os.PathLike, exc: OSError) -> str | None:
+    if exc.errno == errno.ENOSPC:
+        return f"{path}: disk full ({exc.strerror or exc}); free space on {Path(path).parent} and rerun"
+    return None
+
+
 @contextmanager
 def atomic_h5(path: str | os.PathLike, config: dict | None = None):
-    """Open ``path.partial`` for writing; on success add provenance and rename to ``path``.
+    """Open ``path.partial`` for writing; on success add provenance, stamp the content checksum
+    (last), fsync and rename to ``path``.
 
     On any exception the partial file is removed and the exception propagates.
     """
@@ -71,24 +195,34 @@ def atomic_h5(path: str | os.PathLike, config: dict | None = None):
         with h5py.File(tmp, "w") as f:
             yield f
             write_provenance(f, config, started)
+            stamp_checksum(f)
+        fsync_path(tmp)
         os.replace(tmp, path)
-    except BaseException:
+        fsync_path(path.parent)
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        full = disk_full_message(path, exc) if isinstance(exc, OSError) else None
+        if full:
+            raise OSError(exc.errno, full) from exc
         raise
 
 
-class StageInputError(ValueError):
-    """An input file is missing, corrupt or lacks a field; the message names file and field."""
-
-
-def open_h5(path: str | os.PathLike) -> h5py.File:
+def open_h5(path: str | os.PathLike, verify: bool = True) -> h5py.File:
+    """Open a stage output read-only; with ``verify`` its content checksum must be present and match."""
     path = Path(path)
     if not path.exists():
         raise StageInputError(f"{path}: file not found")
     try:
-        return h5py.File(path, "r")
+        f = h5py.File(path, "r")
     except OSError as exc:
-        raise StageInputError(f"{path}: not a readable HDF5 file ({exc})") from exc
+        raise StageInputError(f"{path}: not a readable HDF5 file ({exc}); delete it and rerun the stage that writes it") from exc
+    if verify:
+        try:
+            verify_checksum(f)
+        except BaseException:
+            f.close()
+            raise
+    return f
 
 
 def read_field(f: h5py.File, name: str, shape_tail: tuple | None = None) -> np.ndarray:

@@ -441,16 +441,24 @@ def prepare_mesh(
     out_h5: str | os.PathLike,
     domain: tuple[float, float] = (-16.0, 16.0),
     volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
+    raw_sha256: str | None = None,
 ) -> dict:
     """Stage prepare_mesh: raw mesh or procedural shape -> watertight normalised mesh HDF5.
 
-    Output layout: /vertices [V, 3] f64, /faces [F, 3] i64; attrs shape, kind, source, volume,
-    raw_volume (in normalised units), scale, translation, repair (JSON list), watertight,
-    domain_lo, domain_hi. Returns a summary dict.
+    ``raw_sha256``: the raw mesh's published checksum; the file is verified against it before it
+    is read (it may have changed since it was fetched). Output layout: /vertices [V, 3] f64,
+    /faces [F, 3] i64; attrs shape, kind, source, volume, raw_volume (in normalised units),
+    scale, translation, repair (JSON list), watertight, domain_lo, domain_hi. Returns a summary dict.
     """
     if spec.kind == "file":
         if raw_path is None:
             raise MeshError(f"shape '{spec.name}': kind 'file' needs the raw mesh path")
+        if raw_sha256 is not None:
+            expected, actual = raw_sha256.strip().lower(), sha256_of(raw_path)
+            if actual != expected:
+                raise MeshError(f"{raw_path} (shape '{spec.name}'): no longer matches its checksum (expected sha256 "
+                                f"{expected}, got {actual}): it changed after it was fetched; delete it and rerun, "
+                                "and it is fetched again")
         label = f"{raw_path} (shape '{spec.name}')"
         raw = load_raw_mesh(raw_path)
         source = Path(raw_path).name

@@ -12,34 +12,35 @@ The state at the end of frame k is the initial state of frame k+1.
 
 Methods: physics_only (A without injection), f_inject (A+B), full (A+B+C), position_inject.
 
-Resume: after every frame the run file gets the complete loop state (particles, control field and
-Adam moments, mask, pending render gradient) and the frame's metrics; a run started on an
-existing ``<out>.partial`` continues from its last completed frame, and with the same config and
-thread count reproduces the uninterrupted run. The finished file is renamed to ``<out>``.
+Resume (physmorph.runfile): every frame is committed all or nothing to ``<out>.partial/`` (its
+metrics, then the complete loop state: particles, control field and optimizer moments, mask,
+pending render gradient); a run started on an existing partial run continues from its last
+committed frame when its settings and the content of its inputs (particles, target) are unchanged,
+and with the same config and thread count reproduces the uninterrupted run; otherwise it restarts
+and says why. One process writes a run at a time (a lock). The finished file is ``<out>``.
 Divergence (non-finite or out-of-bounds F, Fp, x) raises MorphDivergenceError naming frame and
-quantity; the partial file keeps every completed frame. For position_inject a divergence is
+quantity; the partial run keeps every completed frame. For position_inject a divergence is
 recorded in the run (status "diverged") instead, since instability is the finding.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-import h5py
 import numpy as np
 from scipy.spatial import cKDTree
 
-from physmorph.h5io import peak_rss_mb, write_provenance
+from physmorph.h5io import stored_checksum
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
 from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step, rebase_control
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
+from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
 from physmorph.surface import SurfaceMaskConfig, update_surface_mask
 from physmorph.targets import load_target
 
@@ -81,15 +82,6 @@ class MorphConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-# Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
-SCALARS = (
-    "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
-    "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
-    "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
-    "mask_fraction", "chamfer", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
-)
 
 
 def _anisotropy(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N]
@@ -141,67 +133,16 @@ class StabilityMonitor:
             self.log(msg)
         return out
 
+    def state(self) -> dict:
+        """The streaks, for a checkpoint (a resumed run warns as the uninterrupted one would)."""
+        return {"monitor_pinned_streak": self.pinned_streak, "monitor_rising_streak": self.rising_streak,
+                "monitor_last_alpha": np.nan if self.last_alpha is None else float(self.last_alpha)}
 
-class RunFile:
-    """The run HDF5: metrics per frame (index 0 = initial state), saved states, checkpoint."""
-
-    def __init__(self, path: Path, n_views: int):
-        self.path = path
-        self.n_views = n_views
-
-    def create(self, meta: dict) -> None:
-        with h5py.File(self.path, "w") as f:
-            for k, v in meta.items():
-                f.attrs[k] = v
-            f.attrs["status"] = "running"
-            f.attrs["frames_completed"] = -1
-            g = f.create_group("metrics")
-            for name in SCALARS:
-                g.create_dataset(name, shape=(0,), maxshape=(None,), dtype="f8")
-            g.create_dataset("alpha_mse_views", shape=(0, self.n_views), maxshape=(None, self.n_views), dtype="f8")
-            f.create_group("states")
-
-    def append(self, frame: int, scalars: dict, views: np.ndarray, st: ParticleState, save_state: bool,
-               checkpoint: dict) -> None:
-        with h5py.File(self.path, "a") as f:
-            g = f["metrics"]
-            for name in SCALARS:
-                d = g[name]
-                d.resize((frame + 1,))
-                d[frame] = float(scalars.get(name, np.nan))
-            d = g["alpha_mse_views"]
-            d.resize((frame + 1, self.n_views))
-            d[frame] = views
-            if save_state:
-                s = f["states"].require_group(f"frame_{frame:04d}")
-                for k in ("x", "F", "Fp"):
-                    if k in s:
-                        del s[k]
-                    s.create_dataset(k, data=getattr(st, k).astype(np.float32), compression="gzip")
-            if "checkpoint" in f:
-                del f["checkpoint"]
-            c = f.create_group("checkpoint")
-            for k, v in checkpoint.items():
-                if isinstance(v, np.ndarray):
-                    c.create_dataset(k, data=v)
-                else:
-                    c.attrs[k] = v
-            f.attrs["frames_completed"] = frame
-            f.attrs["peak_rss_mb"] = max(float(f.attrs.get("peak_rss_mb", 0.0)), peak_rss_mb())
-
-    def add_warnings(self, messages: list[str]) -> None:
-        """Append to the run's ``warnings`` attribute (a JSON list of strings)."""
-        with h5py.File(self.path, "a") as f:
-            old = json.loads(f.attrs.get("warnings", "[]"))
-            f.attrs["warnings"] = json.dumps(old + list(messages))
-
-    def read_checkpoint(self) -> tuple[int, dict]:
-        with h5py.File(self.path, "r") as f:
-            frame = int(f.attrs["frames_completed"])
-            c = f["checkpoint"]
-            data = {k: c[k][()] for k in c}
-            data.update({k: c.attrs[k] for k in c.attrs})
-        return frame, data
+    def restore(self, state: dict) -> None:
+        self.pinned_streak = int(state["monitor_pinned_streak"])
+        self.rising_streak = int(state["monitor_rising_streak"])
+        last = float(state["monitor_last_alpha"])
+        self.last_alpha = None if np.isnan(last) else last
 
 
 def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None, g_x: np.ndarray | None) -> float:
@@ -232,8 +173,17 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     started = time.time()
     out_h5 = Path(out_h5)
-    partial = out_h5.with_name(out_h5.name + ".partial")
     out_h5.parent.mkdir(parents=True, exist_ok=True)
+    record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
+    # A partial run resumes only with the same settings and the same input content.
+    key = RunKey(record, (("particles", stored_checksum(particles_h5)), ("target", stored_checksum(target_h5))))
+    with RunWriter(out_h5, key, started) as run:  # one writer per run: a second one is refused
+        _morph_loop(particles_h5, target_h5, cfg, name, record, log, run)
+    return summarize_run(out_h5)
+
+
+def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: str, log, run: RunWriter) -> None:
+    partial = run.dir
     parts = load_particles(particles_h5)
     target = load_target(target_h5)
     if target.grid.res != cfg.mpm.grid_res:
@@ -255,9 +205,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     # rescaled to the source's total mass (its shape is what is matched).
     mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
     solver.set_target_grid_mass(target.grid_mass * mass_ratio)
-    run = RunFile(partial, V)
     lo, hi = cfg.mpm.domain_lo, cfg.mpm.domain_hi
-    record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
 
     # The mask is only built where something uses it (a switched-off component costs nothing).
     need_mask = cfg.method != "physics_only" or not cfg.metric_all_particles
@@ -276,40 +224,33 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
                 "mask_fraction": float(mask.mean()) if need_mask else np.nan,
                 "chamfer": float(d.mean())}, per_view
 
-    resumed_from = None
-    if partial.exists():
-        try:
-            with h5py.File(partial, "r") as f:
-                same = f.attrs.get("config_record") == record
-            frame0, ck = run.read_checkpoint()
-        except (OSError, KeyError):
-            same, frame0 = False, -1
-        if same and frame0 >= 0:
-            resumed_from = frame0
-        else:
-            log(f"[{name}] discarding {partial.name}: config changed or no completed frame")
+    monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
+    checkpoint = run.resume(log=lambda msg: log(f"[{name}] {msg}"))
+    resumed_from = None if checkpoint is None else checkpoint.frame
     if resumed_from is None:
         st = ParticleState(x=parts.x.copy(), v=np.zeros((N, 3)), F=np.tile(np.eye(3), (N, 1, 1)),
                            C=np.zeros((N, 3, 3)), Fp=np.tile(np.eye(3), (N, 1, 1)),
                            mass=parts.mass.copy(), volume=parts.volume.copy())
         mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi) if need_mask else np.zeros(N, bool)
         g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
-        run.create({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "config_record": record, "n_particles": N,
-                    "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames,
-                    "ceiling_alpha_mse": ceiling, "ceiling_iou": float(getattr(target, "ceiling_iou", np.nan))})
+        run.set_meta({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "n_particles": N,
+                      "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames,
+                      "ceiling_alpha_mse": ceiling, "ceiling_iou": float(getattr(target, "ceiling_iou", np.nan))})
         m, per_view = metrics_for(st, mask)
         a0 = m["alpha_mse"]
         m["gap_closed"] = 0.0
         # Frame 0 is the unmoved source: it has metrics but no physics step (its losses are NaN).
-        run.append(0, m, per_view, st, True, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
-                                              "injection_scale": float("nan"), **solver.optimizer_state()})
+        run.commit(0, m, per_view, asdict_state(st), [], {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
+                                                          "injection_scale": float("nan"), **solver.optimizer_state(),
+                                                          **monitor.state()})
         start = 1
     else:
+        ck = checkpoint.data
         st = ParticleState(**{k: ck[k] for k in ("x", "v", "F", "C", "Fp", "mass", "volume")})
         mask, g_F, g_x = ck["mask"].astype(bool), ck["g_F"], ck["g_x"]
         solver.set_optimizer_state(ck)
-        with h5py.File(partial, "r") as f:
-            a0 = float(f["metrics"]["alpha_mse"][0])
+        monitor.restore(ck)
+        a0 = run.frame_metric(0, "alpha_mse")
         start = resumed_from + 1
         log(f"[{name}] resuming after frame {resumed_from}/{cfg.frames}")
 
@@ -319,7 +260,6 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     want_grad = inject_F or inject_x
     status = "complete"
     frame_times = []
-    monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
     for k in range(start, cfg.frames + 1):
         t0 = time.time()
         # A. physics
@@ -381,12 +321,11 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"])
-        if new_warnings:
-            run.add_warnings(new_warnings)
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
-        run.append(k, scal, per_view, st, save, {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
-                                                  "injection_scale": scale, **solver.optimizer_state()})
+        run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
+                   {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
+                    **solver.optimizer_state(), **monitor.state()})
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)
@@ -394,33 +333,11 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
                 f"(gap closed {100 * scal['gap_closed']:.0f} %)  "
                 f"physics {stats['loss_initial']:.4g}->{stats['loss_final']:.4g}  "
                 f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s")
-    with h5py.File(partial, "a") as f:
-        f.attrs["status"] = status
-        f.attrs["injection_scale"] = scale
-        write_provenance(f, json.loads(record), started)
-        f.attrs["peak_rss_mb"] = max(float(f.attrs.get("peak_rss_mb", 0.0)), peak_rss_mb())
-    os.replace(partial, out_h5)
-    return summarize_run(out_h5)
+    run.finish(status, {"injection_scale": scale}, json.loads(record))
 
 
 def asdict_state(st: ParticleState) -> dict:
     return {k: np.asarray(getattr(st, k)) for k in ("x", "v", "F", "C", "Fp", "mass", "volume")}
-
-
-def read_metrics(path: str | Path) -> dict[str, np.ndarray]:
-    """Per-frame metrics of a run file (index 0 = initial state), plus its attributes under 'attrs'."""
-    with h5py.File(path, "r") as f:
-        out = {k: f["metrics"][k][()] for k in f["metrics"]}
-        out["attrs"] = dict(f.attrs)
-    return out
-
-
-def summarize_run(path: str | Path) -> dict:
-    m = read_metrics(path)
-    a = m["alpha_mse"]
-    return {"frames": int(len(a) - 1), "alpha_mse_initial": float(a[0]), "alpha_mse_final": float(a[-1]),
-            "alpha_mse_best": float(np.nanmin(a)), "best_frame": int(np.nanargmin(a)),
-            "status": str(m["attrs"].get("status", "")), "peak_rss_mb": float(m["attrs"].get("peak_rss_mb", 0.0))}
 
 
 def _build(cls, section: dict | None, where: str):

@@ -20,10 +20,14 @@ denominator >= tol, and gives 1 for a run that stays at the ceiling.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from physmorph.cameras import Cameras
-from physmorph.render import RenderConfig, render_views
+
+if TYPE_CHECKING:
+    from physmorph.render import RenderConfig
 
 # tol of gap_closed relative to the ceiling.
 GAP_REL_TOL = 0.1
@@ -53,8 +57,12 @@ def ceiling_metrics(x: np.ndarray,  # [N, 3] the target's own particles at rest
                     sigma0,  # scalar or [N]
                     cameras: Cameras,
                     target_alpha: np.ndarray,  # [V, H, W]
-                    render: RenderConfig = RenderConfig()) -> dict:
-    """alpha MSE and IoU per view of particles x rendered at rest (F = I) against target_alpha."""
+                    render: RenderConfig | None = None) -> dict:
+    """alpha MSE and IoU per view of particles x rendered at rest (F = I) against target_alpha
+    (``render``: the renderer's settings, RenderConfig() when None)."""
+    from physmorph.render import RenderConfig, render_views  # the renderer (torch) only where it is used
+
+    render = RenderConfig() if render is None else render
     x = np.asarray(x, dtype=np.float64)
     F = np.broadcast_to(np.eye(3), (len(x), 3, 3))
     alpha, _ = render_views(x, F, sigma0, cameras, render)

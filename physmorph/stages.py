@@ -24,10 +24,11 @@ def shape_spec(name: str, entry: dict):
     return ShapeSpec(name=name, **entry)
 
 
-def prepare_mesh_stage(shape: str, entry: dict, raw: str | None, output: str) -> dict:
+def prepare_mesh_stage(shape: str, entry: dict, raw: str | None, output: str, raw_sha256: str | None = None) -> dict:
+    """``raw_sha256``: the raw mesh's checksum from the config (verified again before preparation)."""
     from physmorph.meshes import prepare_mesh
 
-    return prepare_mesh(shape_spec(shape, entry), Path(raw) if raw else None, Path(output))
+    return prepare_mesh(shape_spec(shape, entry), Path(raw) if raw else None, Path(output), raw_sha256=raw_sha256)
 
 
 def sample_particles_stage(mesh_h5: str, output: str, preview: str, sampling: SamplingConfig, seed: int) -> dict:

@@ -17,7 +17,7 @@ import pandas as pd
 
 from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
                                rebound_percent, spread)
-from physmorph.morph import read_metrics
+from physmorph.runfile import read_metrics
 from physmorph.quality import gap_closed
 
 

@@ -108,7 +108,7 @@ def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
 
 def build_tradeoff(points: dict[str, TradeoffPoint], runs: dict[str, Path], out_dir: Path) -> pd.DataFrame:
     """Write tradeoff.csv, tradeoff.md (with the knob ranking) and pareto.png; return the table."""
-    from physmorph.morph import read_metrics
+    from physmorph.runfile import read_metrics
     from physmorph.tables import markdown_table
 
     rows = []

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from physmorph.h5io import StageInputError
+from physmorph.h5io import StageInputError, stamp_checksum
 from physmorph.meshes import (
     FetchError,
     MeshError,
@@ -208,6 +208,19 @@ def test_corrupt_files_give_mesh_error_and_no_output(tmp_path, mesh_dir):
         assert not out.exists() and not out.with_name(out.name + ".partial").exists()
 
 
+def test_raw_mesh_changed_after_fetch_is_named_before_preparation(tmp_path):
+    """A raw mesh already in the download directory is verified against its sha256 again."""
+    path = tmp_path / "box.obj"
+    trimesh.creation.box(extents=(4.0, 5.0, 6.0)).export(path)
+    sha = _sha(path.read_bytes())
+    spec = ShapeSpec("box", "file", file="box.obj", size=10.0)
+    assert prepare_mesh(spec, path, tmp_path / "ok.h5", raw_sha256=sha)["watertight"]
+    path.write_bytes(b"\x00" * 64 + path.read_bytes()[64:])  # zeroed bytes in the file, after it was fetched
+    with pytest.raises(MeshError, match=rf"box\.obj \(shape 'box'\): no longer matches its checksum \(expected sha256 {sha}"):
+        prepare_mesh(spec, path, tmp_path / "bad.h5", raw_sha256=sha)
+    assert not (tmp_path / "bad.h5").exists()
+
+
 def test_empty_mesh_is_rejected(tmp_path):
     path = tmp_path / "empty.obj"
     path.write_text("# only vertices\nv 0 0 0\nv 1 0 0\nv 0 1 0\n")
@@ -261,11 +274,16 @@ def test_load_mesh_reports_missing_and_corrupt_fields(tmp_path):
     with h5py.File(tmp_path / "nofaces.h5", "w") as f:
         f["vertices"] = np.zeros((3, 3))
         f.attrs["shape"] = "x"
+    with pytest.raises(StageInputError, match=r"nofaces\.h5: no content checksum"):  # not written by a stage
+        load_mesh(tmp_path / "nofaces.h5")
+    with h5py.File(tmp_path / "nofaces.h5", "a") as f:
+        stamp_checksum(f)
     with pytest.raises(StageInputError, match="'faces'"):
         load_mesh(tmp_path / "nofaces.h5")
     with h5py.File(tmp_path / "badidx.h5", "w") as f:
         f["vertices"] = np.zeros((3, 3))
         f["faces"] = np.array([[0, 1, 7]])
         f.attrs["shape"] = "x"
+        stamp_checksum(f)
     with pytest.raises(StageInputError, match="indexes outside"):
         load_mesh(tmp_path / "badidx.h5")

@@ -7,7 +7,7 @@ import trimesh
 from scipy.spatial.distance import cdist
 
 from physmorph.grid import Grid, splat_mass
-from physmorph.h5io import StageInputError
+from physmorph.h5io import StageInputError, stamp_checksum
 from physmorph.meshes import MeshError, ShapeSpec, prepare_mesh
 from physmorph.particles import load_particles, mean_nn_distance, sample_particles, sample_volume
 
@@ -131,5 +131,6 @@ def test_corrupt_inputs_give_stage_input_error(tmp_path):
         f["x"] = np.zeros((4, 3))
         f["volume"] = np.ones(4)
         f["is_surface"] = np.ones(4, bool)
+        stamp_checksum(f)
     with pytest.raises(StageInputError, match="'mass'"):
         load_particles(tmp_path / "nomass.h5")

@@ -116,10 +116,49 @@ def test_target_file_round_trip_and_missing_field(tmp_path):
     assert t.grid_mass.sum() == pytest.approx(75.0 * t.volume, rel=0.1)  # coarse grid 16: ~7 % over
     assert np.all((t.sdt < 0) == (t.alpha >= 0.5))
     assert summary["views"] == 4
+    from physmorph.h5io import stamp_checksum
+
     with h5py.File(tmp_path / "t.h5", "a") as f:
         del f["sdt"]
+    # Edited after it was written: refused by its checksum, naming the file.
+    with pytest.raises(StageInputError, match=r"t\.h5: content does not match its checksum"):
+        load_target(tmp_path / "t.h5")
+    with h5py.File(tmp_path / "t.h5", "a") as f:  # a consistent file without the field (a writer's bug)
+        stamp_checksum(f)
     with pytest.raises(StageInputError, match="missing field 'sdt'"):
         load_target(tmp_path / "t.h5")
+
+
+@pytest.mark.parametrize("damage", ["zeroed surface points", "zero-filled file"])
+def test_zeroed_target_is_refused_naming_the_file(tmp_path, damage):
+    """Zeroed bytes inside a target used to pass silently (Chamfer off by 0.034): the content
+    checksum refuses them, and the morph refuses the target before its first frame."""
+    import h5py
+
+    from physmorph.config import SamplingConfig, TargetConfig
+    from physmorph.h5io import StageInputError, stored_checksum
+    from physmorph.meshes import ShapeSpec, prepare_mesh
+    from physmorph.targets import load_target, rasterize_target
+
+    prepare_mesh(ShapeSpec("iso", "isosphere", size=10.0), None, tmp_path / "iso.h5")
+    tc = TargetConfig(cameras=2, width=24, height=16, supersample=1, surface_points=300)
+    out = tmp_path / "t.h5"
+    rasterize_target(tmp_path / "iso.h5", out, SamplingConfig(16, 1, 1, 75.0, 0.7), tc)
+    assert len(stored_checksum(out)) == 64
+    data = out.read_bytes()
+    if damage == "zero-filled file":
+        out.write_bytes(bytes(len(data)))
+        match = r"t\.h5: not a readable HDF5 file"
+    else:
+        with h5py.File(out) as f:
+            pts = f["surface_points"][()].tobytes()
+        i = data.index(pts[:4096])
+        out.write_bytes(data[:i] + bytes(4096) + data[i + 4096:])
+        match = r"t\.h5: content does not match its checksum.*zero-filled"
+    with pytest.raises(StageInputError, match=match):
+        load_target(out)
+    with pytest.raises(StageInputError, match=match):
+        stored_checksum(out)  # what the morph's resume key reads first
 
 
 def test_target_carries_its_ceiling(tmp_path):
@@ -172,11 +211,15 @@ def test_target_carries_its_ceiling(tmp_path):
         assert json.loads(f.attrs["config"])["render"] == {"opacity": 0.3}
 
     # A target without its ceiling (written before it was stored) names the file and the field.
+    from physmorph.h5io import stamp_checksum
+
     with h5py.File(out, "a") as f:
         del f.attrs["ceiling_alpha_mse"]
+        stamp_checksum(f)
     with pytest.raises(StageInputError, match=r"t\.h5.*'ceiling_alpha_mse'"):
         load_target(out)
     with h5py.File(out2, "a") as f:
         del f["ceiling_iou_views"]
+        stamp_checksum(f)
     with pytest.raises(StageInputError, match=r"t_op\.h5.*missing field 'ceiling_iou_views'"):
         load_target(out2)

@@ -1,5 +1,5 @@
 # Stage 5: one morph experiment (paper Algorithm 1) -> results/runs/{experiment}.h5.
-# A killed run resumes from results/runs/{experiment}.h5.partial.
+# A killed run resumes from its last committed frame in results/runs/{experiment}.h5.partial/.
 rule morph:
     input:
         particles=lambda wc: f"results/particles/{experiment(PM, wc.experiment)['source']}_{RES}.h5",

@@ -6,6 +6,8 @@ rule prepare_mesh:
         "results/meshes/{shape}.h5",
     params:
         spec=lambda wc: shape_entry(PM, wc.shape),
+        # the raw mesh is verified against its checksum again: it may have changed since it was fetched
+        raw_sha256=lambda wc: PM["raw_meshes"].get(shape_entry(PM, wc.shape).get("file") or "", {}).get("sha256"),
     benchmark:
         "results/benchmarks/prepare_mesh/{shape}.tsv"
     script:

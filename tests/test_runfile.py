@@ -1,0 +1,215 @@
+"""The run-file module on hand-made frames (no solver): damaged or foreign checkpoints are refused
+with their name, a changed key restarts, one writer at a time, disk full keeps the last frame,
+and reading runs imports neither taichi nor torch."""
+
+import errno
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import physmorph.runfile as runfile
+from physmorph.runfile import (SCALARS, RunFileError, RunKey, RunLockedError, RunWriter, describe_run, read_checkpoint,
+                               read_metrics)
+
+REPO = Path(__file__).resolve().parents[1]
+KEY = RunKey(json.dumps({"frames": 3}), (("particles", "aa" * 32), ("target", "bb" * 32)))
+N, V = 5, 2
+
+
+def _state(frame: int) -> dict:  # a recognisable loop state for each frame
+    rng = np.random.default_rng(frame)
+    return {"x": rng.normal(size=(N, 3)), "F": np.tile(np.eye(3), (N, 1, 1)) * (1 + frame),
+            "Fp": np.tile(np.eye(3), (N, 1, 1)), "adam_step": frame, "injection_scale": 0.5 * frame}
+
+
+def _write_frames(out: Path, frames: int, key: RunKey = KEY) -> None:
+    with RunWriter(out, key) as w:
+        assert w.resume(log=lambda m: None) is None
+        w.set_meta({"experiment": "hand", "views": V})
+        for k in range(frames):
+            st = _state(k)
+            w.commit(k, {"alpha_mse": 1.0 / (k + 1)}, np.full(V, 1.0 / (k + 1)), st, [f"w{k}"] if k == 1 else [],
+                     {"x": st["x"], "F": st["F"], "adam_step": st["adam_step"], "injection_scale": st["injection_scale"]})
+
+
+def test_frames_commit_read_and_finish(tmp_path):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 3)
+    d = runfile.partial_dir(out)
+    ck = read_checkpoint(d / "checkpoint.h5")
+    assert ck.frame == 2 and ck.data["adam_step"] == 2 and ck.key == KEY
+    np.testing.assert_array_equal(ck.data["x"], _state(2)["x"])
+    m = read_metrics(d)  # a partial run: its committed frames
+    np.testing.assert_allclose(m["alpha_mse"], [1.0, 0.5, 1 / 3])
+    assert np.isnan(m["loss_dt"]).all() and m["alpha_mse_views"].shape == (3, V)
+    assert "frames 0..2 committed" in describe_run(d)
+    log = []
+    with RunWriter(out, KEY) as w:
+        assert w.resume(log=log.append).frame == 2 and not log
+        w.finish("complete", {"injection_scale": 1.0}, {"frames": 3})
+    assert not d.exists()
+    m = read_metrics(out)
+    assert set(m) == set(SCALARS) | {"alpha_mse_views", "attrs"}
+    np.testing.assert_allclose(m["alpha_mse"], [1.0, 0.5, 1 / 3])
+    a = m["attrs"]
+    assert a["status"] == "complete" and a["frames_completed"] == 2 and a["experiment"] == "hand"
+    assert json.loads(a["warnings"]) == ["w1"] and a["run_key"] == KEY.digest
+    segments = json.loads(a["wall_time_segments_s"])
+    assert len(segments) == 2 and a["wall_time_s"] == pytest.approx(sum(segments))
+    with h5py.File(out) as f:
+        np.testing.assert_allclose(f["states/frame_0001/x"][()], _state(1)["x"].astype(np.float32))
+    # The finished file's metrics are checked: zeroed bytes in them are refused with the file's name.
+    with h5py.File(out, "a") as f:
+        f["metrics/alpha_mse"][1] = 0.0
+    with pytest.raises(RunFileError, match=r"run\.h5: its metrics do not match their checksum"):
+        read_metrics(out)
+
+
+def _damage(path: Path, how: str) -> None:
+    data = path.read_bytes()
+    if how == "truncated":
+        path.write_bytes(data[: len(data) // 2])
+    elif how == "zero-filled":
+        path.write_bytes(bytes(len(data)))
+    elif how == "zeroed data":  # the stored particle positions zeroed, the file otherwise intact
+        x = _state(1)["x"].tobytes()
+        i = data.index(x)
+        path.write_bytes(data[:i] + bytes(len(x)) + data[i + len(x):])
+    else:
+        raise ValueError(how)
+
+
+@pytest.mark.parametrize("how", ["truncated", "zero-filled", "zeroed data"])
+def test_damaged_checkpoint_is_refused_naming_file_reason_and_remedy(tmp_path, how):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 2)
+    ck = runfile.partial_dir(out) / "checkpoint.h5"
+    _damage(ck, how)
+    with RunWriter(out, KEY) as w:
+        with pytest.raises(RunFileError) as err:
+            w.resume(log=lambda m: None)
+    msg = str(err.value)
+    assert str(ck) in msg and "rm -r" in msg and "restart" in msg
+    assert ("not a readable HDF5 file" in msg or "does not match its checksum" in msg or "unreadable" in msg), msg
+    assert ck.exists()  # nothing is deleted behind the user's back
+
+
+def test_foreign_file_as_checkpoint_is_refused(tmp_path):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 1)
+    ck = runfile.partial_dir(out) / "checkpoint.h5"
+    with h5py.File(ck, "w") as f:
+        f["x"] = np.zeros(3)
+    with RunWriter(out, KEY) as w, pytest.raises(RunFileError, match=r"checkpoint\.h5: not a physmorph-checkpoint/1 file"):
+        w.resume(log=lambda m: None)
+
+
+def test_old_single_file_partial_is_refused(tmp_path):
+    out = tmp_path / "run.h5"
+    runfile.partial_dir(out).write_bytes(b"\x89HDF old format")
+    with pytest.raises(RunFileError, match=r"run\.h5\.partial: a partial run in the older single-file format.*delete it"):
+        RunWriter(out, KEY).acquire()
+
+
+def test_changed_key_restarts_with_the_reason(tmp_path):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 2)
+    changed = RunKey(KEY.settings, (("particles", "aa" * 32), ("target", "cc" * 32)))
+    log = []
+    with RunWriter(out, changed) as w:
+        assert w.resume(log=log.append) is None
+    assert len(log) == 1 and "input 'target' changed (content checksum bbbbbbbbbbbb -> cccccccccccc)" in log[0]
+    assert not list(runfile.partial_dir(out).glob("*.h5"))  # nothing of the old run is kept
+    settings = RunKey(json.dumps({"frames": 4}), KEY.inputs)
+    assert settings.changes_from(KEY) == ["settings changed (frames)"]
+
+
+def test_interrupted_commit_leftovers_are_removed_on_resume(tmp_path):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 2)
+    d = runfile.partial_dir(out)
+    (d / "checkpoint.h5.tmp").write_bytes(b"torn")
+    (d / "frame_0002.h5.tmp").write_bytes(b"torn")
+    (d / "frame_0002.h5").write_bytes((d / "frame_0001.h5").read_bytes())  # committed file, uncommitted frame
+    with RunWriter(out, KEY) as w:
+        assert w.resume(log=lambda m: None).frame == 1
+    assert sorted(p.name for p in d.iterdir()) == ["LOCK", "checkpoint.h5", "frame_0000.h5", "frame_0001.h5"]
+
+
+def test_disk_full_keeps_the_last_committed_frame(tmp_path, monkeypatch):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 2)
+    real = runfile._write_aside
+
+    def full(tmp, fill):
+        if tmp.name == "checkpoint.h5.tmp":
+            tmp.write_bytes(b"\0" * 100)  # what got written before the disk filled up
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(tmp, fill)
+
+    monkeypatch.setattr(runfile, "_write_aside", full)
+    with RunWriter(out, KEY) as w:
+        w.resume(log=lambda m: None)
+        st = _state(2)
+        with pytest.raises(RunFileError, match=r"checkpoint\.h5: disk full while writing the checkpoint of frame 2; "
+                                               r"the last committed frame is kept"):
+            w.commit(2, {"alpha_mse": 0.3}, np.zeros(V), None, [], {"x": st["x"]})
+    monkeypatch.setattr(runfile, "_write_aside", real)
+    assert not (runfile.partial_dir(out) / "checkpoint.h5.tmp").exists()
+    with RunWriter(out, KEY) as w:
+        ck = w.resume(log=lambda m: None)
+    assert ck.frame == 1
+    np.testing.assert_array_equal(ck.data["x"], _state(1)["x"])
+
+
+_HOLDER = """
+import sys, time
+from physmorph.runfile import RunKey, RunWriter
+w = RunWriter(sys.argv[1], RunKey('{"frames": 3}', (("particles", "aa" * 32), ("target", "bb" * 32))))
+w.acquire()
+print("locked", flush=True)
+time.sleep(60)
+"""
+
+
+def test_second_writer_is_refused_with_the_holders_pid_and_the_first_run_survives(tmp_path):
+    out = tmp_path / "run.h5"
+    _write_frames(out, 2)
+    d = runfile.partial_dir(out)
+    before = {p.name: p.read_bytes() for p in d.glob("*.h5")}
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(out)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(RunLockedError, match=rf"another process \(PID {holder.pid}\) is writing this run"):
+            with RunWriter(out, KEY) as w:
+                w.resume(log=lambda m: None)
+        with pytest.raises(RunLockedError):  # a writer with another key does not clear it either
+            RunWriter(out, RunKey("{}", ())).acquire()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert {p.name: p.read_bytes() for p in d.glob("*.h5")} == before
+    with RunWriter(out, KEY) as w:  # the lock went with its process: never stale
+        assert w.resume(log=lambda m: None).frame == 1
+
+
+def test_nothing_opens_a_run_file_in_a_mode_that_can_create_it():
+    """Run files are only created fresh ("w-", aside) or read ("r"); no "a" or "w" on existing files."""
+    src = (REPO / "physmorph" / "runfile.py").read_text() + (REPO / "physmorph" / "morph.py").read_text()
+    modes = [line for line in src.splitlines() if "h5py.File(" in line]
+    assert modes and all(('"r")' in line or '"w-")' in line) for line in modes), modes
+
+
+def test_reading_runs_and_building_tables_imports_neither_taichi_nor_torch():
+    code = ("import sys, physmorph.runfile, physmorph.tables, physmorph.tradeoff, physmorph.figures; "
+            "print(sorted(m for m in ('taichi', 'torch') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
