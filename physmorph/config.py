@@ -68,13 +68,13 @@ def _fail(key: str, msg: str):
     raise ConfigError(f"config key '{key or '<root>'}': {msg}")
 
 
-def _number(value, key: str) -> float:
+def _number(value, key: str, what: str = "a number") -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        _fail(key, f"expected a number, got {value!r}")
+        _fail(key, f"expected {what}, got {value!r}")
     try:
         out = float(value.strip()) if isinstance(value, str) else float(value)
     except ValueError:
-        _fail(key, f"expected a number, got {value!r}")
+        _fail(key, f"expected {what}, got {value!r}")
     if not math.isfinite(out):
         _fail(key, f"expected a finite number, got {value!r}")
     return out
@@ -112,7 +112,7 @@ def coerce(value: Any, tp: Any, key: str) -> Any:
             return value.strip().lower() == "true"
         _fail(key, f"expected true or false, got {value!r}")
     if tp is int:
-        num = _number(value, key)
+        num = _number(value, key, "an integer")
         if not num.is_integer():
             _fail(key, f"expected an integer, got {value!r}")
         return int(num)
@@ -265,10 +265,10 @@ class ShapeSettings:
 
     def __post_init__(self) -> None:
         if self.kind == "file" and (self.file is None) == (self.path is None):
-            raise ValueError("file: kind 'file' needs exactly one of 'file' (a raw_meshes entry) or 'path' "
-                             "(a mesh file on disk)")
+            raise ValueError("file or path: kind 'file' takes exactly one of 'file' (a raw_meshes entry) or "
+                             "'path' (a mesh file on disk)")
         if self.kind != "file" and (self.file or self.path):
-            raise ValueError(f"file: only kind 'file' takes 'file' or 'path' (kind is {self.kind!r})")
+            raise ValueError(f"file or path: only kind 'file' takes them (kind is {self.kind!r})")
         if self.kind == "letter" and (not self.glyph or len(self.glyph) != 1):
             raise ValueError(f"glyph: kind 'letter' needs a single character, got {self.glyph!r}")
         if not self.size > 0:

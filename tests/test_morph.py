@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import physmorph.morph as morph
-from physmorph.config import SamplingConfig, load_config
+from physmorph.config import load_settings
 from physmorph.morph import MorphDivergenceError, morph_config, read_metrics, run_morph
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
@@ -17,12 +17,12 @@ from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_
 def tiny(tmp_path_factory, mesh_dir):
     """iso particles and a bunny target at the test profile's resolution."""
     d = tmp_path_factory.mktemp("tiny")
-    cfg = load_config("config/config.yaml", "config/test.yaml")
-    s = SamplingConfig.from_config(cfg)
-    prepare_mesh_stage("iso", cfg["shapes"]["iso"], None, d / "iso.h5")
-    prepare_mesh_stage("bunny", cfg["shapes"]["bunny"], mesh_dir / "stanford-bunny.obj", d / "bunny.h5")
+    cfg = load_settings("config/config.yaml", "config/test.yaml")
+    s = cfg.sampling
+    prepare_mesh_stage("iso", cfg.shapes["iso"], None, d / "iso.h5")
+    prepare_mesh_stage("bunny", cfg.shapes["bunny"], mesh_dir / "stanford-bunny.obj", d / "bunny.h5")
     sample_particles_stage(d / "iso.h5", d / "p_iso.h5", d / "p_iso.png", s, 0)
-    rasterize_target_stage(d / "bunny.h5", d / "t_bunny.h5", d / "t_bunny.png", s, cfg["target"], 0)
+    rasterize_target_stage(d / "bunny.h5", d / "t_bunny.h5", d / "t_bunny.png", s, cfg.target, 0)
     return cfg, d
 
 
@@ -161,7 +161,7 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
     """A run whose source is its target starts at the ceiling: the share closed stays finite and
     near 1 (the metric must not divide by a vanishing gap)."""
     cfg, d = tiny
-    s = SamplingConfig.from_config(cfg)
+    s = cfg.sampling
     sample_particles_stage(d / "bunny.h5", d / "p_bunny.h5", d / "p_bunny.png", s, 0)
     mc = dataclasses.replace(morph_config(cfg, "iso_bunny_physics_only"), progress=False, frames=3)
     out = d / "bunny_bunny.h5"
