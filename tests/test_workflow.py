@@ -108,7 +108,7 @@ def test_slurm_profile_dry_run(tmp_path):
     assert "results/paper/runs/iso_bunny_full.h5" in planned_outputs(out)
     assert "_64x5x1.h5" in out.stdout
     morph = out.stdout.split("rule morph:", 1)[1].split("rule ", 1)[0]
-    assert re.search(r"threads: 8", morph) and re.search(r"mem_mb=\d{4,}", morph) and "gpu=1" in morph, morph
+    assert re.search(r"mem_mb=\d{4,}", morph) and re.search(r"runtime=\d{3,}", morph) and "gpu=1" in morph, morph
 
 
 # ------------------------------------------------------------------------- one real run
