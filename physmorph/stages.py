@@ -9,6 +9,7 @@ also echoes them to the terminal). Every stage can be run and tested from plain 
 from __future__ import annotations
 
 import json
+import os
 import sys
 from contextlib import contextmanager
 from dataclasses import replace
@@ -61,11 +62,13 @@ def stage_log(log: str | Path | None, echo: bool = False):
 
 
 def set_threads(threads: int | None) -> None:
-    """Torch's intra-op threads (Taichi's are set where it is initialised, from MPMConfig.threads)."""
+    """The job's threads for torch and for Taichi (physmorph.taichi_runtime reads
+    PHYSMORPH_THREADS when it initialises without an explicit count, e.g. for the renderer)."""
     if threads:
         import torch
 
         torch.set_num_threads(int(threads))
+        os.environ["PHYSMORPH_THREADS"] = str(int(threads))
 
 
 def fetch_mesh_stage(output: str, source, mesh_dir: str | None = None, log=None) -> Path:
