@@ -174,10 +174,16 @@ def test_changed_settings_rerun_exactly_the_runs_that_use_them(test_run):
     targets = ("tables", "tradeoff")
     assert planned_jobs(_run(wd, "-n", *targets, *base)) == {}
     # one experiment's own setting: that run, then the tables
-    out = _run(wd, "-n", *targets, *base, "experiments={iso_bunny_full: {source: iso, target: bunny, method: full, drag: 0.5}}")
+    out = _run(wd, "-n", *targets, *base,
+               "experiments={iso_bunny_physics_only: {source: iso, target: bunny, method: physics_only, drag: 0.5}}")
     assert planned_jobs(out) == {"morph": 1, "make_tables": 1, "tables": 1}, out.stdout[-3000:]
-    assert "results/test/runs/iso_bunny_full.h5" in planned_outputs(out)
+    assert "results/test/runs/iso_bunny_physics_only.h5" in planned_outputs(out)
     assert "Params have changed" in out.stdout + out.stderr
+    # ... and of the study's base experiment: that run and the study's points
+    out = _run(wd, "-n", *targets, *base, "experiments={iso_bunny_full: {source: iso, target: bunny, method: full, drag: 0.5}}")
+    assert planned_jobs(out) == {"morph": 1, "tradeoff_point": 3, "make_tables": 1, "make_tradeoff": 1, "tables": 1,
+                                 "tradeoff": 1}, out.stdout[-3000:]
+    assert "results/test/runs/iso_bunny_full.h5" in planned_outputs(out)
     # a global setting only the full method reads: the full run and the tradeoff points (iso_bunny_full)
     out = _run(wd, "-n", *targets, *base, "plasticity={eta: 0.05}")
     assert planned_jobs(out) == {"morph": 1, "tradeoff_point": 3, "make_tables": 1, "make_tradeoff": 1, "tables": 1,
