@@ -4,11 +4,13 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 CORES ?= 2
-# torch's CPU build (2.13.0+cpu) is not on PyPI: pip finds it through PIP_FIND_LINKS / a local
-# wheel directory (these machines keep it in /opt/wheels) or the PyTorch CPU wheel index.
-WHEELS := $(if $(wildcard /opt/wheels),--find-links /opt/wheels,)
+# torch's CPU build (2.13.0+cpu) is not on PyPI: pip takes it from a local wheel directory
+# (WHEEL_DIR, default /opt/wheels) when there is one, else from PyTorch's CPU wheel index.
+WHEEL_DIR ?= /opt/wheels
+TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
+WHEELS := $(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX))
 
-.PHONY: venv tables figures tradeoff test dag recover clean-venv
+.PHONY: venv tables figures tradeoff report test dag recover clean-venv
 
 $(STAMP): environment.lock pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -23,6 +25,12 @@ tables: $(STAMP)
 
 figures: $(STAMP)
 	$(VENV)/bin/snakemake --cores $(CORES) figures
+
+tradeoff: $(STAMP)
+	$(VENV)/bin/snakemake --cores $(CORES) tradeoff
+
+report: $(STAMP)
+	$(VENV)/bin/snakemake --cores $(CORES) tables figures tradeoff --report report.html
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q

@@ -1,6 +1,10 @@
 # physmorph workflow entry point. Stages live in workflow/rules/*.smk, one per stage; each rule
-# runs a thin script in workflow/scripts/ that calls one physmorph function.
+# runs a thin script in workflow/scripts/ that calls one physmorph function. Outputs go to
+# results/{profile}/ (the config's `profile`), so profiles never share a file.
 configfile: "config/config.yaml"
+
+
+report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
@@ -24,8 +28,8 @@ rule figures:
 
 rule tradeoff:
     input:
-        "results/tradeoff/tradeoff.md",
-        "results/tradeoff/pareto.png",
+        f"{R}/tradeoff/tradeoff.md",
+        f"{R}/tradeoff/pareto.png",
 
 
 include: "workflow/rules/fetch_mesh.smk"

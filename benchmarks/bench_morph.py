@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physmorph.config import SamplingConfig, load_config
+from physmorph.config import load_settings
 from physmorph.morph import morph_config, read_metrics, run_morph
 from physmorph.runfile import partial_dir
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
@@ -38,22 +38,22 @@ def main() -> None:
     ap.add_argument("--mesh-dir", default=os.environ.get("PHYSMORPH_MESH_DIR", str(REPO.parent / "shared" / "meshes")))
     args = ap.parse_args()
     files = [REPO / "config/config.yaml"] + ([REPO / f"config/{args.profile}.yaml"] if args.profile != "default" else [])
-    cfg = load_config(*files)
-    s = SamplingConfig.from_config(cfg)
-    exp = cfg["experiments"][args.experiment]
+    cfg = load_settings(*files)
+    s = cfg.sampling
+    exp = cfg.experiment(args.experiment)
     wd = Path(args.workdir) / f"{args.profile}_{s.tag}"
     wd.mkdir(parents=True, exist_ok=True)
     t_prep = time.time()
-    for role, shape in (("source", exp["source"]), ("target", exp["target"])):
-        spec = cfg["shapes"][shape]
-        raw = Path(args.mesh_dir) / spec["file"] if spec["kind"] == "file" else None
+    for role, shape in (("source", exp.source), ("target", exp.target)):
+        spec = cfg.shape(shape)
+        raw = (Path(spec.path) if spec.path else Path(args.mesh_dir) / spec.file) if spec.kind == "file" else None
         mesh = wd / f"{shape}.h5"
         if not mesh.exists():
             prepare_mesh_stage(shape, spec, raw, mesh)
         if role == "source" and not (wd / f"p_{shape}.h5").exists():
             sample_particles_stage(mesh, wd / f"p_{shape}.h5", wd / f"p_{shape}.png", s, 0)
         if role == "target" and not (wd / f"t_{shape}.h5").exists():
-            rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg["target"], 0)
+            rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg.target, 0)
     prep = time.time() - t_prep
     mc = morph_config(cfg, args.experiment)
     mc = dataclasses.replace(mc, frames=args.frames, save_every=args.frames,
@@ -61,10 +61,10 @@ def main() -> None:
     out = wd / "run.h5"
     out.unlink(missing_ok=True)
     shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
-    run_morph(wd / f"p_{exp['source']}.h5", wd / f"t_{exp['target']}.h5", out, mc, name=args.experiment)
+    run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=args.experiment)
     m = read_metrics(out)
     sel = slice(2, None) if args.frames > 1 else slice(1, None)
-    print(f"\nprofile {args.profile} ({s.tag}, {cfg['target']['width']}x{cfg['target']['height']} x {cfg['target']['cameras']} views), "
+    print(f"\nprofile {args.profile} ({s.tag}, {cfg.target.width}x{cfg.target.height} x {cfg.target.cameras} views), "
           f"{args.experiment}, {int(m['attrs']['n_particles'])} particles, data preparation {prep:.1f} s")
     print("| stage | seconds per frame |\n|---|---|")
     for key in ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame"):

@@ -5,8 +5,8 @@ append its reachable-gap numbers to docs/convergence/runs.csv (the study's raw r
     python benchmarks/study_convergence.py iso_bunny_full --tag lr003 --set mpm.learning_rate=0.003
     python benchmarks/study_convergence.py iso_bunny_full iso_cow_full --frames 20 --set morph.gamma=0.3
 
-Needs the prepared particles and targets of the profile under results/ (e.g.
-`snakemake --cores 2 results/particles/iso_32x2x1.h5 results/targets/bunny_32x2x1.h5`).
+Needs the prepared particles and targets of the profile under results/{profile}/ (e.g.
+`snakemake --cores 2 results/default/particles/iso_32x2x1.h5 results/default/targets/bunny_32x2x1.h5`).
 Each row: alpha MSE at frame 0 / best / final, the ceiling (the target's own particles at rest),
 the share of the reachable gap closed at the best and last frame, silhouette IoU, Chamfer, wall.
 """
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from physmorph.config import SamplingConfig, load_config
+from physmorph.config import load_settings
 from physmorph.morph import morph_config, read_metrics, run_morph
 from physmorph.quality import gap_closed
 from physmorph.runfile import partial_dir
@@ -62,14 +62,14 @@ def main() -> None:
     if args.frames:
         overrides.setdefault("morph", {})["frames"] = args.frames
     files = [REPO / "config" / "config.yaml"] + ([Path(args.profile)] if args.profile else [])
-    cfg = load_config(*files, overrides=overrides)
-    res = SamplingConfig.from_config(cfg).tag
+    cfg = load_settings(*files, overrides=overrides)
+    res = cfg.sampling.tag
     for name in args.experiments:
-        exp = cfg["experiments"][name]
+        exp = cfg.experiment(name)
         mc = morph_config(cfg, name)
         mc = type(mc)(**{**{f: getattr(mc, f) for f in mc.__dataclass_fields__}, "progress": False})
-        parts = REPO / "results" / "particles" / f"{exp['source']}_{res}.h5"
-        tpath = REPO / "results" / "targets" / f"{exp['target']}_{res}.h5"
+        parts = REPO / "results" / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
+        tpath = REPO / "results" / cfg.profile / "targets" / f"{exp.target}_{res}.h5"
         out = Path(args.workdir) / args.tag / f"{name}.h5"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.unlink(missing_ok=True)

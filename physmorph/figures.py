@@ -46,8 +46,8 @@ def _saved_frames(f: h5py.File) -> list[str]:
     return sorted(f["states"]) if "states" in f else []
 
 
-def figure_cameras(target: dict, scale: int = 2):
-    t = TargetConfig(**target)
+def figure_cameras(target: TargetConfig | dict, scale: int = 2):
+    t = target if isinstance(target, TargetConfig) else TargetConfig(**target)
     return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
 
 

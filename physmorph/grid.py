@@ -19,6 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 BOUNDARY_CELLS = 3
+# The simulation domain [DOMAIN_LO, DOMAIN_HI]^3: the one place its default is written (the config's
+# `domain:` key overrides it; physmorph.config.Settings).
+DOMAIN_LO, DOMAIN_HI = -16.0, 16.0
 
 
 @dataclass(frozen=True)
@@ -26,8 +29,8 @@ class Grid:
     """A cubic Eulerian grid over [lo, hi]^3 with ``res`` nodes per axis."""
 
     res: int
-    lo: float = -16.0
-    hi: float = 16.0
+    lo: float = DOMAIN_LO
+    hi: float = DOMAIN_HI
 
     def __post_init__(self) -> None:
         if self.res < 2 * BOUNDARY_CELLS + 2:

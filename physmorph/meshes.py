@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from physmorph.grid import DOMAIN_HI, DOMAIN_LO
 from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
 
 SHAPE_KINDS = ("file", "isosphere", "letter")
@@ -439,7 +440,7 @@ def prepare_mesh(
     spec: ShapeSpec,
     raw_path: str | os.PathLike | None,
     out_h5: str | os.PathLike,
-    domain: tuple[float, float] = (-16.0, 16.0),
+    domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI),
     volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
     raw_sha256: str | None = None,
 ) -> dict:
@@ -450,6 +451,7 @@ def prepare_mesh(
     /faces [F, 3] i64; attrs shape, kind, source, volume, raw_volume (in normalised units),
     scale, translation, repair (JSON list), watertight, domain_lo, domain_hi. Returns a summary dict.
     """
+    prepared_sha256 = ""
     if spec.kind == "file":
         if raw_path is None:
             raise MeshError(f"shape '{spec.name}': kind 'file' needs the raw mesh path")
@@ -462,6 +464,7 @@ def prepare_mesh(
         label = f"{raw_path} (shape '{spec.name}')"
         raw = load_raw_mesh(raw_path)
         source = Path(raw_path).name
+        prepared_sha256 = sha256_of(raw_path)  # provenance: which bytes were prepared (a mesh given by path has no pinned sum)
     elif spec.kind == "isosphere":
         label = f"shape '{spec.name}' (isosphere)"
         raw = isosphere(radius=spec.size / 2.0)
@@ -483,6 +486,7 @@ def prepare_mesh(
         "shape": spec.name,
         "kind": spec.kind,
         "source": source,
+        "raw_sha256": prepared_sha256,
         "volume": float(mesh.volume),
         "raw_volume": float(raw_volume * scale ** 3),
         "scale": scale,
@@ -497,7 +501,7 @@ def prepare_mesh(
     with atomic_h5(out_h5, config=config) as f:
         f.create_dataset("vertices", data=np.asarray(mesh.vertices, np.float64))
         f.create_dataset("faces", data=np.asarray(mesh.faces, np.int64))
-        for key in ("shape", "kind", "source", "volume", "raw_volume", "scale", "watertight", "n_components"):
+        for key in ("shape", "kind", "source", "raw_sha256", "volume", "raw_volume", "scale", "watertight", "n_components"):
             f.attrs[key] = summary[key]
         f.attrs["translation"] = np.asarray(translation, np.float64)
         f.attrs["repair"] = json.dumps(steps)
@@ -515,7 +519,7 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
         vertices = read_field(f, "vertices", (3,)).astype(np.float64)
         faces = read_field(f, "faces", (3,)).astype(np.int64)
         shape = str(read_attr(f, "shape"))
-        domain = (float(f.attrs.get("domain_lo", -16.0)), float(f.attrs.get("domain_hi", 16.0)))
+        domain = (float(f.attrs.get("domain_lo", DOMAIN_LO)), float(f.attrs.get("domain_hi", DOMAIN_HI)))
     if vertices.ndim != 2 or faces.ndim != 2 or len(faces) == 0:
         raise StageInputError(f"{path}: field 'faces' is empty or malformed")
     if not np.all(np.isfinite(vertices)):

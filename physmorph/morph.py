@@ -28,8 +28,9 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -53,14 +54,14 @@ class MorphDivergenceError(RuntimeError):
 
 @dataclass(frozen=True)
 class MorphConfig:
-    method: str = "full"
-    frames: int = 30
+    method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
+    frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
     gamma_x: float = 0.1  # render-x gain (position_inject only), relative
     # "first_frame": c = gamma |grad mass| / |grad inject| measured once (see calibrate_injection);
     # "every_frame": measured again each frame, so the injection stays gamma of the mass
     # gradient as the mass loss converges (one more backward pass per frame)
-    injection_calibration: str = "first_frame"
+    injection_calibration: Literal["first_frame", "every_frame"] = "every_frame"
     cameras: int | None = None  # render-loss views, evenly spaced on the ring (None: all)
     save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
     metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
@@ -340,65 +341,7 @@ def asdict_state(st: ParticleState) -> dict:
     return {k: np.asarray(getattr(st, k)) for k in ("x", "v", "F", "C", "Fp", "mass", "volume")}
 
 
-def _build(cls, section: dict | None, where: str):
-    section = dict(section or {})
-    names = {f.name for f in fields(cls)}
-    unknown = sorted(set(section) - names)
-    if unknown:
-        raise ValueError(f"config key '{where}.{unknown[0]}': unknown key (allowed: {', '.join(sorted(names))})")
-    types = {f.name: str(f.type) for f in fields(cls)}
-    for k, v in section.items():
-        if isinstance(v, list):
-            section[k] = tuple(v)
-        # YAML 1.1 reads "1.4e5" (no dot, no sign) as a string: name the key instead of failing later.
-        if types[k].startswith(("float", "int")) and (isinstance(v, (str, bool))):
-            raise ValueError(f"config key '{where}.{k}': expected a number, got {v!r}")
-    try:
-        return cls(**section)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"config section '{where}': {exc}") from exc
-
-
-def morph_config(cfg: dict, experiment_name: str) -> MorphConfig:
-    """The MorphConfig of one experiment: global sections, then the experiment's own settings."""
-    from physmorph.config import experiment
-
-    exp = experiment(cfg, experiment_name)
-    device = cfg.get("device", "auto")
-    mpm = dict(cfg.get("mpm", {}))
-    mpm.setdefault("grid_res", cfg["sampling"]["grid_res"])
-    mpm.setdefault("density", cfg["sampling"]["density"])
-    mpm.setdefault("device", device)
-    mpm.setdefault("threads", cfg.get("threads"))
-    if "drag" in exp:
-        mpm["drag"] = exp["drag"]
-    if "grad_iters" in exp:
-        mpm["grad_iters"] = exp["grad_iters"]
-    render = dict(cfg.get("render", {}))
-    render.setdefault("device", device)
-    plast = dict(cfg.get("plasticity", {}))
-    if "plasticity_start" in exp:
-        plast["start_frame"] = exp["plasticity_start"]
-    morph = dict(cfg.get("morph", {}))
-    for key in ("frames", "cameras", "gamma", "gamma_x"):
-        if key in exp:
-            morph[key] = exp[key]
-    morph["method"] = exp["method"]
-    return MorphConfig(
-        **{k: v for k, v in _build_plain(morph).items()},
-        mpm=_build(MPMConfig, mpm, "mpm"),
-        render=_build(RenderConfig, render, "render"),
-        plasticity=_build(PlasticityConfig, plast, "plasticity"),
-        surface=_build(SurfaceMaskConfig, cfg.get("surface", {}), "surface"),
-    )
-
-
-def _build_plain(morph: dict) -> dict:
-    types = {f.name: str(f.type) for f in fields(MorphConfig) if f.name not in ("mpm", "render", "plasticity", "surface")}
-    unknown = sorted(set(morph) - set(types))
-    if unknown:
-        raise ValueError(f"config key 'morph.{unknown[0]}': unknown key (allowed: {', '.join(sorted(types))})")
-    for k, v in morph.items():
-        if types[k].startswith(("float", "int")) and isinstance(v, (str, bool)):
-            raise ValueError(f"config key 'morph.{k}': expected a number, got {v!r}")
-    return morph
+def morph_config(settings, experiment_name: str) -> MorphConfig:
+    """The MorphConfig of one experiment: the global sections, then the experiment's own keys
+    (``settings``: physmorph.config.Settings, which owns the resolution and its checks)."""
+    return settings.experiment_config(experiment_name)

@@ -1,97 +1,171 @@
-"""Stage entry points with plain arguments (config dicts, paths): what the workflow scripts call.
+"""Stage entry points: what the workflow scripts call, one function per rule.
 
-Each function turns the validated config subset into typed dataclasses and calls the library
-stage, so every stage can be run and tested from plain Python, without Snakemake.
+Settings arrive as the typed dataclasses of :mod:`physmorph.config` or as their canonical JSON
+(the rules' ``params``, which is what makes Snakemake rerun a job when they change); never as
+the raw config dict. ``log``: a file that gets the stage's progress and warnings (the morph
+also echoes them to the terminal). Every stage can be run and tested from plain Python.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import sys
+from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
-from physmorph.config import SamplingConfig, TargetConfig
+from physmorph.config import (RawMesh, SamplingConfig, ShapeSettings, TargetConfig, build, canonical_json,
+                              morph_params)
+from physmorph.grid import DOMAIN_HI, DOMAIN_LO
 
 
-def fetch_mesh_stage(output: str, source: dict, mesh_dir: str | None = None) -> Path:
+def typed(cls, value, where: str):
+    """``value`` (an instance, its JSON string or a mapping) as ``cls``."""
+    if isinstance(value, cls):
+        return value
+    if isinstance(value, str):
+        value = json.loads(value)
+    return build(cls, value, where)
+
+
+class _Tee:
+    def __init__(self, *streams):
+        self.streams = streams
+
+    def write(self, text):
+        for s in self.streams:
+            s.write(text)
+            s.flush()
+        return len(text)
+
+    def flush(self):
+        for s in self.streams:
+            s.flush()
+
+
+@contextmanager
+def stage_log(log: str | Path | None, echo: bool = False):
+    """Send stdout/stderr (progress, warnings) to ``log`` (and the terminal when ``echo``)."""
+    if log is None:
+        yield
+        return
+    Path(log).parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as f:
+        old = sys.stdout, sys.stderr
+        sys.stdout = _Tee(f, old[0]) if echo else _Tee(f)
+        sys.stderr = _Tee(f, old[1]) if echo else _Tee(f)
+        try:
+            yield
+        finally:
+            sys.stdout, sys.stderr = old
+
+
+def set_threads(threads: int | None) -> None:
+    """The job's threads for torch and for Taichi (physmorph.taichi_runtime reads
+    PHYSMORPH_THREADS when it initialises without an explicit count, e.g. for the renderer)."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+        os.environ["PHYSMORPH_THREADS"] = str(int(threads))
+
+
+def fetch_mesh_stage(output: str, source, mesh_dir: str | None = None, log=None) -> Path:
     from physmorph.meshes import fetch_mesh
 
+    src = typed(RawMesh, source, "raw_meshes")
     out = Path(output)
-    return fetch_mesh(out.name, source["url"], source["sha256"], out.parent, mesh_dir=mesh_dir)
+    with stage_log(log):
+        return fetch_mesh(out.name, src.url, src.sha256, out.parent, mesh_dir=mesh_dir)
 
 
-def shape_spec(name: str, entry: dict):
+def shape_spec(name: str, entry):
+    """The library's ShapeSpec of a ``shapes:`` entry (ShapeSettings, its JSON or a mapping)."""
     from physmorph.meshes import ShapeSpec
 
-    return ShapeSpec(name=name, **entry)
+    e = typed(ShapeSettings, entry, f"shapes.{name}")
+    file = e.file if e.file is not None else (Path(e.path).name if e.path else None)
+    return ShapeSpec(name=name, kind=e.kind, file=file, glyph=e.glyph, size=e.size, depth=e.depth)
 
 
-def prepare_mesh_stage(shape: str, entry: dict, raw: str | None, output: str, raw_sha256: str | None = None) -> dict:
+def prepare_mesh_stage(shape: str, entry, raw: str | None, output: str,
+                       domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI), log=None,
+                       raw_sha256: str | None = None) -> dict:
     """``raw_sha256``: the raw mesh's checksum from the config (verified again before preparation)."""
     from physmorph.meshes import prepare_mesh
 
-    return prepare_mesh(shape_spec(shape, entry), Path(raw) if raw else None, Path(output), raw_sha256=raw_sha256)
+    with stage_log(log):
+        return prepare_mesh(shape_spec(shape, entry), Path(raw) if raw else None, Path(output),
+                            domain=tuple(domain), raw_sha256=raw_sha256)
 
 
-def sample_particles_stage(mesh_h5: str, output: str, preview: str, sampling: SamplingConfig, seed: int) -> dict:
+def sample_particles_stage(mesh_h5: str, output: str, preview: str, sampling, seed: int, log=None) -> dict:
     from physmorph.particles import sample_particles
 
-    return sample_particles(Path(mesh_h5), Path(output), sampling.grid_res, sampling.ppc_surface,
-                            sampling.ppc_interior, sampling.density, sampling.sigma_scale, seed,
-                            preview_png=Path(preview))
+    s = typed(SamplingConfig, sampling, "sampling")
+    with stage_log(log):
+        return sample_particles(Path(mesh_h5), Path(output), s.grid_res, s.ppc_surface, s.ppc_interior, s.density,
+                                s.sigma_scale, seed, preview_png=Path(preview))
 
 
-def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling: SamplingConfig,
-                           target: dict, seed: int, render: dict | None = None) -> dict:
-    """``render``: the config's ``render:`` section (physmorph.render.RenderConfig fields), used for
-    the ceiling (the target's own particles rendered at rest); always rendered on the CPU."""
+def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling, target, seed: int,
+                           render=None, log=None, threads: int | None = None) -> dict:
+    """``render``: the renderer of the ceiling (the target's own particles rendered at rest),
+    always on the CPU."""
     from physmorph.render import RenderConfig
     from physmorph.targets import rasterize_target
 
-    render = dict(render or {})
-    rcfg = RenderConfig(**{**render, "device": "cpu"})
-    return rasterize_target(mesh_h5, output, sampling, TargetConfig(**target), seed, preview_png=preview,
-                            config={"sampling": sampling.__dict__, "target": target, "render": render},
-                            render=rcfg)
+    s = typed(SamplingConfig, sampling, "sampling")
+    t = typed(TargetConfig, target, "target")
+    rcfg = replace(typed(RenderConfig, render or {}, "render"), device="cpu")
+    set_threads(threads)
+    with stage_log(log):
+        return rasterize_target(mesh_h5, output, s, t, seed, preview_png=preview,
+                                config={"sampling": json.loads(canonical_json(s)), "target": json.loads(canonical_json(t)),
+                                        "render": json.loads(canonical_json(rcfg))},
+                                render=rcfg)
 
 
-def morph_stage(config: dict, name: str, particles_h5: str, target_h5: str, output: str) -> dict:
-    from physmorph.config import experiment, validate_config
-    from physmorph.morph import morph_config, run_morph
+def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: str, threads: int | None = None,
+                log=None, experiment: dict | None = None) -> dict:
+    """One morph run. ``settings``: its MorphConfig or that config's params JSON
+    (physmorph.config.morph_params); ``experiment``: what the run file records about it."""
+    from physmorph.morph import MorphConfig, run_morph
 
-    cfg = validate_config(config)
-    mcfg = morph_config(cfg, name)
-    record = {"experiment": experiment(cfg, name), "morph": mcfg.to_dict()}
-    return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record)
+    mcfg = typed(MorphConfig, settings, "morph")
+    experiment = json.loads(experiment) if isinstance(experiment, str) else experiment
+    record = {"experiment": experiment or {}, "morph": json.loads(morph_params(mcfg))}
+    if threads:
+        mcfg = replace(mcfg, mpm=replace(mcfg.mpm, threads=int(threads)))
+    set_threads(threads)
+    with stage_log(log, echo=True):
+        return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record)
 
 
-def tables_stage(names: list[str], runs: list[str], out_dir: str) -> dict:
+def tables_stage(names: list[str], runs: list[str], out_dir: str, log=None) -> dict:
     from physmorph.tables import build_tables
 
-    return build_tables(dict(zip(names, runs)), out_dir)
+    with stage_log(log):
+        return build_tables(dict(zip(names, runs)), out_dir)
 
 
-def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target_cfg: dict,
-                  out_dir: str) -> list:
+def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target,
+                  out_dir: str, log=None) -> list:
     from physmorph.figures import build_figures
 
-    return build_figures({n: Path(p) for n, p in zip(names, runs)}, {s: Path(p) for s, p in zip(shapes, targets)},
-                         target_cfg, Path(out_dir))
+    t = typed(TargetConfig, target, "target")
+    with stage_log(log):
+        return build_figures({n: Path(p) for n, p in zip(names, runs)}, {s: Path(p) for s, p in zip(shapes, targets)},
+                             t, Path(out_dir))
 
 
-def tradeoff_point_stage(config: dict, point: str, particles_h5: str, target_h5: str, output: str) -> dict:
-    from physmorph.config import validate_config
-    from physmorph.morph import morph_config, run_morph
-    from physmorph.tradeoff import point_config, tradeoff_points
+def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, log=None):
+    """``points``: {name: TradeoffPoint fields} (or its JSON), as the workflow's params hold them."""
+    from physmorph.tradeoff import TradeoffPoint, build_tradeoff
 
-    cfg = validate_config(config)
-    pcfg = point_config(cfg, tradeoff_points(cfg)[point])
-    mcfg = morph_config(pcfg, cfg["tradeoff"]["experiment"])
-    record = {"tradeoff_point": point, "morph": mcfg.to_dict()}
-    return run_morph(particles_h5, target_h5, output, mcfg, name=f"tradeoff {point}", config_record=record)
-
-
-def tradeoff_stage(config: dict, names: list[str], runs: list[str], out_dir: str):
-    from physmorph.config import validate_config
-    from physmorph.tradeoff import build_tradeoff, tradeoff_points
-
-    points = tradeoff_points(validate_config(config))
-    return build_tradeoff(points, {n: Path(p) for n, p in zip(names, runs)}, Path(out_dir))
+    if isinstance(points, str):
+        points = json.loads(points)
+    pts = {n: p if isinstance(p, TradeoffPoint) else TradeoffPoint(**p) for n, p in points.items()}
+    with stage_log(log):
+        return build_tradeoff(pts, {n: Path(p) for n, p in zip(names, runs)}, Path(out_dir))

@@ -41,30 +41,37 @@ class TradeoffPoint:
         return f"{self.width}x{self.height}"
 
 
-def tradeoff_points(cfg: dict) -> dict[str, TradeoffPoint]:
-    """Every point of the study (base first), from the config's ``tradeoff`` section."""
-    t = cfg["tradeoff"]
-    exp = cfg["experiments"][t["experiment"]]
-    s, tg = cfg["sampling"], cfg["target"]
-    base = dict(grid_res=s["grid_res"], ppc_surface=s["ppc_surface"], ppc_interior=s["ppc_interior"],
-                width=tg["width"], height=tg["height"], cameras=exp.get("cameras", tg["cameras"]),
-                grad_iters=exp.get("grad_iters", cfg.get("mpm", {}).get("grad_iters", 1)))
+def tradeoff_points(settings) -> dict[str, TradeoffPoint]:
+    """Every point of the study (base first), from the settings' ``tradeoff`` section
+    (``settings``: physmorph.config.Settings)."""
+    t = settings.tradeoff
+    exp = settings.experiment(t.experiment)
+    s, tg = settings.sampling, settings.target
+    base = dict(grid_res=s.grid_res, ppc_surface=s.ppc_surface, ppc_interior=s.ppc_interior,
+                width=tg.width, height=tg.height, cameras=exp.cameras or tg.cameras,
+                grad_iters=exp.grad_iters or settings.mpm.grad_iters)
     points = {"base": TradeoffPoint("base", "", "", **base)}
-    for knob, values in t["knobs"].items():
+    for knob, values in t.knobs.items():
         if knob not in KNOBS:
             raise ValueError(f"config key 'tradeoff.knobs.{knob}': unknown knob (known: {', '.join(KNOBS)})")
-        for v in values:
+        for i, v in enumerate(values):
             p = dict(base)
-            if knob == "image":
-                p["width"], p["height"] = int(v[0]), int(v[1])
-                label = f"{int(v[0])}x{int(v[1])}"
-            else:
-                p[knob] = int(v)
-                label = str(int(v))
+            try:
+                if knob == "image":
+                    if not isinstance(v, (list, tuple)) or len(v) != 2:
+                        raise ValueError
+                    p["width"], p["height"] = int(v[0]), int(v[1])
+                    label = f"{int(v[0])}x{int(v[1])}"
+                else:
+                    p[knob] = int(v)
+                    label = str(int(v))
+            except (TypeError, ValueError):
+                want = "[width, height]" if knob == "image" else "an integer"
+                raise ValueError(f"config key 'tradeoff.knobs.{knob}[{i}]': expected {want}, got {v!r}") from None
             if p == base:
                 continue
-            if knob == "cameras" and p["cameras"] > tg["cameras"]:
-                raise ValueError(f"config key 'tradeoff.knobs.cameras': {p['cameras']} exceeds target.cameras {tg['cameras']}")
+            if knob == "cameras" and p["cameras"] > tg.cameras:
+                raise ValueError(f"config key 'tradeoff.knobs.cameras': {p['cameras']} exceeds target.cameras {tg.cameras}")
             name = f"{knob}-{label}"
             points[name] = TradeoffPoint(name, knob, label, **p)
     return points
@@ -147,26 +154,3 @@ def build_tradeoff(points: dict[str, TradeoffPoint], runs: dict[str, Path], out_
     fig.savefig(out / "pareto.png", dpi=120)
     plt.close(fig)
     return df
-
-
-def point_config(cfg: dict, point: TradeoffPoint) -> dict:
-    """The config of one point: the base experiment with the point's resolution settings."""
-    from physmorph.config import deep_merge
-
-    name = cfg["tradeoff"]["experiment"]
-    exp = dict(cfg["experiments"][name], cameras=point.cameras, grad_iters=point.grad_iters,
-               frames=cfg["tradeoff"]["frames"])
-    return deep_merge(cfg, {"sampling": {"grid_res": point.grid_res, "ppc_surface": point.ppc_surface,
-                                         "ppc_interior": point.ppc_interior},
-                            "target": {"width": point.width, "height": point.height},
-                            "mpm": {"grid_res": point.grid_res},
-                            "experiments": {name: exp}})
-
-
-def point_inputs(cfg: dict, point: TradeoffPoint) -> tuple[str, str]:
-    """(particles, target) files of a point; targets at another image size carry the size."""
-    exp = cfg["experiments"][cfg["tradeoff"]["experiment"]]
-    default_image = (point.width, point.height) == (cfg["target"]["width"], cfg["target"]["height"])
-    suffix = "" if default_image else f"_{point.image_tag}"
-    return (f"results/particles/{exp['source']}_{point.res_tag}.h5",
-            f"results/targets/{exp['target']}_{point.res_tag}{suffix}.h5")

@@ -1,7 +1,8 @@
 """Shared pytest fixtures.
 
-mesh_dir: the local mirror of the raw benchmark meshes: env PHYSMORPH_MESH_DIR, else
-<repo>/../shared/meshes (where CI has it). Tests that need it are skipped with a reason if absent.
+mesh_dir: the raw benchmark meshes: env PHYSMORPH_MESH_DIR, else the mirror <repo>/../shared/meshes
+(where CI has it), else <repo>/resources/meshes/ (where `make tables` downloads them). Tests that
+need them are skipped, saying where they looked, when none of these holds the four meshes.
 """
 
 from __future__ import annotations
@@ -22,17 +23,25 @@ RAW_MESH_SHA256 = {
 }
 
 
-def find_mesh_dir() -> Path | None:
+def mesh_dir_candidates() -> list[Path]:
     env = os.environ.get("PHYSMORPH_MESH_DIR")
-    candidate = Path(env) if env else REPO_ROOT.parent / "shared" / "meshes"
-    return candidate if candidate.is_dir() else None
+    return ([Path(env)] if env else []) + [REPO_ROOT.parent / "shared" / "meshes", REPO_ROOT / "resources" / "meshes"]
+
+
+def find_mesh_dir() -> Path | None:
+    for candidate in mesh_dir_candidates():
+        if all((candidate / name).is_file() for name in RAW_MESH_SHA256):
+            return candidate
+    return None
 
 
 @pytest.fixture(scope="session")
 def mesh_dir() -> Path:
     found = find_mesh_dir()
     if found is None:
-        pytest.skip("raw mesh mirror not found (set PHYSMORPH_MESH_DIR or put it at ../shared/meshes)")
+        looked = ", ".join(str(p) for p in mesh_dir_candidates())
+        pytest.skip(f"raw benchmark meshes not found (looked in {looked}; set PHYSMORPH_MESH_DIR or run "
+                    "`make tables` once to download them into resources/meshes/)")
     return found
 
 

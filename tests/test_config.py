@@ -1,69 +1,196 @@
-"""Config loading and validation: every profile is valid; bad values name their key."""
+"""Typed settings: every profile is valid, defaults are defined once and agree with the YAML,
+bad values name their key (and the allowed values), numbers come as int, float or string,
+every experiment is resolved and a memory estimate is checked before any job runs."""
 
+import dataclasses
+import json
+
+import jsonschema
 import pytest
+import yaml
 
-from physmorph.config import ConfigError, SamplingConfig, experiment, load_config
+from physmorph.config import (SCHEMA_PATH, ConfigError, SamplingConfig, Settings, build, load_mapping,
+                              load_settings, morph_params, schema_text)
+from physmorph.grid import DOMAIN_HI, DOMAIN_LO, Grid
+from physmorph.morph import MorphConfig
+from physmorph.mpm import MPMConfig
 
 BASE = "config/config.yaml"
 
 
 @pytest.mark.parametrize("profile", [[], ["config/test.yaml"], ["config/paper.yaml"]])
 def test_profiles_validate(profile):
-    cfg = load_config(BASE, *profile)
-    assert cfg["sampling"]["grid_res"] >= 8
+    s = load_settings(BASE, *profile)
+    assert s.sampling.grid_res >= 8
+    assert s.mpm.grid_res == s.sampling.grid_res and s.mpm.density == s.sampling.density
+    for name in s.experiments:
+        assert isinstance(s.experiment_config(name), MorphConfig)
 
 
 def test_profile_overlay_merges_nested_keys():
-    cfg = load_config(BASE, "config/test.yaml")
-    assert cfg["sampling"]["ppc_surface"] == 1
-    assert cfg["sampling"]["density"] == 75.0  # inherited from the default profile
+    s = load_settings(BASE, "config/test.yaml")
+    assert s.profile == "test" and s.sampling.ppc_surface == 1
+    assert s.sampling.density == 75.0  # inherited from the default profile
+
+
+def _leaves(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
+def test_yaml_restates_the_settings_defaults():
+    """config/config.yaml's settings (everything but the data: meshes, shapes, experiments, the
+    study and the table lists) equal the dataclasses' defaults: defaults are defined once."""
+    raw = yaml.safe_load(open(BASE))
+    defaults = Settings.from_mapping({})
+    data = {"raw_meshes", "shapes", "experiments", "tradeoff", "tables"}
+    checked = 0
+    for key, value in _leaves({k: v for k, v in raw.items() if k not in data}):
+        obj = defaults
+        for part in key.split("."):
+            obj = getattr(obj, part)
+        want = tuple(value) if isinstance(value, list) else value
+        assert obj == want and type(obj) is type(want) or isinstance(obj, float) and obj == float(want), \
+            f"{key}: YAML {value!r}, default {obj!r}"
+        checked += 1
+    assert checked > 30
+    # the values the issue found disagreeing
+    assert defaults.target.distance == 36.0 and defaults.mpm.learning_rate == 0.001
+    assert defaults.plasticity.jacobian == "paper" and defaults.mpm.mass_loss == "log"
+    assert defaults.morph.injection_calibration == "every_frame"
+
+
+def test_the_domain_is_defined_once_and_reaches_the_solver():
+    assert (DOMAIN_LO, DOMAIN_HI) == (-16.0, 16.0) == (Grid(16).lo, Grid(16).hi)
+    assert (MPMConfig().domain_lo, MPMConfig().domain_hi) == (DOMAIN_LO, DOMAIN_HI)
+    s = load_settings(BASE, overrides={"domain": [-20, 20]})
+    cfg = s.experiment_config("iso_bunny_full")
+    assert (cfg.mpm.domain_lo, cfg.mpm.domain_hi) == (-20.0, 20.0) and cfg.mpm.dx == 40 / 32
+    with pytest.raises(ConfigError, match="'domain'"):
+        load_settings(BASE, overrides={"domain": [5, -5]})
+
+
+def test_schema_is_generated_from_the_settings():
+    assert SCHEMA_PATH.read_text() == schema_text(), "run: python -m physmorph.config --schema"
+    schema = yaml.safe_load(SCHEMA_PATH.read_text())
+    for profile in ([], ["config/test.yaml"], ["config/paper.yaml"]):
+        jsonschema.Draft202012Validator(schema).validate(load_mapping(BASE, *profile))
+    assert schema["properties"]["mpm"]["properties"]["optimizer"] == {"enum": ["adam", "normalized_gd"],
+                                                                       "default": "normalized_gd"}
+    assert "grid_res" not in schema["properties"]["mpm"]["properties"]  # set by sampling.grid_res
+
+
+EXP = {"source": "iso", "target": "bunny", "method": "full"}
 
 
 @pytest.mark.parametrize(
-    "override, key",
+    "override, message",
     [
-        ({"sampling": {"grid_res": "big"}}, "sampling.grid_res"),
-        ({"sampling": {"gird_res": 32}}, "sampling.gird_res"),
-        ({"target": {"cameras": 0}}, "target.cameras"),
-        ({"device": "tpu"}, "device"),
-        ({"shapes": {"bunny": {"kind": "file", "file": "nope.obj"}}}, "shapes.bunny.file"),
-        ({"experiments": {"x": {"source": "iso", "target": "teapot", "method": "full"}}}, "experiments.x.target"),
-        ({"experiments": {"x": {"source": "iso", "target": "bunny", "method": "magic"}}}, "experiments.x.method"),
-        ({"tables": {"experiments": ["missing_run"]}}, "tables.experiments[0]"),
-        ({"surprise": 1}, "surprise"),
+        ({"sampling": {"grid_res": "big"}}, "'sampling.grid_res': expected an integer, got 'big'"),
+        ({"sampling": {"gird_res": 32}}, "'sampling.gird_res': unknown key (allowed: density, grid_res"),
+        ({"target": {"cameras": 0}}, "'target.cameras': cameras must be >= 1"),
+        ({"device": "tpu"}, "'device': 'tpu' is not allowed (allowed: auto, cpu, cuda)"),
+        ({"shapes": {"bunny": {"kind": "file", "file": "nope.obj"}}}, "'shapes.bunny.file': 'nope.obj' is not listed"),
+        ({"shapes": {"mine": {"kind": "file"}}}, "'shapes.mine.file': file or path: kind 'file' takes exactly one of"),
+        ({"experiments": {"x": {"source": "iso", "target": "teapot", "method": "full"}}}, "'experiments.x.target'"),
+        ({"experiments": {"x": {"source": "iso", "target": "bunny", "method": "magic"}}},
+         "'experiments.x.method': 'magic' is not allowed (allowed: physics_only, f_inject, full, position_inject)"),
+        ({"tables": {"experiments": ["missing_run"]}}, "'tables.experiments[0]'"),
+        ({"surprise": 1}, "'surprise': unknown key"),
+        ({"mpm": {"dt": -0.01}}, "'mpm.dt': dt must be finite and > 0"),
+        ({"mpm": {"substeps": 0}}, "'mpm.substeps': substeps (T) must be an int >= 1, got 0"),
+        ({"mpm": {"smoothing": 1}}, "'mpm.smoothing': smoothing s must be in [0, 1), got 1.0"),
+        ({"mpm": {"optimizer": "sgd"}}, "'mpm.optimizer': 'sgd' is not allowed (allowed: adam, normalized_gd)"),
+        ({"mpm": {"grid_res": 64}}, "'mpm.grid_res': not settable here: it is set by sampling.grid_res"),
+        ({"plasticity": {"jacobian": "exact"}}, "'plasticity.jacobian': 'exact' is not allowed (allowed: paper, least_squares)"),
+        ({"morph": {"frames": 0}}, "'morph.frames': frames must be >= 1, got 0"),
+        ({"morph": {"method": "full"}}, "'morph.method': not settable here: it is set by experiments.<name>.method"),
+        ({"morph": {"cameras": 100}}, "'morph.cameras': 100 render-loss views, but the target has only 8"),
+        ({"experiments": {"x": {**EXP, "cameras": 9}}}, "'experiments.x.cameras': 9 render-loss views"),
+        ({"experiments": {"x": {**EXP, "frames": 0}}}, "'experiments.x.frames': frames must be >= 1"),
+        ({"experiments": {"x": {**EXP, "drag": -1}}}, "'experiments.x.drag': drag must satisfy"),
+        ({"render": {"kernel": "gpu"}}, "'render.kernel': 'gpu' is not allowed (allowed: auto, tile, pixel)"),
+        ({"profile": "../x"}, "'profile': must be a plain name"),
     ],
 )
-def test_bad_config_names_the_key(override, key):
-    with pytest.raises(ConfigError, match=f"'{key}'".replace("[", r"\[").replace("]", r"\]")):
-        load_config(BASE, overrides=override)
+def test_bad_config_names_the_key(override, message):
+    with pytest.raises(ConfigError) as err:
+        load_settings(BASE, overrides=override)
+    assert message in str(err.value)
 
 
-def test_missing_required_key_is_named(tmp_path):
-    p = tmp_path / "c.yaml"
-    p.write_text("profile: x\n")
-    with pytest.raises(ConfigError, match="'device'"):
-        load_config(p)
+def test_numbers_as_ints_floats_and_strings():
+    """--config 'mpm={smoothing: 0.5}' hands over '0.5'; YAML 1.1 reads 1.4e5 as a string; drag: 0
+    and smoothing: 1 are ints. All become the field's type."""
+    s = load_settings(BASE, overrides={"mpm": {"smoothing": "0.5", "youngs_modulus": "1.4e5", "drag": 0,
+                                               "substeps": "20", "control_in_F": "false"},
+                                       "plasticity": {"eta": 1}, "target": {"distance": 36}, "morph": {"frames": 40.0}})
+    assert s.mpm.smoothing == 0.5 and s.mpm.youngs_modulus == 1.4e5 and s.mpm.substeps == 20
+    assert type(s.mpm.drag) is float and s.mpm.drag == 0.0 and s.mpm.control_in_F is False
+    assert type(s.plasticity.eta) is float and type(s.target.distance) is float and s.morph.frames == 40
+    with pytest.raises(ConfigError, match="'morph.frames': expected an integer, got 40.5"):
+        load_settings(BASE, overrides={"morph": {"frames": 40.5}})
+    with pytest.raises(ConfigError, match="'mpm.smoothing': expected a number, got True"):
+        load_settings(BASE, overrides={"mpm": {"smoothing": True}})
+
+
+def test_memory_estimate_refuses_a_grid_too_big_for_the_machine():
+    with pytest.raises(ConfigError, match=r"needs an estimated [\d,]+ MB .*512\^3.*above the limit of [\d,]+ MB"):
+        load_settings(BASE, overrides={"sampling": {"grid_res": 512}})
+    # the limit is a setting: the paper profile fits 24 GB but not 2 GB
+    load_settings(BASE, "config/paper.yaml", overrides={"max_memory_mb": 24000})
+    with pytest.raises(ConfigError, match=r"morph .* above the limit of 2,000 MB \(max_memory_mb\)"):
+        load_settings(BASE, "config/paper.yaml", overrides={"max_memory_mb": 2000})
+    est = {e.stage: e.mb for e in load_settings(BASE).memory_estimates()}
+    assert 600 < est["morph iso_bunny_full"] < 1500  # measured peak RSS at this profile: 510-590 MB
+
+
+def test_experiment_resolution_and_its_params():
+    s = load_settings(BASE)
+    full, po = s.experiment_config("iso_bunny_full"), s.experiment_config("iso_bunny_physics_only")
+    d05 = s.experiment_config("iso_bunny_full_d05")
+    assert d05.mpm.drag == 0.5 and full.mpm.drag == 0.9 and full.frames == 40 and full.method == "full"
+    # params round trip: the run rebuilds exactly its settings from the string
+    back = build(MorphConfig, json.loads(morph_params(full)), "morph")
+    assert back == dataclasses.replace(full, progress=back.progress)
+    # a setting only plasticity reads changes the full run's params, not physics-only's
+    s2 = load_settings(BASE, overrides={"plasticity": {"eta": 0.05}})
+    assert morph_params(s2.experiment_config("iso_bunny_full")) != morph_params(full)
+    assert morph_params(s2.experiment_config("iso_bunny_physics_only")) == morph_params(po)
+    assert morph_params(s2.experiment_config("iso_bunny_f_inject")) == morph_params(s.experiment_config("iso_bunny_f_inject"))
+    # threads change no params
+    s3 = load_settings(BASE, overrides={"threads": 1})
+    assert morph_params(s3.experiment_config("iso_bunny_full")) == morph_params(full)
+
+
+def test_unknown_experiment_lists_known():
+    s = load_settings(BASE, overrides={"experiments": {"iso_bunny": {"source": "iso", "target": "bunny", "method": "full"}}})
+    assert s.experiment("iso_bunny").target == "bunny"
+    with pytest.raises(ConfigError, match="unknown experiment 'iso_teapot'.*iso_bunny"):
+        s.experiment("iso_teapot")
+
+
+def test_a_shape_given_by_path_needs_no_raw_mesh_entry():
+    s = load_settings(BASE, overrides={"shapes": {"mine": {"kind": "file", "path": "my/mesh.obj", "size": 18}}})
+    assert s.shapes["mine"].path == "my/mesh.obj" and s.shapes["mine"].file is None
+    with pytest.raises(ConfigError, match="'shapes.mine.file': file or path: kind 'file' takes exactly one"):
+        load_settings(BASE, overrides={"shapes": {"mine": {"kind": "file", "path": "a.obj", "file": "spot.obj"}}})
 
 
 def test_missing_file_and_bad_yaml(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
-        load_config(tmp_path / "none.yaml")
+        load_settings(tmp_path / "none.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("a: [1, 2\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
-        load_config(bad)
-
-
-def test_unknown_experiment_lists_known():
-    cfg = load_config(BASE, overrides={"experiments": {"iso_bunny": {"source": "iso", "target": "bunny", "method": "full"}}})
-    assert experiment(cfg, "iso_bunny")["target"] == "bunny"
-    with pytest.raises(ConfigError, match="unknown experiment 'iso_teapot'.*iso_bunny"):
-        experiment(cfg, "iso_teapot")
+        load_settings(bad)
 
 
 def test_resolution_tag_roundtrip():
-    cfg = load_config(BASE)
-    s = SamplingConfig.from_config(cfg)
-    assert SamplingConfig.from_tag(s.tag, cfg) == s
+    s = load_settings(BASE).sampling
+    assert s.with_tag(s.tag) == s and s.with_tag("64x5x1") == SamplingConfig(64, 5, 1, 75.0, 0.7)
     with pytest.raises(ConfigError, match="32x2x1"):
-        SamplingConfig.from_tag("32", cfg)
+        s.with_tag("32")

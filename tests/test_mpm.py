@@ -53,7 +53,10 @@ def make(cfg: MPMConfig, st: ParticleState, target: bool = True) -> MPMSolver:
 
 
 def cfg64(**kw) -> MPMConfig:
-    base = dict(grid_res=RES, precision="float64", substeps=3)
+    # The solver tests are written for the squared mass loss and Adam (the workflow's defaults are
+    # the log loss and normalised GD, tested where a test names them).
+    base = dict(grid_res=RES, precision="float64", substeps=3, mass_loss="squared", log_mass_eps=1e-3,
+                optimizer="adam", learning_rate=0.01)
     base.update(kw)
     return MPMConfig(**base)
 

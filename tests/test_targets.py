@@ -208,7 +208,10 @@ def test_target_carries_its_ceiling(tmp_path):
     np.testing.assert_allclose(t2.ceiling_alpha_mse_views, ref2["alpha_mse_views"], rtol=1e-5)
     assert abs(t2.ceiling_alpha_mse - t.ceiling_alpha_mse) > 1e-3
     with h5py.File(out2) as f:
-        assert json.loads(f.attrs["config"])["render"] == {"opacity": 0.3}
+        # the provenance holds the renderer's full resolved settings (it always runs on the CPU)
+        from physmorph.config import to_plain
+
+        assert json.loads(f.attrs["config"])["render"] == to_plain(RenderConfig(opacity=0.3, device="cpu"))
 
     # A target without its ceiling (written before it was stored) names the file and the field.
     from physmorph.h5io import stamp_checksum

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from physmorph.config import load_config
+from physmorph.config import ConfigError, load_settings
 from physmorph.tradeoff import knob_ranking, pareto_front, summarize_points, tradeoff_points
 
 
@@ -14,7 +14,7 @@ def test_pareto_front_hand_made():
 
 
 def test_points_change_one_knob_each():
-    cfg = load_config("config/config.yaml")
+    cfg = load_settings("config/config.yaml")
     pts = tradeoff_points(cfg)
     base = pts["base"]
     assert base.res_tag == "32x2x1" and base.image_tag == "160x90"
@@ -27,9 +27,10 @@ def test_points_change_one_knob_each():
 
 
 def test_unknown_knob_is_named():
-    cfg = load_config("config/config.yaml", overrides={"tradeoff": {"knobs": {"shininess": [1]}}})
-    with pytest.raises(ValueError, match="tradeoff.knobs.shininess"):
-        tradeoff_points(cfg)
+    with pytest.raises(ConfigError, match="tradeoff.knobs.shininess"):
+        load_settings("config/config.yaml", overrides={"tradeoff": {"knobs": {"shininess": [1]}}})
+    with pytest.raises(ConfigError, match=r"tradeoff.knobs.image\[0\]'.*\[width, height\]"):
+        load_settings("config/config.yaml", overrides={"tradeoff": {"knobs": {"image": [320]}}})
 
 
 def test_knob_ranking_accuracy_per_second():

@@ -1,9 +1,14 @@
-"""End-to-end: the Snakemake workflow on config/test.yaml, in a scratch working directory."""
+"""End-to-end: the Snakemake workflow on config/test.yaml, in a scratch working directory.
 
+One real run of the test profile (module fixture) serves every test that needs finished outputs:
+the tables, the params that trigger reruns, the report and a user mesh given by path."""
+
+import hashlib
 import os
-import shutil
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -13,6 +18,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")
+TEST = ("--configfile", "config/test.yaml")
 
 
 def _workdir(tmp_path: Path) -> Path:
@@ -23,78 +29,209 @@ def _workdir(tmp_path: Path) -> Path:
 
 def _run(wd: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
     cmd = [str(SNAKEMAKE), *([] if "--profile" in args else ["--cores", "2"]), *args]
-    return subprocess.run(cmd, cwd=wd, capture_output=True, text=True, check=check, timeout=900,
-                          env={**os.environ, "PHYSMORPH_THREADS": "2"})
+    # the workflow imports this checkout's physmorph, whatever is installed
+    env = {**os.environ, "PHYSMORPH_THREADS": "2", "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(cmd, cwd=wd, capture_output=True, text=True, timeout=1200, env=env)
+    if check and out.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed:\n{out.stdout[-3000:]}\n{out.stderr[-5000:]}")
+    return out
 
+
+def planned_jobs(out: subprocess.CompletedProcess) -> dict[str, int]:
+    """rule -> job count from a dry run's job stats ({} when nothing is to be done)."""
+    text = out.stdout + out.stderr
+    if "Nothing to be done" in text:
+        return {}
+    stats = text.split("Job stats:", 1)[1].split("total", 1)[0]
+    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)\s*$", stats, re.M)}
+
+
+def planned_outputs(out: subprocess.CompletedProcess) -> list[str]:
+    return [p.strip() for line in re.findall(r"^\s*output: (.*)$", out.stdout + out.stderr, re.M) for p in line.split(",")]
+
+
+# ---------------------------------------------------------------------------------- DAG only
 
 def test_dry_run_shows_the_dag(tmp_path):
     out = _run(_workdir(tmp_path), "-n", "tables")
-    for rule in ("fetch_mesh", "prepare_mesh", "sample_particles", "rasterize_target"):
-        assert rule in out.stdout
+    for rule in ("fetch_mesh", "prepare_mesh", "sample_particles", "rasterize_target", "morph", "make_tables"):
+        assert rule in planned_jobs(out)
+    outs = planned_outputs(out)
+    assert "results/default/runs/iso_bunny_full.h5" in outs
+    assert all(p.startswith(("results/default/", "resources/meshes/")) for p in outs), outs
 
 
 def test_bad_config_stops_with_the_key(tmp_path):
     wd = _workdir(tmp_path)
     out = _run(wd, "-n", "tables", "--config", "threads=many", check=False)
     assert out.returncode != 0
-    assert "threads" in out.stdout + out.stderr
+    assert "config key 'threads': expected an integer, got 'many'" in out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("override, message", [
+    ("mpm={dt: -0.1}", "config key 'mpm.dt'"),
+    ("mpm={substeps: 0}", "config key 'mpm.substeps'"),
+    ("morph={frames: 0}", "config key 'morph.frames'"),
+    ("morph={cameras: 100}", "config key 'morph.cameras': 100 render-loss views, but the target has only 8"),
+    ("mpm={optimizer: sgd}", "config key 'mpm.optimizer': 'sgd' is not allowed (allowed: adam, normalized_gd)"),
+])
+def test_dry_run_refuses_bad_settings_naming_the_key(tmp_path, override, message):
+    out = _run(_workdir(tmp_path), "-n", "tables", "--config", override, check=False)
+    assert out.returncode != 0
+    assert message in out.stdout + out.stderr
+
+
+def test_grid_too_big_for_the_machine_is_refused_quickly(tmp_path):
+    started = time.time()
+    out = _run(_workdir(tmp_path), "-n", "tables", "--config", "sampling={grid_res: 512}", check=False)
+    assert out.returncode != 0
+    text = out.stdout + out.stderr
+    assert re.search(r"needs an estimated [\d,]+ MB .*512\^3.*above the limit of [\d,]+ MB \(max_memory_mb", text), text[-2000:]
+    assert time.time() - started < 60
+
+
+def test_numbers_from_the_command_line_and_integers_are_accepted(tmp_path):
+    out = _run(_workdir(tmp_path), "-n", "tables", "--config", "mpm={smoothing: 0.5, drag: 0}", "plasticity={eta: 1}")
+    assert planned_jobs(out)["morph"] == 18
 
 
 def test_unknown_experiment_is_named(tmp_path):
-    out = _run(_workdir(tmp_path), "-n", "results/runs/iso_teapot_full.h5", check=False)
+    out = _run(_workdir(tmp_path), "-n", "results/default/runs/iso_teapot_full.h5", check=False)
     assert out.returncode != 0
     assert "unknown experiment 'iso_teapot_full'" in out.stdout + out.stderr
 
 
-def test_tables_on_test_profile(tmp_path, mesh_dir):
+def test_slurm_profile_dry_run(tmp_path):
+    """The cluster profile plans the paper-scale DAG; memory, runtime and a GPU come from the rules."""
     wd = _workdir(tmp_path)
-    out = _run(wd, "tables", "figures", "tradeoff", "--configfile", "config/test.yaml", "--config", f"mesh_dir={mesh_dir}",
-               check=False)
+    out = _run(wd, "--profile", str(REPO / "workflow/profiles/slurm"), "-n", "tables", "--configfile", "config/paper.yaml")
+    assert "results/paper/runs/iso_bunny_full.h5" in planned_outputs(out)
+    assert "_64x5x1.h5" in out.stdout
+    morph = out.stdout.split("rule morph:", 1)[1].split("rule ", 1)[0]
+    assert re.search(r"mem_mb=\d{4,}", morph) and re.search(r"runtime=\d{3,}", morph) and "gpu=1" in morph, morph
+
+
+# ------------------------------------------------------------------------- one real run
+
+@pytest.fixture(scope="module")
+def test_run(tmp_path_factory, mesh_dir):
+    wd = _workdir(tmp_path_factory.mktemp("wf"))
+    out = _run(wd, "tables", "figures", "tradeoff", *TEST, "--config", f"mesh_dir={mesh_dir}", check=False)
     assert out.returncode == 0, out.stderr[-4000:]
+    return wd, mesh_dir
+
+
+def test_tables_on_test_profile(test_run):
+    wd, _ = test_run
+    r = wd / "results/test"
     for shape in ("iso", "bunny"):
-        assert (wd / f"results/particles/{shape}_32x1x1.h5").exists()
-        assert (wd / f"results/targets/{shape}_32x1x1.h5").exists()
-        assert (wd / f"results/previews/targets/{shape}_32x1x1.png").stat().st_size > 1000
-    with h5py.File(wd / "results/runs/iso_bunny_full.h5") as f:
+        assert (r / f"particles/{shape}_32x1x1.h5").exists()
+        assert (r / f"targets/{shape}_32x1x1.h5").exists()
+        assert (r / f"previews/targets/{shape}_32x1x1.png").stat().st_size > 1000
+    with h5py.File(r / "runs/iso_bunny_full.h5") as f:
         assert f.attrs["status"] == "complete"
         assert len(f["metrics/alpha_mse"]) == 13  # frame 0 + 12 frames
         assert "git_commit" in f.attrs and "peak_rss_mb" in f.attrs
     assert not list(wd.glob("results/**/*.partial"))
+    # every job wrote its log and benchmark; the morph's log has its progress
+    for rule in ("prepare_mesh", "sample_particles", "rasterize_target", "morph"):
+        assert list((r / "logs" / rule).glob("*.log")), rule
+        assert list((r / "benchmarks" / rule).glob("*.tsv")), rule
+    assert "iso_bunny_full" in (r / "logs/morph/iso_bunny_full.log").read_text()
     # Tables: every table in three formats, well formed, with our numbers beside the paper's.
-    main = pd.read_csv(wd / "results/tables/main.csv")
+    main = pd.read_csv(r / "tables/main.csv")
     assert list(main["target"]) == ["bunny", "cow", "duck"]
     bunny = main.set_index("target").loc["bunny"]
     assert bunny["paper_physics_only"] == 0.0799 and np.isfinite(bunny["physics_only"]) and np.isfinite(bunny["ours"])
     assert 0 <= bunny["frame"] <= 12
-    timing = pd.read_csv(wd / "results/tables/timing.csv")
+    timing = pd.read_csv(r / "tables/timing.csv")
     assert set(timing["experiment"]) == {"iso_bunny_physics_only", "iso_bunny_full"}
     assert (timing["frame_s"] > 0).all() and (timing["peak_rss_mb"] > 0).all()
-    conv = pd.read_csv(wd / "results/tables/convergence.csv").set_index("experiment")
+    conv = pd.read_csv(r / "tables/convergence.csv").set_index("experiment")
     assert set(conv.index) == {"iso_bunny_physics_only", "iso_bunny_full"}
     assert (conv["ceiling"] > 0).all() and np.isfinite(conv[["closed_best_%", "closed_final_%"]].to_numpy()).all()
     for name in ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing",
                  "convergence"):
-        md = (wd / f"results/tables/{name}.md").read_text().splitlines()
+        md = (r / f"tables/{name}.md").read_text().splitlines()
         assert md[0].startswith("|") and set(md[1]) <= set("|-")
-        assert "\\begin{tabular}" in (wd / f"results/tables/{name}.tex").read_text()
+        assert "\\begin{tabular}" in (r / f"tables/{name}.tex").read_text()
     # Speed/accuracy study: base + one point per changed knob value, Pareto front marked.
-    trade = pd.read_csv(wd / "results/tradeoff/tradeoff.csv")
+    trade = pd.read_csv(r / "tradeoff/tradeoff.csv")
     assert set(trade["name"]) == {"base", "cameras-2", "image-32x24"}
     assert trade["pareto"].any() and (trade["time_s"] > 0).all() and np.isfinite(trade["best_alpha_mse"]).all()
-    assert (wd / "results/targets/bunny_32x1x1_32x24.h5").exists()
-    assert "accuracy per second" in (wd / "results/tradeoff/tradeoff.md").read_text()
+    assert (r / "targets/bunny_32x1x1_32x24.h5").exists()
+    assert "accuracy per second" in (r / "tradeoff/tradeoff.md").read_text()
     # Figures: real PNGs.
     for png in ("figures/sequences_main", "figures/drag_ablation", "figures/optimization_traces",
                 "figures/gradient_coverage", "tradeoff/pareto"):
-        data = (wd / f"results/{png}.png").read_bytes()
+        data = (r / f"{png}.png").read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
 
 
-def test_slurm_profile_dry_run(tmp_path):
-    """The cluster profile parses and plans the paper-scale DAG with a GPU per morph job."""
-    wd = _workdir(tmp_path)
-    out = _run(wd, "--profile", str(REPO / "workflow/profiles/slurm"), "-n", "tables",
-               "--configfile", "config/paper.yaml")
-    assert "rule morph" in out.stdout or "morph" in out.stdout
-    assert "results/runs/iso_bunny_full.h5" in out.stdout
-    assert "_64x5x1.h5" in out.stdout
+def test_changed_settings_rerun_exactly_the_runs_that_use_them(test_run):
+    wd, mesh_dir = test_run
+    base = (*TEST, "--config", f"mesh_dir={mesh_dir}")
+    targets = ("tables", "tradeoff")
+    assert planned_jobs(_run(wd, "-n", *targets, *base)) == {}
+    # one experiment's own setting: that run, then the tables
+    out = _run(wd, "-n", *targets, *base,
+               "experiments={iso_bunny_physics_only: {source: iso, target: bunny, method: physics_only, drag: 0.5}}")
+    assert planned_jobs(out) == {"morph": 1, "make_tables": 1, "tables": 1}, out.stdout[-3000:]
+    assert "results/test/runs/iso_bunny_physics_only.h5" in planned_outputs(out)
+    assert "Params have changed" in out.stdout + out.stderr
+    # ... and of the study's base experiment: that run and the study's points
+    out = _run(wd, "-n", *targets, *base, "experiments={iso_bunny_full: {source: iso, target: bunny, method: full, drag: 0.5}}")
+    assert planned_jobs(out) == {"morph": 1, "tradeoff_point": 3, "make_tables": 1, "make_tradeoff": 1, "tables": 1,
+                                 "tradeoff": 1}, out.stdout[-3000:]
+    assert "results/test/runs/iso_bunny_full.h5" in planned_outputs(out)
+    # a global setting only the full method reads: the full run and the tradeoff points (iso_bunny_full)
+    out = _run(wd, "-n", *targets, *base, "plasticity={eta: 0.05}")
+    assert planned_jobs(out) == {"morph": 1, "tradeoff_point": 3, "make_tables": 1, "make_tradeoff": 1, "tables": 1,
+                                 "tradeoff": 1}, out.stdout[-3000:]
+    assert "results/test/runs/iso_bunny_physics_only.h5" not in planned_outputs(out)
+    # a setting every run reads: every run, no data stage
+    out = _run(wd, "-n", *targets, *base, "mpm={smoothing: 0.9}")
+    assert planned_jobs(out) == {"morph": 2, "tradeoff_point": 3, "make_tables": 1, "make_tradeoff": 1, "tables": 1,
+                                 "tradeoff": 1}, out.stdout[-3000:]
+    # a sampling setting: the particles, the targets' ceilings (the target's own sampling) and the
+    # runs on them; the prepared meshes stay
+    out = _run(wd, "-n", "tables", *base, "sampling={sigma_scale: 0.8}")
+    assert planned_jobs(out) == {"sample_particles": 2, "rasterize_target": 2, "morph": 2, "make_tables": 1, "tables": 1}
+    # the thread count changes no result
+    assert planned_jobs(_run(wd, "-n", *targets, *base, "threads=1")) == {}
+
+
+def test_profiles_never_share_a_file(test_run):
+    wd, mesh_dir = test_run
+    out = _run(wd, "-n", "tables", "figures", "--config", f"mesh_dir={mesh_dir}")  # the default profile
+    outs = planned_outputs(out)
+    assert "results/default/runs/iso_bunny_full.h5" in outs
+    assert not [p for p in outs if p.startswith("results/test/")]
+    # and the test profile's finished tree is still complete and up to date
+    assert planned_jobs(_run(wd, "-n", "tables", *TEST, "--config", f"mesh_dir={mesh_dir}")) == {}
+
+
+def test_report_holds_tables_figures_and_pareto(test_run):
+    wd, mesh_dir = test_run
+    _run(wd, "tables", "figures", "tradeoff", *TEST, "--config", f"mesh_dir={mesh_dir}", "--report", "report.html")
+    html = (wd / "report.html").read_text(errors="replace")
+    for name in ("main.csv", "timing.csv", "sequences_main.png", "pareto.png", "tradeoff.csv"):
+        assert name in html, name
+
+
+def test_a_mesh_given_by_path_morphs_end_to_end(test_run):
+    import trimesh
+
+    wd, mesh_dir = test_run
+    mesh = trimesh.creation.box(extents=(10.0, 7.0, 5.0))
+    (wd / "my").mkdir()
+    mesh.export(wd / "my/brick.obj")
+    (wd / "mine.yaml").write_text("shapes:\n  brick: {kind: file, path: my/brick.obj, size: 14.0}\n"
+                                  "experiments:\n  iso_brick: {source: iso, target: brick, method: physics_only, frames: 2}\n")
+    _run(wd, "results/test/runs/iso_brick.h5", *TEST, "mine.yaml", "--config", f"mesh_dir={mesh_dir}")
+    with h5py.File(wd / "results/test/meshes/brick.h5") as f:
+        assert f.attrs["raw_sha256"] == hashlib.sha256((wd / "my/brick.obj").read_bytes()).hexdigest()
+        assert f.attrs["source"] == "brick.obj"
+    with h5py.File(wd / "results/test/runs/iso_brick.h5") as f:
+        assert f.attrs["status"] == "complete" and len(f["metrics/alpha_mse"]) == 3
+    assert not (wd / "resources/meshes/brick.obj").exists()  # nothing fetched

@@ -13,7 +13,7 @@ Design decisions (documented here and in the docstrings they refer to):
 * Warm start: dFc and the Adam moments persist across frames by default
   (``MPMConfig.warm_start=True``); the morph loop need not call reset_control. With
   warm_start=False, load_state resets them every frame.
-* Mass loss: "squared" (default) L = sum_I (m_I - m*_I)^2; "log" L = sum_I (log(m_I + e) -
+* Mass loss: "squared" L = sum_I (m_I - m*_I)^2; "log" (default) L = sum_I (log(m_I + e) -
   log(m*_I + e))^2, e = log_mass_eps * mean particle mass. Delta E % = 100 (L_0 - L_J) / L_0.
 * Backward: hand-written reverse kernels per substep (no Taichi tape); stored per substep:
   x, v, C, F (24 floats per particle: 96 B in float32, 192 B in float64); grids are recomputed.
@@ -37,8 +37,16 @@ Design decisions (documented here and in the docstrings they refer to):
 
 from .config import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMError,
                      MPMStateError)
-from .solver import MPMSolver
 from .state import ParticleState, elastic_energy, fixed_corotated_energy_density, total_volume
+
+
+def __getattr__(name):
+    # The solver imports Taichi: loaded on first use, so reading configs and run files stays light.
+    if name == "MPMSolver":
+        from .solver import MPMSolver
+
+        return MPMSolver
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["CFLWarning", "MPMConfig", "MPMConfigError", "MPMDivergenceError", "MPMError",
            "MPMStateError", "MPMSolver", "ParticleState", "elastic_energy",

@@ -9,8 +9,9 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import Literal
 
-from ..grid import BOUNDARY_CELLS
+from ..grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
 
 
 class MPMError(RuntimeError):
@@ -71,8 +72,8 @@ class MPMConfig:
     """
 
     grid_res: int = 64
-    domain_lo: float = -16.0
-    domain_hi: float = 16.0
+    domain_lo: float = DOMAIN_LO
+    domain_hi: float = DOMAIN_HI
     dt: float = 1.0 / 240.0
     substeps: int = 20
     youngs_modulus: float = 1.4e5
@@ -80,24 +81,24 @@ class MPMConfig:
     density: float = 75.0
     drag: float = 0.9
     smoothing: float = 0.955
-    control: str = "per_substep"
+    control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
-    learning_rate: float = 0.01
-    optimizer: str = "adam"
+    learning_rate: float = 0.001
+    optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
     line_search_iters: int = 10
-    step_clip: float = 0.0
+    step_clip: float = 3.0
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
-    mass_loss: str = "squared"
-    log_mass_eps: float = 1e-3
+    mass_loss: Literal["squared", "log"] = "log"
+    log_mass_eps: float = 0.1
     warm_start: bool = True
     control_clip: float = 0.0
     cfl: float = 0.5
     cfl_warn_fraction: float = 0.8
-    device: str = "cpu"
-    precision: str = "float32"
+    device: Literal["auto", "cpu", "cuda"] = "cpu"
+    precision: Literal["float32", "float64"] = "float32"
     threads: int | None = None
 
     def __post_init__(self) -> None:

@@ -19,12 +19,21 @@ Runs on CPU, or CUDA with ``RenderConfig(device="cuda"|"auto")``; the Taichi run
 with the MPM solver through :func:`physmorph.taichi_runtime.init_taichi` (one arch per process).
 """
 
-from .api import render_and_grad, render_views, shade, splat
+from importlib import import_module
+
 from .config import RenderConfig, RenderResult, RenderTarget
-from .dense import dense_composite
-from .losses import alpha_mse, match_gradients, render_losses
-from .projection import CameraTensors, covariance_from_F, project_gaussians
-from .rasterizer import composite
+
+# The renderer imports torch: its functions load on first use, so reading configs stays light.
+_LAZY = {"render_and_grad": "api", "render_views": "api", "shade": "api", "splat": "api",
+         "dense_composite": "dense", "alpha_mse": "losses", "match_gradients": "losses",
+         "render_losses": "losses", "CameraTensors": "projection", "covariance_from_F": "projection",
+         "project_gaussians": "projection", "composite": "rasterizer"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "RenderConfig", "RenderTarget", "RenderResult", "render_and_grad", "render_views", "shade", "splat",

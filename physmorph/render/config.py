@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -50,9 +51,9 @@ class RenderConfig:
     iou_fraction: float = 0.5
     depth_fraction: float = 0.25
     depth_min_alpha: float = 0.1
-    dtype: str = "float32"
-    kernel: str = "auto"
-    device: str = "cpu"
+    dtype: Literal["float32", "float64"] = "float32"
+    kernel: Literal["auto", "tile", "pixel"] = "auto"
+    device: Literal["auto", "cpu", "cuda"] = "cpu"
 
     def __post_init__(self) -> None:
         if not 0.0 < self.opacity <= 1.0:

@@ -1,12 +1,23 @@
-# Stage 7: the paper's figures from the runs (PNG under results/figures/).
+# Stage 7: the paper's figures from the runs (PNG under results/{profile}/figures/).
 rule make_figures:
     input:
-        runs=expand("results/runs/{experiment}.h5", experiment=PM["tables"].get("experiments", [])),
-        targets=[f"results/targets/{s}_{RES}.h5" for s in PM["tables"].get("shapes", [])],
+        runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=S.tables.experiments),
+        targets=[target_path(s) for s in S.tables.shapes],
     output:
-        expand("results/figures/{figure}.png", figure=FIGURES),
+        [report(f"{R}/figures/{f}.png", caption="../report/figure.rst", category="Figures", labels={"figure": f})
+         for f in FIGURES],
     params:
-        names=PM["tables"].get("experiments", []),
-        shapes=PM["tables"].get("shapes", []),
+        names=list(S.tables.experiments),
+        shapes=list(S.tables.shapes),
+        target=canonical_json(S.target),
+        out_dir=f"{R}/figures",
+    log:
+        f"{R}/logs/make_figures.log",
+    benchmark:
+        f"{R}/benchmarks/make_figures.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
     script:
         "../scripts/make_figures.py"

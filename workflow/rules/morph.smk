@@ -1,12 +1,25 @@
-# Stage 5: one morph experiment (paper Algorithm 1) -> results/runs/{experiment}.h5.
-# A killed run resumes from its last committed frame in results/runs/{experiment}.h5.partial/.
+# Stage 5: one morph experiment (paper Algorithm 1) -> results/{profile}/runs/{experiment}.h5.
+# params.settings is the run's resolved settings (what its method reads): changing any of them
+# reruns this experiment, and nothing else. A killed run resumes from its last committed frame in {output}.partial/.
 rule morph:
     input:
-        particles=lambda wc: f"results/particles/{experiment(PM, wc.experiment)['source']}_{RES}.h5",
-        target=lambda wc: f"results/targets/{experiment(PM, wc.experiment)['target']}_{RES}.h5",
+        particles=lambda wc: particles_path(S.experiment(wc.experiment).source),
+        target=lambda wc: target_path(S.experiment(wc.experiment).target),
     output:
-        "results/runs/{experiment}.h5",
+        f"{R}/runs/{{experiment}}.h5",
+    params:
+        settings=lambda wc: morph_params(S.experiment_config(wc.experiment)),
+        experiment=lambda wc: canonical_json(S.experiment(wc.experiment)),
+        name=lambda wc: wc.experiment,
+    log:
+        f"{R}/logs/morph/{{experiment}}.log",
     benchmark:
-        "results/benchmarks/morph/{experiment}.tsv"
+        f"{R}/benchmarks/morph/{{experiment}}.tsv"
+    threads: S.threads
+    resources:
+        mem_mb=lambda wc: mb(morph_memory(experiment_source(wc.experiment), S.sampling, S.target, S.mpm, S.domain, "")),
+        runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(wc.experiment), S.sampling, S.domain),
+                                             S.experiment_config(wc.experiment).frames),
+        gpu=S.morph_gpus,
     script:
         "../scripts/morph.py"

@@ -3,12 +3,19 @@ rule prepare_mesh:
     input:
         raw=lambda wc: raw_mesh_path(wc.shape),
     output:
-        "results/meshes/{shape}.h5",
+        f"{R}/meshes/{{shape}}.h5",
     params:
-        spec=lambda wc: shape_entry(PM, wc.shape),
+        spec=lambda wc: canonical_json(S.shape(wc.shape)),
+        domain=list(S.domain),
         # the raw mesh is verified against its checksum again: it may have changed since it was fetched
-        raw_sha256=lambda wc: PM["raw_meshes"].get(shape_entry(PM, wc.shape).get("file") or "", {}).get("sha256"),
+        raw_sha256=lambda wc: S.raw_meshes[S.shape(wc.shape).file].sha256 if S.shape(wc.shape).file else None,
+    log:
+        f"{R}/logs/prepare_mesh/{{shape}}.log",
     benchmark:
-        "results/benchmarks/prepare_mesh/{shape}.tsv"
+        f"{R}/benchmarks/prepare_mesh/{{shape}}.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
     script:
         "../scripts/prepare_mesh.py"

@@ -1,15 +1,23 @@
-# Stage 4: per-camera target alpha/depth/SDT, target grid mass and surface points.
+# Stage 4: per-camera target alpha/depth/SDT, target grid mass and surface points, and the
+# ceiling (the target's own particles rendered at rest, with the render section's settings).
 rule rasterize_target:
     input:
-        "results/meshes/{shape}.h5",
+        f"{R}/meshes/{{shape}}.h5",
     output:
-        h5="results/targets/{shape}_{res}.h5",
-        png="results/previews/targets/{shape}_{res}.png",
+        h5=f"{R}/targets/{{shape}}_{{res}}.h5",
+        png=f"{R}/previews/targets/{{shape}}_{{res}}.png",
     params:
-        sampling=lambda wc: SamplingConfig.from_tag(wc.res, PM),
-        seed=PM.get("seed", 0),
-        render=PM.get("render", {}),  # the renderer of the ceiling (the target's own particles at rest)
+        sampling=lambda wc: canonical_json(S.sampling.with_tag(wc.res)),
+        target=canonical_json(S.target),
+        seed=S.seed,
+        render=canonical_json(S.render.__class__(**{**S.render.__dict__, "device": "cpu"})),
+    log:
+        f"{R}/logs/rasterize_target/{{shape}}_{{res}}.log",
     benchmark:
-        "results/benchmarks/rasterize_target/{shape}_{res}.tsv"
+        f"{R}/benchmarks/rasterize_target/{{shape}}_{{res}}.tsv"
+    threads: S.threads
+    resources:
+        mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
+        runtime=30,
     script:
         "../scripts/rasterize_target.py"

@@ -1,14 +1,20 @@
 # Stage 3: shell-biased volumetric particle sampling at resolution {res} = grid x ppc_s x ppc_i.
 rule sample_particles:
     input:
-        "results/meshes/{shape}.h5",
+        f"{R}/meshes/{{shape}}.h5",
     output:
-        h5="results/particles/{shape}_{res}.h5",
-        png="results/previews/particles/{shape}_{res}.png",
+        h5=f"{R}/particles/{{shape}}_{{res}}.h5",
+        png=f"{R}/previews/particles/{{shape}}_{{res}}.png",
     params:
-        sampling=lambda wc: SamplingConfig.from_tag(wc.res, PM),
-        seed=PM.get("seed", 0),
+        sampling=lambda wc: canonical_json(S.sampling.with_tag(wc.res)),
+        seed=S.seed,
+    log:
+        f"{R}/logs/sample_particles/{{shape}}_{{res}}.log",
     benchmark:
-        "results/benchmarks/sample_particles/{shape}_{res}.tsv"
+        f"{R}/benchmarks/sample_particles/{{shape}}_{{res}}.tsv"
+    threads: 1
+    resources:
+        mem_mb=lambda wc: mb(sampling_memory(S.shape(wc.shape), S.sampling.with_tag(wc.res), S.domain, "")),
+        runtime=30,
     script:
         "../scripts/sample_particles.py"

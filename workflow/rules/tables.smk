@@ -1,10 +1,22 @@
 # Stage 6: the paper's tables from the runs (CSV + Markdown + LaTeX, paper figures beside ours).
 rule make_tables:
     input:
-        runs=expand("results/runs/{experiment}.h5", experiment=PM["tables"].get("experiments", [])),
+        runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=S.tables.experiments),
     output:
-        expand("results/tables/{table}.{ext}", table=TABLES, ext=["csv", "md", "tex"]),
+        csv=[report(f"{R}/tables/{t}.csv", caption="../report/table.rst", category="Tables", labels={"table": t})
+             for t in TABLES],
+        md=expand(f"{R}/tables/{{table}}.md", table=TABLES),
+        tex=expand(f"{R}/tables/{{table}}.tex", table=TABLES),
     params:
-        names=PM["tables"].get("experiments", []),
+        names=list(S.tables.experiments),
+        out_dir=f"{R}/tables",
+    log:
+        f"{R}/logs/make_tables.log",
+    benchmark:
+        f"{R}/benchmarks/make_tables.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
     script:
         "../scripts/make_tables.py"

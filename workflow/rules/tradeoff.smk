@@ -1,49 +1,76 @@
 # The speed/accuracy study: the base experiment with one resolution knob changed at a time.
-from physmorph.tradeoff import point_inputs, tradeoff_points
-
-POINTS = tradeoff_points(PM) if "tradeoff" in PM else {}
-
-
 rule rasterize_target_image:
     # A target at another image size than the profile's (for the image-size knob).
     input:
-        "results/meshes/{shape}.h5",
+        f"{R}/meshes/{{shape}}.h5",
     output:
-        h5="results/targets/{shape}_{res}_{img}.h5",
-        png="results/previews/targets/{shape}_{res}_{img}.png",
+        h5=f"{R}/targets/{{shape}}_{{res}}_{{img}}.h5",
+        png=f"{R}/previews/targets/{{shape}}_{{res}}_{{img}}.png",
     wildcard_constraints:
         img=r"\d+x\d+",
     params:
-        sampling=lambda wc: SamplingConfig.from_tag(wc.res, PM),
-        target=lambda wc: dict(PM["target"], width=int(wc.img.split("x")[0]), height=int(wc.img.split("x")[1])),
-        seed=PM.get("seed", 0),
-        render=PM.get("render", {}),
+        sampling=lambda wc: canonical_json(S.sampling.with_tag(wc.res)),
+        target=lambda wc: canonical_json(S.target.__class__(**{**S.target.__dict__, "width": int(wc.img.split("x")[0]),
+                                                                "height": int(wc.img.split("x")[1])})),
+        seed=S.seed,
+        render=canonical_json(S.render.__class__(**{**S.render.__dict__, "device": "cpu"})),
+    log:
+        f"{R}/logs/rasterize_target/{{shape}}_{{res}}_{{img}}.log",
+    benchmark:
+        f"{R}/benchmarks/rasterize_target/{{shape}}_{{res}}_{{img}}.tsv"
+    threads: S.threads
+    resources:
+        mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
+        runtime=30,
     script:
-        "../scripts/rasterize_target_image.py"
+        "../scripts/rasterize_target.py"
 
 
 rule tradeoff_point:
     input:
-        particles=lambda wc: point_inputs(PM, POINTS[wc.point])[0],
-        target=lambda wc: point_inputs(PM, POINTS[wc.point])[1],
+        particles=lambda wc: particles_path(S.experiment(S.tradeoff.experiment).source, POINTS[wc.point].res_tag),
+        target=lambda wc: point_target(wc.point),
     output:
-        "results/tradeoff/runs/{point}.h5",
+        f"{R}/tradeoff/runs/{{point}}.h5",
     wildcard_constraints:
         point=r"[A-Za-z0-9_x-]+",
+    params:
+        settings=lambda wc: morph_params(point_settings(wc.point)[2]),
+        experiment=lambda wc: canonical_json({"tradeoff_point": wc.point, **S.experiment(S.tradeoff.experiment).__dict__}),
+        name=lambda wc: f"tradeoff {wc.point}",
+    log:
+        f"{R}/logs/tradeoff/{{point}}.log",
     benchmark:
-        "results/benchmarks/tradeoff/{point}.tsv"
+        f"{R}/benchmarks/tradeoff/{{point}}.tsv"
+    threads: S.threads
+    resources:
+        mem_mb=lambda wc: mb(morph_memory(experiment_source(S.tradeoff.experiment), point_settings(wc.point)[0],
+                                          point_settings(wc.point)[1], S.mpm, S.domain, "")),
+        runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(S.tradeoff.experiment),
+                                                               point_settings(wc.point)[0], S.domain), S.tradeoff.frames),
+        gpu=S.morph_gpus,
     script:
-        "../scripts/tradeoff_point.py"
+        "../scripts/morph.py"
 
 
 rule make_tradeoff:
     input:
-        runs=expand("results/tradeoff/runs/{point}.h5", point=list(POINTS)),
+        runs=expand(f"{R}/tradeoff/runs/{{point}}.h5", point=list(POINTS)),
     output:
-        "results/tradeoff/tradeoff.csv",
-        "results/tradeoff/tradeoff.md",
-        "results/tradeoff/pareto.png",
+        csv=report(f"{R}/tradeoff/tradeoff.csv", caption="../report/tradeoff.rst", category="Speed / accuracy"),
+        md=f"{R}/tradeoff/tradeoff.md",
+        png=report(f"{R}/tradeoff/pareto.png", caption="../report/pareto.rst", category="Speed / accuracy"),
     params:
         names=list(POINTS),
+        points=canonical_json(POINTS),
+        out_dir=f"{R}/tradeoff",
+    log:
+        f"{R}/logs/make_tradeoff.log",
+    benchmark:
+        f"{R}/benchmarks/make_tradeoff.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
     script:
         "../scripts/make_tradeoff.py"

@@ -1,4 +1,4 @@
 from physmorph.stages import figures_stage
 
 figures_stage(snakemake.params.names, snakemake.input.runs, snakemake.params.shapes, snakemake.input.targets,
-              snakemake.config["target"], "results/figures")
+              snakemake.params.target, snakemake.params.out_dir, log=snakemake.log[0])

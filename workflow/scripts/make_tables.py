@@ -1,3 +1,3 @@
 from physmorph.stages import tables_stage
 
-tables_stage(snakemake.params.names, snakemake.input.runs, "results/tables")
+tables_stage(snakemake.params.names, snakemake.input.runs, snakemake.params.out_dir, log=snakemake.log[0])
