@@ -347,12 +347,14 @@ class Experiment:
     gamma_x: float | None = None  # morph.gamma_x
     grad_iters: int | None = None  # mpm.grad_iters
     plasticity_start: int | None = None  # plasticity.start_frame
+    release_frames: int | None = None  # morph.release_frames
 
 
 # experiment key -> (section, field) it overrides
 EXPERIMENT_OVERRIDES = {"drag": ("mpm", "drag"), "grad_iters": ("mpm", "grad_iters"),
                         "plasticity_start": ("plasticity", "start_frame"), "frames": ("morph", "frames"),
-                        "cameras": ("morph", "cameras"), "gamma": ("morph", "gamma"), "gamma_x": ("morph", "gamma_x")}
+                        "cameras": ("morph", "cameras"), "gamma": ("morph", "gamma"), "gamma_x": ("morph", "gamma_x"),
+                        "release_frames": ("morph", "release_frames")}
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,17 @@ def rebound_percent(curve: np.ndarray) -> float:  # curve [K+1]
     return 100.0 * (a[-1] - best) / gained
 
 
+def release_rebound_percent(curve: np.ndarray, release: np.ndarray) -> float:  # curve [K+1], release [R+1]
+    """Share of a run's gain lost once the control is off: 100 (a_release - a_K) / (a_0 - a_K),
+    with a_release the last frame of the release (0 %: the rest state keeps the morph; 100 %: back
+    where the run started). NaN when the run gained nothing."""
+    a, r = np.asarray(curve, dtype=float), np.asarray(release, dtype=float)
+    gained = a[0] - a[-1]
+    if not gained > 0:
+        return float("nan")
+    return 100.0 * (r[-1] - a[-1]) / gained
+
+
 def delta_e_percent(initial: float, final: float) -> float:
     return 100.0 * (initial - final) / initial if initial > 0 else 0.0
 

@@ -7,7 +7,9 @@ A. physics: J Adam iterations on the control field dFc against the end-layer mas
 B. render: the surface-masked particles as Gaussians Sigma = sigma0^2 F F^T from V ring cameras;
    losses against the target images; g = dL_render/dF (and dL/dx) kept for frame k+1;
 C. plasticity (method full, k >= k0): Chamfer-guided update of Fp (physmorph.plasticity); with
-   plasticity.continuous_stress the control is re-based so the update leaves Fe unchanged.
+   plasticity.continuous_stress the control is re-based so the update leaves Fe unchanged; with
+   plasticity.absorb_control the control is first moved into Fp (the achieved shape becomes the
+   rest state) and the re-based control keeps only its variation over the substeps.
 The state at the end of frame k is the initial state of frame k+1.
 
 Methods: physics_only (A without injection), f_inject (A+B), full (A+B+C), position_inject.
@@ -39,7 +41,7 @@ from physmorph.h5io import stored_checksum
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
-from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step, rebase_control
+from physmorph.plasticity import PlasticityConfig, absorb_control, chamfer_plasticity_step, rebase_control
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
 from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
 from physmorph.surface import SurfaceMaskConfig, update_surface_mask
@@ -67,6 +69,9 @@ class MorphConfig:
     metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
     max_F_norm: float = 50.0  # divergence bound on |F|_max entries
     max_Fp_norm: float = 10.0
+    # after the last frame, this many frames with the control off (no optimisation, no
+    # plasticity): the alpha MSE curve shows how much of the morph the rest state keeps
+    release_frames: int = 0
     progress: bool = True
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -80,6 +85,8 @@ class MorphConfig:
             raise ValueError(f"injection_calibration must be first_frame or every_frame, got {self.injection_calibration!r}")
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
+        if self.release_frames < 0:
+            raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -309,8 +316,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             # The deformation the stress sees is F + dFc (the control enters the stress, see
             # physmorph.mpm.solver): target_rest relaxes Fp toward it, averaged over substeps.
             F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
-            pl = chamfer_plasticity_step(st.x, st.Fp, target.surface_points, cfg.plasticity, tree, F=F_stress)
-            if cfg.plasticity.continuous_stress:
+            Fp_from = absorb_control(st.F, solver.control(), st.Fp) if cfg.plasticity.absorb_control else st.Fp
+            pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress)
+            if cfg.plasticity.continuous_stress or cfg.plasticity.absorb_control:
                 solver.set_control(rebase_control(st.F, solver.control(), st.Fp, pl.Fp))
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
             try:
@@ -334,7 +342,31 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 f"(gap closed {100 * scal['gap_closed']:.0f} %)  "
                 f"physics {stats['loss_initial']:.4g}->{stats['loss_final']:.4g}  "
                 f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s")
-    run.finish(status, {"injection_scale": scale}, json.loads(record))
+    extra = {"injection_scale": scale}
+    if cfg.release_frames and status == "complete":
+        extra["release_alpha_mse"] = json.dumps(release_curve(solver, st, cfg.release_frames,
+                                                              lambda s: metrics_for(s, mask)[0]["alpha_mse"], log, name))
+    run.finish(status, extra, json.loads(record))
+
+
+def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, log, name: str) -> list[float]:
+    """Alpha MSE of ``st`` and of ``frames`` frames simulated from it with the control off (dFc = 0,
+    no optimisation, no plasticity): what the rest state Fp keeps of the morph once nothing holds it
+    (the paper's rebound, section 3.4, without the control that hides it here; docs/convergence.md).
+    A divergence ends the curve (the remaining frames are NaN)."""
+    curve = [alpha_mse(st)]
+    solver.reset_control()
+    for k in range(frames):
+        try:
+            solver.load_state(st)
+            st = solver.rollout()
+        except MPMError as exc:
+            log(f"[{name}] release frame {k + 1}/{frames} diverged: {exc}")
+            return curve + [float("nan")] * (frames - k)
+        curve.append(alpha_mse(st))
+    if frames:
+        log(f"[{name}] released for {frames} frames: alpha_mse {curve[0]:.4f} -> {curve[-1]:.4f}")
+    return curve
 
 
 def asdict_state(st: ParticleState) -> dict:

@@ -56,6 +56,7 @@ class PlasticityConfig:
     jacobian: Literal["paper", "least_squares"] = "paper"
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
+    absorb_control: bool = False  # move the control into Fp before each update (absorb_control); implies continuous_stress
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
@@ -141,6 +142,28 @@ def rebase_control(
     """
     M = np.linalg.solve(Fp_old, Fp_new)  # Fp_old^-1 Fp_new, [N, 3, 3]
     return np.einsum("tnij,njk->tnik", F[None] + control, M) - F[None]
+
+
+def absorb_control(
+    F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
+    control: np.ndarray,  # [Tc, N, 3, 3] dFc per control slot
+    Fp: np.ndarray,  # [N, 3, 3]
+) -> np.ndarray:  # [N, 3, 3]
+    """Fp' = Fp (F + mean_t dFc_t)^-1 F: the rest state in which F alone gives the elastic
+    deformation the control produced, F Fp'^-1 = (F + mean dFc) Fp^-1.
+
+    Why: the persistent control enters the stress and so holds the achieved shape by itself; the
+    rest state never learns it, and with the control switched off the body springs back
+    (docs/convergence.md, the release probe). Moving the control into Fp (then re-basing the
+    control with rebase_control, which leaves it with zero mean) turns the achieved deformation
+    into the material's rest state, the role section 3.4 gives plasticity. Particles whose
+    F + mean dFc is near-singular keep their Fp.
+    """
+    A = F + control.mean(axis=0)  # [N, 3, 3]
+    ok = np.linalg.det(A) > 1e-3
+    out = Fp.copy()
+    out[ok] = Fp[ok] @ np.linalg.solve(A[ok], F[ok])
+    return out
 
 
 @dataclass

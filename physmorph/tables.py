@@ -10,13 +10,14 @@ got from its start towards the ceiling, its target's own particles rendered at r
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
-                               rebound_percent, spread)
+                               rebound_percent, release_rebound_percent, spread)
 from physmorph.runfile import read_metrics
 from physmorph.quality import gap_closed
 
@@ -158,6 +159,10 @@ def plasticity_table(m: dict[str, dict]) -> pd.DataFrame:
         if name in m:
             a = m[name]["alpha_mse"]
             row.update(best=float(np.nanmin(a)), final=float(a[-1]), **{"rebound_%": rebound_percent(a)})
+            if "release_alpha_mse" in m[name]["attrs"]:  # the morph with the control off afterwards
+                release = json.loads(m[name]["attrs"]["release_alpha_mse"])
+                row.update(release_frames=len(release) - 1, release_final=release[-1],
+                           **{"release_rebound_%": release_rebound_percent(a, release)})
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from physmorph.metrics import (delta_e_percent, improvement_percent, matched_convergence_frame,
-                               rebound_percent, spread)
+                               rebound_percent, release_rebound_percent, spread)
 
 
 def test_matched_convergence_frame():
@@ -29,6 +29,14 @@ def test_rebound():
     assert rebound_percent(np.array([1.0, 0.5, 0.2, 0.2])) == 0.0
     assert rebound_percent(np.array([1.0, 0.2, 0.4])) == pytest.approx(25.0)
     assert rebound_percent(np.array([1.0, 1.0])) == 0.0
+
+
+def test_release_rebound():
+    run = np.array([1.0, 0.6, 0.2])  # gained 0.8
+    assert release_rebound_percent(run, np.array([0.2, 0.3, 0.4])) == pytest.approx(25.0)
+    assert release_rebound_percent(run, np.array([0.2, 0.2])) == 0.0  # the rest state keeps it all
+    assert release_rebound_percent(run, np.array([0.2, 1.0])) == pytest.approx(100.0)  # back at the start
+    assert np.isnan(release_rebound_percent(np.array([1.0, 1.0]), np.array([1.0, 0.5])))  # nothing gained
 
 
 def test_spread_reproduces_paper_source_invariance():

@@ -5,6 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from physmorph.plasticity import (
+    absorb_control,
     PlasticityConfig,
     chamfer_plasticity_step,
     displacement_jacobian,
@@ -165,3 +166,24 @@ def test_rebase_control_leaves_the_elastic_deformation_unchanged():
     Fe_new = (F[None] + new) @ np.linalg.inv(Fp_new)[None]
     np.testing.assert_allclose(Fe_new, Fe_old, atol=1e-12)
     np.testing.assert_allclose(rebase_control(F, ctrl, Fp_old, Fp_old), ctrl, atol=1e-12)
+
+
+def test_absorbed_control_becomes_the_rest_state():
+    """After absorb_control and the re-base, F alone reproduces the mean elastic deformation the
+    control produced, F Fp'^-1 = (F + mean dFc) Fp^-1, the re-based control has zero mean over
+    the substeps, and each slot's Fe is unchanged; a near-singular particle keeps its Fp."""
+    rng = np.random.default_rng(2)
+    N, T = 6, 4
+    F = np.eye(3) + 0.2 * rng.standard_normal((N, 3, 3))
+    ctrl = 0.1 * rng.standard_normal((T, N, 3, 3))
+    ctrl[:, 0] = -F[0][None] / 1.0  # F + dFc = 0 for particle 0: nothing to absorb there
+    Fp = np.eye(3) + 0.1 * rng.standard_normal((N, 3, 3))
+    Fp_new = absorb_control(F, ctrl, Fp)
+    np.testing.assert_allclose(Fp_new[0], Fp[0])
+    mean = ctrl.mean(axis=0)
+    np.testing.assert_allclose(F[1:] @ np.linalg.inv(Fp_new[1:]), (F[1:] + mean[1:]) @ np.linalg.inv(Fp[1:]), atol=1e-12)
+    rebased = rebase_control(F, ctrl, Fp, Fp_new)
+    np.testing.assert_allclose(rebased[:, 1:].mean(axis=0), 0.0, atol=1e-12)
+    Fe_old = (F[None] + ctrl) @ np.linalg.inv(Fp)[None]
+    Fe_new = (F[None] + rebased) @ np.linalg.inv(Fp_new)[None]
+    np.testing.assert_allclose(Fe_new, Fe_old, atol=1e-12)
