@@ -1,8 +1,10 @@
 """Shared pytest fixtures.
 
 mesh_dir: the raw benchmark meshes: env PHYSMORPH_MESH_DIR, else the mirror <repo>/../shared/meshes
-(where CI has it), else <repo>/resources/meshes/ (where `make tables` downloads them). Tests that
-need them are skipped, saying where they looked, when none of these holds the four meshes.
+(where CI has it), else <repo>/resources/meshes/ (where `make tables` downloads them); when none
+holds the four meshes they are downloaded there (config/config.yaml's pinned URLs and checksums).
+Tests that need them are skipped, saying where they looked and why the download failed, only when
+that fails too (no network).
 """
 
 from __future__ import annotations
@@ -35,13 +37,29 @@ def find_mesh_dir() -> Path | None:
     return None
 
 
+def fetch_raw_meshes(dest: Path, sources: dict | None = None) -> Path:
+    """Download the four raw meshes into ``dest`` (sources: file name -> physmorph.config.RawMesh,
+    default config/config.yaml's raw_meshes), each checked against its published SHA-256."""
+    from physmorph.config import load_settings
+    from physmorph.meshes import fetch_mesh
+
+    if sources is None:
+        sources = load_settings(REPO_ROOT / "config" / "config.yaml").raw_meshes
+    for name, sha256 in RAW_MESH_SHA256.items():
+        fetch_mesh(name, sources[name].url, sha256, dest)
+    return dest
+
+
 @pytest.fixture(scope="session")
 def mesh_dir() -> Path:
     found = find_mesh_dir()
     if found is None:
-        looked = ", ".join(str(p) for p in mesh_dir_candidates())
-        pytest.skip(f"raw benchmark meshes not found (looked in {looked}; set PHYSMORPH_MESH_DIR or run "
-                    "`make tables` once to download them into resources/meshes/)")
+        try:
+            found = fetch_raw_meshes(REPO_ROOT / "resources" / "meshes")
+        except Exception as exc:  # no network, a proxy, a moved URL: say so and skip
+            looked = ", ".join(str(p) for p in mesh_dir_candidates())
+            pytest.skip(f"raw benchmark meshes not found (looked in {looked}) and the download failed ({exc}); "
+                        "set PHYSMORPH_MESH_DIR to a directory holding them")
     return found
 
 
