@@ -17,20 +17,10 @@ import numpy as np
 
 from physmorph.cameras import ring_cameras
 from physmorph.config import TargetConfig
+from physmorph.layout import PaperLayout
 from physmorph.metrics import FIGURE_NAMES
 from physmorph.runfile import read_metrics
 
-FIGURE_RUNS = {
-    "sequences_main": ["iso_bunny_full", "iso_cow_full", "iso_duck_full"],
-    "sequences_cross_shape": ["duck_cow_full", "cow_bunny_full", "cow_duck_full", "duck_bunny_full"],
-    "sequences_letters": ["iso_A_full", "cow_S_full", "duck_C_full"],
-    "drag_ablation": ["iso_bunny_physics_only", "iso_bunny_full_d05", "iso_bunny_full"],
-    "trajectory_divergence": ["iso_duck_physics_only", "iso_duck_full"],
-    "trajectory_frames": ["iso_duck_physics_only", "iso_duck_full"],
-    "plasticity_effect": ["iso_bunny_f_inject", "iso_bunny_full"],
-    "optimization_traces": ["iso_bunny_full"],
-    "gradient_coverage": ["iso_bunny_full"],
-}
 
 
 def _plt():
@@ -198,11 +188,13 @@ def coverage_figure(run: Path | None, target_h5: Path | None, out_png: Path, cam
     plt.close(fig)
 
 
-def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: dict, out_dir: Path) -> list[Path]:
-    """Every figure of FIGURE_NAMES as out_dir/{name}.png."""
+def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: dict, out_dir: Path,
+                  layout: PaperLayout) -> list[Path]:
+    """Every figure of FIGURE_NAMES as out_dir/{name}.png; ``layout`` (physmorph.layout) names the
+    runs of each figure."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    sel = {name: {r: runs.get(r) for r in rs} for name, rs in FIGURE_RUNS.items()}
+    sel = {name: {r: runs.get(r) for r in layout.figures.get(name, ())} for name in FIGURE_NAMES}
     for name in ("sequences_main", "sequences_cross_shape", "sequences_letters"):
         sequence_figure(sel[name], target_cfg, out / f"{name}.png", targets=targets)
     curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], out / "drag_ablation.png",
@@ -219,5 +211,11 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
                                                ("loss_render", "render loss"), ("physics_loss", "physics loss")],
                   out / "optimization_traces.png", "optimization traces: iso -> bunny (full)",
                   logy=("grad_F_norm", "physics_loss"))
-    coverage_figure(runs.get("iso_bunny_full"), targets.get("bunny"), out / "gradient_coverage.png")
+    coverage = next(iter(layout.figures.get("gradient_coverage", ())), None)
+    run = runs.get(coverage) if coverage else None
+    target = None
+    if run is not None and Path(run).exists():
+        with h5py.File(run, "r") as f:
+            target = targets.get(run_target_shape(f, coverage))
+    coverage_figure(run, target, out / "gradient_coverage.png")
     return [out / f"{n}.png" for n in FIGURE_NAMES]

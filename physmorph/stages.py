@@ -143,21 +143,24 @@ def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: 
         return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record)
 
 
-def tables_stage(names: list[str], runs: list[str], out_dir: str, log=None) -> dict:
+def tables_stage(names: list[str], runs: list[str], layout: str, out_dir: str, log=None) -> dict:
+    """``layout``: the YAML naming the runs of each table and the paper's numbers (physmorph.layout)."""
+    from physmorph.layout import load_layout
     from physmorph.tables import build_tables
 
     with stage_log(log):
-        return build_tables(dict(zip(names, runs)), out_dir)
+        return build_tables(dict(zip(names, runs)), out_dir, load_layout(layout))
 
 
 def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target,
-                  out_dir: str, log=None) -> list:
+                  layout: str, out_dir: str, log=None) -> list:
     from physmorph.figures import build_figures
+    from physmorph.layout import load_layout
 
     t = typed(TargetConfig, target, "target")
     with stage_log(log):
         return build_figures({n: Path(p) for n, p in zip(names, runs)}, {s: Path(p) for s, p in zip(shapes, targets)},
-                             t, Path(out_dir))
+                             t, Path(out_dir), load_layout(layout))
 
 
 def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, log=None):

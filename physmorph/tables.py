@@ -1,6 +1,7 @@
 """The paper's tables from run files: CSV, Markdown and LaTeX, with the paper's figures beside ours.
 
-Each table reads experiments by name (the names of config/config.yaml). An experiment that was
+Each table reads experiments by name (the names of config/config.yaml), as the layout
+(physmorph.layout, config/paper_results.yaml) lists them with the paper's numbers. An experiment that was
 not run in this profile shows as empty cells, so a partial profile still produces every table.
 The convergence table has one row per run and reports, besides raw alpha MSE (which depends on
 image size, particle count and sigma0), the share of the reachable gap closed: how far each run
@@ -18,18 +19,9 @@ import pandas as pd
 
 from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
                                rebound_percent, release_rebound_percent, spread)
+from physmorph.layout import PaperLayout, TableLayout
 from physmorph.runfile import read_metrics
 from physmorph.quality import gap_closed
-
-
-# The paper's figures (SPEC.md section 5).
-PAPER_MAIN = {"bunny": (0.0799, 0.0593, 25.8), "cow": (0.0777, 0.0694, 10.8), "duck": (0.0689, 0.0345, 49.9)}
-PAPER_COMPONENTS = {"iso_bunny_physics_only_d05": (0.1152, 93.8), "iso_bunny_f_inject_d05": (0.1043, 95.8),
-                    "iso_bunny_full_d05": (0.1040, 95.9)}
-PAPER_DRAG = {"iso_bunny_physics_only": (0.0609, 0.0741), "iso_bunny_full_d05": (0.0735, 0.0786),
-              "iso_bunny_full": (0.0546, 0.0637)}
-PAPER_SOURCES = {"iso_bunny_full": 0.0546, "cow_bunny_full": 0.0460, "duck_bunny_full": 0.0558}
-SHAPE_RUNS = ("duck_cow_full", "cow_bunny_full", "cow_duck_full", "iso_A_full", "cow_S_full", "duck_C_full")
 
 
 def _load(runs: dict[str, str | Path]) -> dict[str, dict]:
@@ -54,27 +46,12 @@ def _closed_percent(r: dict) -> tuple[float, float]:
     return 100.0 * gap_closed(a[0], a[int(np.nanargmin(a))], c), 100.0 * gap_closed(a[0], a[-1], c)
 
 
-def paper_alpha_mse(name: str) -> tuple[float, str]:
-    """The paper's alpha MSE for experiment ``name`` and which one it is, or (nan, "")."""
-    if name in PAPER_DRAG:
-        return PAPER_DRAG[name][0], "best (drag ablation)"
-    if name in PAPER_SOURCES:
-        return PAPER_SOURCES[name], "best (source invariance)"
-    for target, (p_phys, p_ours, _) in PAPER_MAIN.items():
-        if name == f"iso_{target}_physics_only":
-            return p_phys, "matched frame (main)"
-        if name == f"iso_{target}_full":
-            return p_ours, "matched frame (main)"
-    if name in PAPER_COMPONENTS:
-        return PAPER_COMPONENTS[name][0], "final (component ablation)"
-    return np.nan, ""
-
-
-def main_table(m: dict[str, dict]) -> pd.DataFrame:
+def main_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     rows = []
-    for target, (p_phys, p_ours, p_imp) in PAPER_MAIN.items():
-        phys, full = m.get(f"iso_{target}_physics_only"), m.get(f"iso_{target}_full")
-        row = {"target": target, "paper_physics_only": p_phys, "paper_ours": p_ours, "paper_improvement_%": p_imp}
+    for target, c in t.main.items():
+        phys, full = m.get(c.physics_only), m.get(c.full)
+        row = {"target": target, "paper_physics_only": c.paper_physics_only, "paper_ours": c.paper_full,
+               "paper_improvement_%": c.paper_improvement_percent}
         if phys is not None and full is not None:
             k = min(matched_convergence_frame(phys["alpha_mse"]), len(full["alpha_mse"]) - 1)
             a, b = phys["alpha_mse"][k], full["alpha_mse"][k]
@@ -83,10 +60,10 @@ def main_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def components_table(m: dict[str, dict]) -> pd.DataFrame:
+def components_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     rows = []
-    for name, (p_a, p_e) in PAPER_COMPONENTS.items():
-        row = {"experiment": name, "paper_alpha_mse": p_a, "paper_delta_E_%": p_e}
+    for name, p in t.components.items():
+        row = {"experiment": name, "paper_alpha_mse": p.alpha_mse, "paper_delta_E_%": p.delta_e_percent}
         if name in m:
             r = m[name]
             phys = r["physics_loss"]
@@ -95,10 +72,10 @@ def components_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def drag_table(m: dict[str, dict]) -> pd.DataFrame:
+def drag_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     rows = []
-    for name, (p_best, p_final) in PAPER_DRAG.items():
-        row = {"experiment": name, "paper_best": p_best, "paper_final": p_final}
+    for name, p in t.drag.items():
+        row = {"experiment": name, "paper_best": p.best, "paper_final": p.final}
         if name in m:
             a = m[name]["alpha_mse"]
             row.update(best=float(np.nanmin(a)), final=float(a[-1]))
@@ -106,12 +83,12 @@ def drag_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def source_table(m: dict[str, dict]) -> pd.DataFrame:
+def source_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     """Best alpha MSE and share of the reachable gap closed (best, final frame) per source, then
     mean, sample std and sigma/mu % of each column."""
     cols = ("paper_best", "best", "closed_best_%", "closed_final_%")
     rows = []
-    for n, p in PAPER_SOURCES.items():
+    for n, p in t.source_invariance.items():
         row = {"experiment": n, "paper_best": p, "best": np.nan, "closed_best_%": np.nan, "closed_final_%": np.nan}
         if n in m:
             row["best"] = float(np.nanmin(m[n]["alpha_mse"]))
@@ -127,7 +104,7 @@ def source_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def convergence_table(m: dict[str, dict]) -> pd.DataFrame:
+def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
     """One row per run: alpha MSE at frame 0, best (and its frame) and final frame, the ceiling
     (the target's own particles at rest, physmorph.quality), the share of the reachable gap closed
     at the best and final frame (%), silhouette IoU at frame 0, its maximum and final frame, the
@@ -139,7 +116,7 @@ def convergence_table(m: dict[str, dict]) -> pd.DataFrame:
         closed_best, closed_final = _closed_percent(r)
         iou = np.asarray(r["iou"], dtype=float) if "iou" in r else np.full(len(a), np.nan)
         has_iou = bool(np.isfinite(iou).any())
-        paper, paper_which = paper_alpha_mse(name)
+        paper, paper_which = layout.paper_alpha_mse(name)
         rows.append({"experiment": name, "method": str(r["attrs"].get("method", "")), "frames": len(a) - 1,
                      "alpha_mse_0": a[0], "alpha_mse_best": a[k], "best_frame": k, "alpha_mse_final": a[-1],
                      "ceiling": _ceiling(r), "closed_best_%": closed_best, "closed_final_%": closed_final,
@@ -152,10 +129,13 @@ def convergence_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=columns)
 
 
-def plasticity_table(m: dict[str, dict]) -> pd.DataFrame:
+def plasticity_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     rows = []
-    for name, label in (("iso_bunny_full", "with plasticity"), ("iso_bunny_f_inject", "without plasticity")):
-        row = {"experiment": name, "variant": label, "paper_rebound_%": "< 8" if label == "with plasticity" else ""}
+    pair = t.plasticity
+    variants = [] if pair is None else [(pair.with_, "with plasticity", pair.paper_rebound),
+                                        (pair.without, "without plasticity", "")]
+    for name, label, paper in variants:
+        row = {"experiment": name, "variant": label, "paper_rebound_%": paper}
         if name in m:
             a = m[name]["alpha_mse"]
             row.update(best=float(np.nanmin(a)), final=float(a[-1]), **{"rebound_%": rebound_percent(a)})
@@ -167,9 +147,9 @@ def plasticity_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def shapes_table(m: dict[str, dict]) -> pd.DataFrame:
+def shapes_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     rows = []
-    for name in SHAPE_RUNS:
+    for name in t.shapes:
         row = {"experiment": name}
         if name in m:
             r = m[name]
@@ -192,14 +172,16 @@ def timing_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def build_tables(runs: dict[str, str | Path], out_dir: str | Path) -> dict[str, pd.DataFrame]:
-    """Write every table as results/tables/{name}.csv, .md and .tex; returns the DataFrames."""
+def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: PaperLayout) -> dict[str, pd.DataFrame]:
+    """Write every table as {out_dir}/{name}.csv, .md and .tex; returns the DataFrames. ``layout``
+    (physmorph.layout): which runs each table compares and the paper's numbers."""
     m = _load(runs)
+    t = layout.tables
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tables = {"main": main_table(m), "ablation_components": components_table(m), "ablation_drag": drag_table(m),
-              "source_invariance": source_table(m), "plasticity": plasticity_table(m), "shapes": shapes_table(m),
-              "timing": timing_table(m), "convergence": convergence_table(m)}
+    tables = {"main": main_table(m, t), "ablation_components": components_table(m, t), "ablation_drag": drag_table(m, t),
+              "source_invariance": source_table(m, t), "plasticity": plasticity_table(m, t), "shapes": shapes_table(m, t),
+              "timing": timing_table(m), "convergence": convergence_table(m, layout)}
     assert set(tables) == set(TABLE_NAMES), "physmorph.metrics.TABLE_NAMES lists the tables written here"
     for name, df in tables.items():
         df.to_csv(out / f"{name}.csv", index=False)

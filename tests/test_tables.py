@@ -4,13 +4,18 @@ A run file as build_tables reads it (physmorph.morph.read_metrics): per-frame me
 /metrics (index 0 = initial state) and the run's attributes (method, ceiling_alpha_mse, ...).
 """
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 import pandas as pd
 import pytest
 
 from physmorph.metrics import TABLE_NAMES
+from physmorph.layout import load_layout
 from physmorph.tables import build_tables
+
+LAYOUT = load_layout(Path(__file__).resolve().parents[1] / "config" / "paper_results.yaml")
 
 
 def write_run(path, alpha_mse, attrs, iou=None):
@@ -49,7 +54,7 @@ def runs(tmp_path):
 
 def test_convergence_table_reports_the_share_of_the_reachable_gap(runs, tmp_path):
     out = tmp_path / "tables"
-    tables = build_tables(runs, out)
+    tables = build_tables(runs, out, LAYOUT)
     assert "convergence" in TABLE_NAMES and set(tables) == set(TABLE_NAMES)
     conv = pd.read_csv(out / "convergence.csv").set_index("experiment")
     assert list(conv.index) == ["iso_bunny_full", "duck_cow_full"]  # only the runs that were made
@@ -80,7 +85,7 @@ def test_share_closed_is_bounded_when_the_source_starts_at_the_ceiling(tmp_path)
     c = 0.01
     run = write_run(tmp_path / "bunny_bunny_full.h5", [c, c, c * 1.2],
                     {"method": "full", "ceiling_alpha_mse": c, "ceiling_iou": 0.9})
-    conv = build_tables({"bunny_bunny_full": run}, tmp_path / "tables")["convergence"].iloc[0]
+    conv = build_tables({"bunny_bunny_full": run}, tmp_path / "tables", LAYOUT)["convergence"].iloc[0]
     assert conv["closed_best_%"] == pytest.approx(100.0)
     assert np.isfinite(conv["closed_final_%"]) and -500 < conv["closed_final_%"] < 0
 
@@ -88,4 +93,4 @@ def test_share_closed_is_bounded_when_the_source_starts_at_the_ceiling(tmp_path)
 def test_run_without_ceiling_names_the_file(tmp_path):
     run = write_run(tmp_path / "iso_duck_full.h5", [0.05, 0.03], {"method": "full"})
     with pytest.raises(ValueError, match=r"iso_duck_full\.h5.*ceiling_alpha_mse.*rerun the rasterize_target"):
-        build_tables({"iso_duck_full": run}, tmp_path / "tables")
+        build_tables({"iso_duck_full": run}, tmp_path / "tables", LAYOUT)

@@ -3,6 +3,7 @@ rule make_figures:
     input:
         runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=S.tables.experiments),
         targets=[target_path(s) for s in S.tables.shapes],
+        layout="config/paper_results.yaml",  # which runs each figure shows
     output:
         [report(f"{R}/figures/{f}.png", caption="../report/figure.rst", category="Figures", labels={"figure": f})
          for f in FIGURES],

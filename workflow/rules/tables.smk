@@ -2,6 +2,7 @@
 rule make_tables:
     input:
         runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=S.tables.experiments),
+        layout="config/paper_results.yaml",  # which runs each table compares, the paper's numbers
     output:
         csv=[report(f"{R}/tables/{t}.csv", caption="../report/table.rst", category="Tables", labels={"table": t})
              for t in TABLES],
