@@ -56,7 +56,7 @@ class PlasticityConfig:
     jacobian: Literal["paper", "least_squares"] = "paper"
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
-    absorb_control: bool = True  # move the control into Fp before each update (absorb_control); implies continuous_stress
+    absorb_control: bool = False  # move the control into Fp before each update (absorb_control); implies continuous_stress
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
