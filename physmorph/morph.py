@@ -318,13 +318,14 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
             Fp_from = absorb_control(st.F, solver.control(), st.Fp) if cfg.plasticity.absorb_control else st.Fp
             pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress)
-            if cfg.plasticity.continuous_stress or cfg.plasticity.absorb_control:
-                solver.set_control(rebase_control(st.F, solver.control(), st.Fp, pl.Fp))
+            Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
-            try:
+            try:  # before the re-base: a bad Fp is named as such, not as a bad control
                 _check_state(st, k, cfg)
             except MorphDivergenceError as exc:
                 raise MorphDivergenceError(f"{exc} (completed frames are kept in {partial})") from exc
+            if cfg.plasticity.continuous_stress or cfg.plasticity.absorb_control:
+                solver.set_control(rebase_control(st.F, solver.control(), Fp_old, pl.Fp))
         t4 = time.time()
         m, per_view = metrics_for(st, mask)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
