@@ -62,8 +62,10 @@ class MorphConfig:
     gamma_x: float = 0.1  # render-x gain (position_inject only), relative
     # "first_frame": c = gamma |grad mass| / |grad inject| measured once (see calibrate_injection);
     # "every_frame": measured again each frame, so the injection stays gamma of the mass
-    # gradient as the mass loss converges (one more backward pass per frame)
-    injection_calibration: Literal["first_frame", "every_frame"] = "every_frame"
+    # gradient as the mass loss converges (one more backward pass per frame);
+    # "absolute": no calibration, c = gamma (gamma_x): the paper's eq. 3 as printed, in this
+    # project's loss units (the F-vs-position comparison at equal gain, docs/convergence.md)
+    injection_calibration: Literal["first_frame", "every_frame", "absolute"] = "every_frame"
     cameras: int | None = None  # render-loss views, evenly spaced on the ring (None: all)
     save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
     metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
@@ -81,8 +83,9 @@ class MorphConfig:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
-        if self.injection_calibration not in ("first_frame", "every_frame"):
-            raise ValueError(f"injection_calibration must be first_frame or every_frame, got {self.injection_calibration!r}")
+        if self.injection_calibration not in ("first_frame", "every_frame", "absolute"):
+            raise ValueError("injection_calibration must be first_frame, every_frame or absolute, "
+                             f"got {self.injection_calibration!r}")
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
         if self.release_frames < 0:
@@ -274,7 +277,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         solver.load_state(st)
         try:
             recalibrate = np.isnan(scale) or cfg.injection_calibration == "every_frame"
-            if want_grad and recalibrate and (np.any(g_F) or np.any(g_x)):
+            if want_grad and cfg.injection_calibration == "absolute":
+                scale = cfg.gamma if inject_F else cfg.gamma_x
+            elif want_grad and recalibrate and (np.any(g_F) or np.any(g_x)):
                 scale = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,
                                             g_F if inject_F else None, g_x if inject_x else None)
                 if cfg.injection_calibration == "first_frame":
@@ -316,7 +321,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             # The deformation the stress sees is F + dFc (the control enters the stress, see
             # physmorph.mpm.solver): target_rest relaxes Fp toward it, averaged over substeps.
             F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
-            Fp_from = absorb_control(st.F, solver.control(), st.Fp) if cfg.plasticity.absorb_control else st.Fp
+            Fp_from = (absorb_control(st.F, solver.control(), st.Fp, cfg.plasticity.absorb_rate)
+                       if cfg.plasticity.absorb_control else st.Fp)
             pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress)
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)

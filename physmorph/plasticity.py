@@ -57,6 +57,7 @@ class PlasticityConfig:
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
     absorb_control: bool = False  # move the control into Fp before each update (absorb_control); implies continuous_stress
+    absorb_rate: float = 1.0  # share of the control moved into Fp per update (absorb_control)
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
@@ -68,6 +69,8 @@ class PlasticityConfig:
             raise ValueError(f"plasticity.det_bounds must satisfy 0 < lo <= 1 <= hi, got {self.det_bounds}")
         if self.max_anisotropy < 1:
             raise ValueError(f"plasticity.max_anisotropy must be >= 1, got {self.max_anisotropy}")
+        if not 0 < self.absorb_rate <= 1:
+            raise ValueError(f"plasticity.absorb_rate must be in (0, 1], got {self.absorb_rate}")
 
 
 def nearest_target_displacement(x: np.ndarray, target_tree: cKDTree, target_points: np.ndarray) -> np.ndarray:
@@ -148,9 +151,11 @@ def absorb_control(
     F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
     control: np.ndarray,  # [Tc, N, 3, 3] dFc per control slot
     Fp: np.ndarray,  # [N, 3, 3]
+    rate: float = 1.0,
 ) -> np.ndarray:  # [N, 3, 3]
     """Fp' = Fp (F + mean_t dFc_t)^-1 F: the rest state in which F alone gives the elastic
-    deformation the control produced, F Fp'^-1 = (F + mean dFc) Fp^-1.
+    deformation the control produced, F Fp'^-1 = (F + mean dFc) Fp^-1. With rate r < 1 only that
+    share moves: Fp' = (1 - r) Fp + r Fp (F + mean dFc)^-1 F.
 
     Why: the persistent control enters the stress and so holds the achieved shape by itself; the
     rest state never learns it, and with the control switched off the body springs back
@@ -162,7 +167,7 @@ def absorb_control(
     A = F + control.mean(axis=0)  # [N, 3, 3]
     ok = np.linalg.det(A) > 1e-3
     out = Fp.copy()
-    out[ok] = Fp[ok] @ np.linalg.solve(A[ok], F[ok])
+    out[ok] = (1.0 - rate) * Fp[ok] + rate * (Fp[ok] @ np.linalg.solve(A[ok], F[ok]))
     return out
 
 
