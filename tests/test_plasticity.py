@@ -187,3 +187,20 @@ def test_absorbed_control_becomes_the_rest_state():
     Fe_old = (F[None] + ctrl) @ np.linalg.inv(Fp)[None]
     Fe_new = (F[None] + rebased) @ np.linalg.inv(Fp_new)[None]
     np.testing.assert_allclose(Fe_new, Fe_old, atol=1e-12)
+
+
+def test_absorb_rate_moves_that_share_of_the_control_into_fp():
+    """absorb_control with rate r blends the old Fp and the fully absorbed one linearly; r = 1 is
+    the full absorption, and the rate is validated."""
+    rng = np.random.default_rng(3)
+    N, T = 5, 3
+    F = np.eye(3) + 0.1 * rng.standard_normal((N, 3, 3))
+    ctrl = 0.05 * rng.standard_normal((T, N, 3, 3))
+    Fp = np.eye(3) + 0.05 * rng.standard_normal((N, 3, 3))
+    full = absorb_control(F, ctrl, Fp)
+    np.testing.assert_allclose(absorb_control(F, ctrl, Fp, rate=1.0), full)
+    np.testing.assert_allclose(absorb_control(F, ctrl, Fp, rate=0.25), 0.75 * Fp + 0.25 * full, atol=1e-12)
+    assert not np.allclose(full, Fp)
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="absorb_rate"):
+            PlasticityConfig(absorb_rate=bad)
