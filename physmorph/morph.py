@@ -38,20 +38,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from physmorph.h5io import stored_checksum
+from physmorph.injection import calibrate_injection
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
 from physmorph.plasticity import PlasticityConfig, absorb_control, chamfer_plasticity_step, rebase_control
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
+from physmorph.stability import MorphDivergenceError, StabilityMonitor, anisotropy, check_state  # noqa: F401 (re-exported)
 from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
 from physmorph.surface import SurfaceMaskConfig, update_surface_mask
 from physmorph.targets import load_target
 
 METHODS = ("physics_only", "f_inject", "full", "position_inject")
-
-
-class MorphDivergenceError(RuntimeError):
-    """A run diverged; the message names the frame and the quantity."""
 
 
 @dataclass(frozen=True)
@@ -93,89 +91,6 @@ class MorphConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-def _anisotropy(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N]
-    s = np.linalg.svd(M, compute_uv=False)
-    return s[:, 0] / np.maximum(s[:, 2], 1e-12)
-
-
-def _check_state(st: ParticleState, frame: int, cfg: MorphConfig) -> None:
-    for name, arr, bound in (("x", st.x, 1e6), ("F", st.F, cfg.max_F_norm), ("Fp", st.Fp, cfg.max_Fp_norm)):
-        if not np.isfinite(arr).all():
-            p = int(np.argwhere(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0, 0])
-            raise MorphDivergenceError(f"frame {frame}: {name} became non-finite (particle {p})")
-        big = np.abs(arr).reshape(len(arr), -1).max(axis=1)
-        if big.max() > bound:
-            p = int(np.argmax(big))
-            raise MorphDivergenceError(f"frame {frame}: |{name}| = {big[p]:.3g} exceeds {bound:g} (particle {p})")
-
-
-class StabilityMonitor:
-    """Warns (once per streak) when a run leaves the stable region: many particles' Fp pinned at
-    a clamp bound of the isochoric projection (det bounds or anisotropy) for ``pinned_frames``
-    frames in a row, or alpha MSE rising for ``rising_frames`` frames in a row."""
-
-    def __init__(self, plasticity: PlasticityConfig, log, pinned_share: float = 0.01, pinned_frames: int = 5,
-                 rising_frames: int = 8):
-        self.cfg, self.log = plasticity, log
-        self.pinned_share, self.pinned_frames, self.rising_frames = pinned_share, pinned_frames, rising_frames
-        self.pinned_streak = self.rising_streak = 0
-        self.last_alpha = None
-
-    def update(self, frame: int, Fp: np.ndarray, alpha_mse: float) -> list[str]:  # Fp [N, 3, 3]
-        out = []
-        lo, hi = self.cfg.det_bounds
-        det = np.linalg.det(Fp)
-        tol = 1e-3
-        pinned = (det <= lo * (1 + tol)) | (det >= hi * (1 - tol)) | (_anisotropy(Fp) >= self.cfg.max_anisotropy * (1 - tol))
-        share = float(pinned.mean())
-        self.pinned_streak = self.pinned_streak + 1 if share >= self.pinned_share else 0
-        if self.pinned_streak == self.pinned_frames:
-            out.append(f"frame {frame}: {100 * share:.1f} % of particles have Fp pinned at a clamp bound "
-                       f"(det in [{lo:g}, {hi:g}], anisotropy <= {self.cfg.max_anisotropy:g}) for "
-                       f"{self.pinned_frames} frames; plasticity.eta may be too large")
-        rising = self.last_alpha is not None and alpha_mse > self.last_alpha
-        self.last_alpha = alpha_mse
-        self.rising_streak = self.rising_streak + 1 if rising else 0
-        if self.rising_streak == self.rising_frames:
-            out.append(f"frame {frame}: alpha MSE rose for {self.rising_frames} frames in a row (now {alpha_mse:.4g})")
-        for msg in out:
-            self.log(msg)
-        return out
-
-    def state(self) -> dict:
-        """The streaks, for a checkpoint (a resumed run warns as the uninterrupted one would)."""
-        return {"monitor_pinned_streak": self.pinned_streak, "monitor_rising_streak": self.rising_streak,
-                "monitor_last_alpha": np.nan if self.last_alpha is None else float(self.last_alpha)}
-
-    def restore(self, state: dict) -> None:
-        self.pinned_streak = int(state["monitor_pinned_streak"])
-        self.rising_streak = int(state["monitor_rising_streak"])
-        last = float(state["monitor_last_alpha"])
-        self.last_alpha = None if np.isnan(last) else last
-
-
-def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None, g_x: np.ndarray | None) -> float:
-    """Scale c such that the injected adjoint's dFc gradient has norm gamma x the mass loss's.
-
-    The paper injects gamma * dL_render/dF with gamma = 0.1 in its own code's loss units, which
-    we do not share (our mass loss is in kg^2, our DT loss is per pixel and per image height).
-    To make gamma mean the same thing at every resolution we calibrate once, at the first frame
-    that has a render gradient: both adjoints are pulled back to dFc through the same rollout
-    (backward is linear in the injected adjoint) and c = gamma |grad_mass| / |grad_inject|.
-    The run then injects c * g for every later frame (c is stored in the run file).
-    """
-    solver.forward()
-    solver.backward(None, None)
-    g_mass = solver.control_gradient()
-    # The injected part alone (a difference of the two would drown in float32 round-off).
-    solver.backward(g_F, g_x, include_mass_loss=False)
-    g_inj = solver.control_gradient()
-    n_mass, n_inj = float(np.linalg.norm(g_mass)), float(np.linalg.norm(g_inj))
-    if not (n_inj > 0 and np.isfinite(n_inj) and np.isfinite(n_mass)):
-        return 0.0
-    return gamma * n_mass / n_inj
 
 
 def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
@@ -229,7 +144,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         det = np.linalg.det(st.Fp)
         d, _ = tree.query(st.x, k=1)
         return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
-                "fp_anisotropy_max": float(_anisotropy(st.Fp).max()),
+                "fp_anisotropy_max": float(anisotropy(st.Fp).max()),
                 "elastic_energy": float(elastic_energy(st, cfg.mpm)), "total_volume": float(total_volume(st)),
                 "mask_size": int(mask.sum()) if need_mask else np.nan,
                 "mask_fraction": float(mask.mean()) if need_mask else np.nan,
@@ -288,7 +203,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
                                             grad_x_final=c * g_x if inject_x else None)
             new = solver.state_at(cfg.mpm.substeps)
-            _check_state(new, k, cfg)
+            check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:
             msg = str(exc) if str(exc).startswith("frame") else f"frame {k}: {exc}"
             if cfg.method == "position_inject":
@@ -327,7 +242,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
             try:  # before the re-base: a bad Fp is named as such, not as a bad control
-                _check_state(st, k, cfg)
+                check_state(st, k, cfg)
             except MorphDivergenceError as exc:
                 raise MorphDivergenceError(f"{exc} (completed frames are kept in {partial})") from exc
             if cfg.plasticity.continuous_stress or cfg.plasticity.absorb_control:

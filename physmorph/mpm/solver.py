@@ -18,10 +18,8 @@ grid mass of x_T (same quadratic B-spline as physmorph.grid.splat_mass) with the
 
 Backward: the adjoint of each substep is written by hand (reverse of G2P, grid update, P2G);
 the per-substep particle state (x, v, C, F) is stored in the forward and the grid is recomputed
-in the backward. The derivative of the rotation R (which Taichi's autodiff cannot do for
-ti.svd) is hand-written: the SVD formula dR = U X V^T, X_ij = (M_ij - M_ji) / (s_i + s_j),
-written without U, V as dR = R omega^, (tr S - S) omega = axial(R^T dFe - dFe^T R), S = R^T Fe,
-with the pair sums s_i + s_j (eigenvalues of tr S - S) floored for the singular/inverted cases.
+in the backward (P2G again, keeping A, Fe and its polar factors). The stress model and its
+hand-written differential, the rotation derivative included, are in physmorph.mpm.stress.
 """
 
 
@@ -32,118 +30,10 @@ from ..grid import BOUNDARY_CELLS, Grid
 from ..taichi_runtime import init_taichi
 from .config import MPMConfig, MPMDivergenceError, MPMStateError
 from .state import ParticleState
+from .stress import evaluate_stress, make_stress_funcs  # noqa: F401 (evaluate_stress re-exported)
 
-# Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
-# dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
-_ROT_DENOM_FLOOR = 1e-6
 # |F| or |v| entries above this are treated as a divergence (Inf follows soon after).
 _BLOWUP = 1e8
-
-
-@ti.func
-def _cofactor(F):
-    """cof(F) = J F^-T, columns c0 = f1 x f2, c1 = f2 x f0, c2 = f0 x f1 (polynomial in F)."""
-    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
-    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
-    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
-    c0 = f1.cross(f2)
-    c1 = f2.cross(f0)
-    c2 = f0.cross(f1)
-    return ti.Matrix.cols([c0, c1, c2])
-
-
-@ti.func
-def _cofactor_diff(F, dF):
-    """d cof(F)[dF]: product rule on the cross products of _cofactor."""
-    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
-    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
-    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
-    d0 = ti.Vector([dF[0, 0], dF[1, 0], dF[2, 0]])
-    d1 = ti.Vector([dF[0, 1], dF[1, 1], dF[2, 1]])
-    d2 = ti.Vector([dF[0, 2], dF[1, 2], dF[2, 2]])
-    c0 = d1.cross(f2) + f1.cross(d2)
-    c1 = d2.cross(f0) + f2.cross(d0)
-    c2 = d0.cross(f1) + f0.cross(d1)
-    return ti.Matrix.cols([c0, c1, c2])
-
-
-def _make_stress_funcs(dtype, mu: float, lam: float):
-    """Fixed-corotated P(Fe), its polar factors and the differential dP(Fe)[dFe], for one float
-    type. Returns (stress, polar, stress_and_diff, stress_and_diff_polar)."""
-    newton_steps = 2 if dtype == ti.f64 else 0
-    # Python float constants would enter kernels as f32; typed constants keep float64 exact
-    two_mu = 2.0 * mu
-
-    @ti.func
-    def skew_solve(S, gap, rhs):
-        """omega with (tr(S) I - S) omega = rhs; the eigenvalues of that matrix are the pair
-        sums s_i + s_j of the signed singular values; the smallest one, gap, is floored."""
-        Mt = S.trace() * ti.Matrix.identity(dtype, 3) - S
-        floor = _ROT_DENOM_FLOOR * ti.sqrt((S * S).sum()) + 1e-30
-        if gap < floor:
-            Mt += (floor - gap) * ti.Matrix.identity(dtype, 3)
-        return Mt.inverse() @ rhs
-
-    @ti.func
-    def axial(W):
-        return ti.Vector([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
-
-    @ti.func
-    def hat(w):
-        return ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype)
-
-    @ti.func
-    def polar(Fe):
-        """Fe = R S with det R = +1 (inversion-aware): ti.svd gives R = U V^T; in float64 two
-        Newton steps on the symmetry of R^T Fe polish it (ti.svd is only ~1e-6 accurate), each
-        R <- R exp(omega^), (tr S - S) omega = axial(S - S^T)."""
-        U, sig, V = ti.svd(Fe, dtype)
-        R = U @ V.transpose()
-        gap = sig[1, 1] + sig[2, 2]  # ti.svd sorts s0 >= s1 >= |s2|: smallest pair sum
-        for _ in ti.static(range(newton_steps)):
-            S0 = R.transpose() @ Fe
-            om = skew_solve(0.5 * (S0 + S0.transpose()), gap, axial(S0))
-            th2 = om.dot(om)
-            th = ti.sqrt(th2)
-            a = 1.0 - th2 / 6.0
-            b = 0.5 - th2 / 24.0
-            if th > 1e-4:
-                a = ti.sin(th) / th
-                b = (1.0 - ti.cos(th)) / th2
-            K = hat(om)
-            R = R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K))
-        S = R.transpose() @ Fe
-        return R, 0.5 * (S + S.transpose()), gap
-
-    @ti.func
-    def stress(Fe):
-        """P = 2 mu (Fe - R) + lam (J - 1) cof(Fe)  (Stomakhin et al. 2012)."""
-        R, S, gap = polar(Fe)
-        cof = _cofactor(Fe)
-        J = (cof * Fe).sum() / 3.0  # det Fe = Fe : cof(Fe) / 3
-        return dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
-
-    @ti.func
-    def stress_and_diff_polar(Fe, R, S, gap, dFe):
-        """(P(Fe), dP[dFe]) with the polar factors given. dR = R omega^ with
-        (tr S - S) omega = axial(R^T dFe - dFe^T R) (floored pair sums: singular guard).
-        dP is the Hessian of Psi applied to dFe, hence self-adjoint: the same map gives the
-        reverse-mode product  Fe_bar = dP[P_bar]."""
-        cof = _cofactor(Fe)
-        J = (cof * Fe).sum() / 3.0
-        P = dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
-        om = skew_solve(S, gap, axial(R.transpose() @ dFe))
-        dR = R @ hat(om)
-        dJ = (cof * dFe).sum()
-        dP = dtype(two_mu) * (dFe - dR) + dtype(lam) * (dJ * cof + (J - 1.0) * _cofactor_diff(Fe, dFe))
-        return P, dP
-
-    @ti.func
-    def stress_and_diff(Fe, dFe):
-        R, S, gap = polar(Fe)
-        return stress_and_diff_polar(Fe, R, S, gap, dFe)
-
-    return stress, polar, stress_and_diff, stress_and_diff_polar
 
 
 @ti.data_oriented
@@ -201,8 +91,7 @@ class MPMSolver:
         self.R_s = mat.field(shape=N)
         self.S_s = mat.field(shape=N)
         self.gap_s = ti.field(f, shape=N)
-        (self._stress, self._polar, self._stress_and_diff,
-         self._stress_and_diff_polar) = _make_stress_funcs(f, cfg.mu, cfg.lam)
+        self._stress_model = make_stress_funcs(f, cfg.mu, cfg.lam)
         # compile-time constants of the kernels
         self._dx = cfg.dx
         self._inv_dx = 1.0 / cfg.dx
@@ -224,7 +113,9 @@ class MPMSolver:
         self._log_eps = 0.0
         self.reset_control()
 
-    # ------------------------------------------------------------------ kernels: forward
+    # ------------------------------------------------------------------ kernels
+    # Each forward kernel is followed by its reverse. The 27-node quadratic B-spline stencil is
+    # _stencil (per particle) and _node (per node); every transfer loops over ti.ndrange(3, 3, 3).
     @ti.func
     def _stencil(self, xp):
         """Quadratic B-spline: base node, fractional offset fx, weights w[axis][k], dw/dx."""
@@ -239,14 +130,14 @@ class MPMSolver:
         return base, fx, w, dw
 
     @ti.func
-    def _affine(self, t, p):
-        """A = -dt V0 (4/dx^2) P(Fe) Fe^T + m C, Fe = (F + dFc_t) Fp^-1; returns (A, Fe)."""
-        slot = t if ti.static(self.cfg.control == "per_substep") else 0
-        Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
-        P = self._stress(Fe)
-        k = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
-        A = (-self.dtype(self.cfg.dt) * self.vol[p] * k) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
-        return A, Fe
+    def _node(self, fx, w, dw, i, j, k):
+        """Node (i, j, k) of the stencil: offset from base, x_I - x_p, weight w_Ip and grad w_Ip
+        (the compiler drops what a caller does not use)."""
+        off = ti.Vector([i, j, k])
+        dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
+        wt = w[i, 0] * w[j, 1] * w[k, 2]
+        gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2], w[i, 0] * w[j, 1] * dw[k, 2]])
+        return off, dpos, wt, gw
 
     @ti.kernel
     def _clear_grid(self):
@@ -255,19 +146,71 @@ class MPMSolver:
             self.grid_m[I] = 0.0
 
     @ti.kernel
-    def _p2g(self, t: ti.i32):
-        """mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p."""
+    def _clear_grid_adj(self):
+        for I in ti.grouped(self.grid_m):
+            self.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
+
+    @ti.kernel
+    def _p2g(self, t: ti.i32, save: ti.template()):
+        """Fe = (F + dFc_t) Fp^-1, A = -dt V0 (4/dx^2) P(Fe) Fe^T + m C;
+        mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p.
+        With save (the backward's recompute) A, Fe and the polar factors of Fe go to the scratch
+        fields, so _p2g_backward needs no second SVD."""
+        slot = t if ti.static(self.cfg.control == "per_substep") else 0
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         for p in range(self.n):
             xp = self.x[t, p]
-            base, fx, w, dw_unused = self._stencil(xp)
-            A, Fe_unused = self._affine(t, p)
+            base, fx, w, dw = self._stencil(xp)
+            Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
+            R, S, gap = self._stress_model.polar(Fe)
+            P = self._stress_model.stress_from_polar(Fe, R)
+            A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
+            if ti.static(save):
+                self.A_s[p] = A
+                self.Fe_s[p] = Fe
+                self.R_s[p] = R
+                self.S_s[p] = S
+                self.gap_s[p] = gap
             mom = self.mass[p] * (1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)) * self.v[t, p]
             for i, j, k in ti.ndrange(3, 3, 3):
-                off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
-                wt = w[i, 0] * w[j, 1] * w[k, 2]
+                off, dpos, wt, gw = self._node(fx, w, dw, i, j, k)
                 self.grid_mv[base + off] += wt * (mom + A @ dpos)
                 self.grid_m[base + off] += wt * self.mass[p]
+
+    @ti.kernel
+    def _p2g_backward(self, t: ti.i32):
+        """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t."""
+        dt = self.dtype(self.cfg.dt)
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
+        damp = 1.0 - dt * self.dtype(self.cfg.drag)
+        for p in range(self.n):
+            xp = self.x[t, p]
+            base, fx, w, dw = self._stencil(xp)
+            A = self.A_s[p]
+            Fe = self.Fe_s[p]
+            mp = self.mass[p]
+            mom = mp * damp * self.v[t, p]
+            vbar = ti.Vector.zero(self.dtype, 3)
+            Abar = ti.Matrix.zero(self.dtype, 3, 3)
+            xbar = ti.Vector.zero(self.dtype, 3)
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt, gw = self._node(fx, w, dw, i, j, k)
+                mvb = self.grid_mv_adj[base + off]
+                mb = self.grid_m_adj[base + off]
+                vbar += wt * mvb
+                Abar += wt * mvb.outer_product(dpos)
+                xbar += gw * (mvb.dot(mom + A @ dpos) + mb * mp) - wt * (A.transpose() @ mvb)
+            tau_bar = (-dt * self.vol[p] * kq) * Abar
+            P, dP = self._stress_model.stress_and_diff_polar(Fe, self.R_s[p], self.S_s[p], self.gap_s[p],
+                                                             tau_bar @ Fe)  # P_bar = tau_bar Fe
+            Fe_bar = tau_bar.transpose() @ P + dP
+            Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
+            self.x_adj[p] += xbar
+            self.v_adj[p] += mp * damp * vbar
+            self.C_adj[p] += mp * Abar
+            self.F_adj[p] += Fhat_bar
+            slot = t if ti.static(self.cfg.control == "per_substep") else 0
+            self.ctrl_grad[slot, p] += Fhat_bar
 
     @ti.func
     def _boundary(self, I, v):
@@ -291,17 +234,34 @@ class MPMSolver:
             self.grid_v[I] = v
 
     @ti.kernel
+    def _grid_backward(self):
+        """Reverse of _grid_update: v_bar -> (mv_bar, m_bar) through the mask and v = mv / m."""
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            mvb = ti.Vector.zero(self.dtype, 3)
+            mb = ti.cast(0.0, self.dtype)
+            if m > 0:
+                vfree = self.grid_mv[I] / m
+                vb = self.grid_v_adj[I]
+                vc = self._boundary(I, vfree)
+                for a in ti.static(range(3)):
+                    if vc[a] == 0.0 and vfree[a] != 0.0:
+                        vb[a] = 0.0
+                mvb = vb / m
+                mb = -vb.dot(vfree) / m
+            self.grid_mv_adj[I] = mvb
+            self.grid_m_adj[I] = mb
+
+    @ti.kernel
     def _g2p(self, t: ti.i32):
         """v' = sum w v_I, C' = 4/dx^2 sum w v_I dpos^T, x' = x + dt v', F' = (1-s)(I + dt C')F + sF."""
         for p in range(self.n):
             xp = self.x[t, p]
-            base, fx, w, dw_unused = self._stencil(xp)
+            base, fx, w, dw = self._stencil(xp)
             nv = ti.Vector.zero(self.dtype, 3)
             nC = ti.Matrix.zero(self.dtype, 3, 3)
             for i, j, k in ti.ndrange(3, 3, 3):
-                off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
-                wt = w[i, 0] * w[j, 1] * w[k, 2]
+                off, dpos, wt, gw = self._node(fx, w, dw, i, j, k)
                 gv = self.grid_v[base + off]
                 nv += wt * gv
                 nC += (4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx) * wt) * gv.outer_product(dpos)
@@ -314,77 +274,6 @@ class MPMSolver:
             self.C[t + 1, p] = nC
             self.x[t + 1, p] = ti.math.clamp(xp + self.dtype(self.cfg.dt) * nv, self.dtype(self._x_min), self.dtype(self._x_max))
             self.F[t + 1, p] = (1.0 - self.dtype(self.cfg.smoothing)) * Fn + self.dtype(self.cfg.smoothing) * Fo
-
-    @ti.kernel
-    def _splat_final(self):
-        """m_I = sum_p w_Ip m_p of x_T (the physmorph.grid.splat_mass transfer)."""
-        for p in range(self.n):
-            base, fx, w, dw_unused = self._stencil(self.x[self.cfg.substeps, p])
-            for i, j, k in ti.ndrange(3, 3, 3):
-                self.grid_m[base + ti.Vector([i, j, k])] += w[i, 0] * w[j, 1] * w[k, 2] * self.mass[p]
-
-    @ti.kernel
-    def _mass_loss(self, log_eps: ti.f64):
-        """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2."""
-        self.loss_acc[None] = 0.0
-        for I in ti.grouped(self.grid_m):
-            m = self.grid_m[I]
-            mt = self.target_m[I]
-            if ti.static(self.cfg.mass_loss == "squared"):
-                r = m - mt
-                self.loss_acc[None] += ti.cast(r * r, ti.f64)
-                self.grid_m_adj[I] = 2.0 * r
-            else:
-                e = ti.cast(log_eps, self.dtype)
-                r = ti.log(m + e) - ti.log(mt + e)
-                self.loss_acc[None] += ti.cast(r * r, ti.f64)
-                self.grid_m_adj[I] = 2.0 * r / (m + e)
-
-    # ------------------------------------------------------------------ kernels: backward
-    @ti.kernel
-    def _loss_backward(self):
-        """x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top of the injected g^x already there)."""
-        T = self.cfg.substeps
-        for p in range(self.n):
-            base, fx, w, dw = self._stencil(self.x[T, p])
-            g = ti.Vector.zero(self.dtype, 3)
-            for i, j, k in ti.ndrange(3, 3, 3):
-                gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
-                                w[i, 0] * w[j, 1] * dw[k, 2]])
-                g += gw * (self.mass[p] * self.grid_m_adj[base + ti.Vector([i, j, k])])
-            self.x_adj[p] += g
-
-    @ti.kernel
-    def _clear_grid_adj(self):
-        for I in ti.grouped(self.grid_m):
-            self.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
-
-    @ti.kernel
-    def _p2g_recompute(self, t: ti.i32):
-        """_p2g for the backward: also saves A, Fe and the SVD of Fe in the scratch fields."""
-        slot = t if ti.static(self.cfg.control == "per_substep") else 0
-        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
-        for p in range(self.n):
-            xp = self.x[t, p]
-            base, fx, w, dw_unused = self._stencil(xp)
-            Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
-            R, S, gap = self._polar(Fe)
-            cof = _cofactor(Fe)
-            J = (cof * Fe).sum() / 3.0
-            P = 2.0 * self.dtype(self.cfg.mu) * (Fe - R) + self.dtype(self.cfg.lam) * (J - 1.0) * cof
-            A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
-            self.A_s[p] = A
-            self.Fe_s[p] = Fe
-            self.R_s[p] = R
-            self.S_s[p] = S
-            self.gap_s[p] = gap
-            mom = self.mass[p] * (1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)) * self.v[t, p]
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
-                wt = w[i, 0] * w[j, 1] * w[k, 2]
-                self.grid_mv[base + off] += wt * (mom + A @ dpos)
-                self.grid_m[base + off] += wt * self.mass[p]
 
     @ti.kernel
     def _g2p_backward(self, t: ti.i32):
@@ -415,11 +304,7 @@ class MPMSolver:
             vbar = self.v_adj[p] + dt * xbar_n
             xbar = xbar_n
             for i, j, k in ti.ndrange(3, 3, 3):
-                off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
-                wt = w[i, 0] * w[j, 1] * w[k, 2]
-                gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
-                                w[i, 0] * w[j, 1] * dw[k, 2]])
+                off, dpos, wt, gw = self._node(fx, w, dw, i, j, k)
                 gv = self.grid_v[base + off]
                 Cd = Cbar @ dpos
                 self.grid_v_adj[base + off] += wt * (vbar + kq * Cd)
@@ -430,61 +315,43 @@ class MPMSolver:
             self.C_adj[p] = ti.Matrix.zero(self.dtype, 3, 3)
 
     @ti.kernel
-    def _grid_backward(self):
-        """Reverse of _grid_update: v_bar -> (mv_bar, m_bar) through the mask and v = mv / m."""
-        for I in ti.grouped(self.grid_m):
-            m = self.grid_m[I]
-            mvb = ti.Vector.zero(self.dtype, 3)
-            mb = ti.cast(0.0, self.dtype)
-            if m > 0:
-                vfree = self.grid_mv[I] / m
-                vb = self.grid_v_adj[I]
-                vc = self._boundary(I, vfree)
-                for a in ti.static(range(3)):
-                    if vc[a] == 0.0 and vfree[a] != 0.0:
-                        vb[a] = 0.0
-                mvb = vb / m
-                mb = -vb.dot(vfree) / m
-            self.grid_mv_adj[I] = mvb
-            self.grid_m_adj[I] = mb
+    def _splat_final(self):
+        """m_I = sum_p w_Ip m_p of x_T (the physmorph.grid.splat_mass transfer)."""
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[self.cfg.substeps, p])
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt, gw = self._node(fx, w, dw, i, j, k)
+                self.grid_m[base + off] += wt * self.mass[p]
 
     @ti.kernel
-    def _p2g_backward(self, t: ti.i32):
-        """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t."""
-        dt = self.dtype(self.cfg.dt)
-        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
-        damp = 1.0 - dt * self.dtype(self.cfg.drag)
+    def _mass_loss(self, log_eps: ti.f64):
+        """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2."""
+        self.loss_acc[None] = 0.0
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            mt = self.target_m[I]
+            if ti.static(self.cfg.mass_loss == "squared"):
+                r = m - mt
+                self.loss_acc[None] += ti.cast(r * r, ti.f64)
+                self.grid_m_adj[I] = 2.0 * r
+            else:
+                e = ti.cast(log_eps, self.dtype)
+                r = ti.log(m + e) - ti.log(mt + e)
+                self.loss_acc[None] += ti.cast(r * r, ti.f64)
+                self.grid_m_adj[I] = 2.0 * r / (m + e)
+
+    @ti.kernel
+    def _loss_backward(self):
+        """Reverse of _splat_final and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
+        of the injected g^x already there)."""
+        T = self.cfg.substeps
         for p in range(self.n):
-            xp = self.x[t, p]
-            base, fx, w, dw = self._stencil(xp)
-            A = self.A_s[p]
-            Fe = self.Fe_s[p]
-            mp = self.mass[p]
-            mom = mp * damp * self.v[t, p]
-            vbar = ti.Vector.zero(self.dtype, 3)
-            Abar = ti.Matrix.zero(self.dtype, 3, 3)
-            xbar = ti.Vector.zero(self.dtype, 3)
+            base, fx, w, dw = self._stencil(self.x[T, p])
+            g = ti.Vector.zero(self.dtype, 3)
             for i, j, k in ti.ndrange(3, 3, 3):
-                off = ti.Vector([i, j, k])
-                dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self._dx)
-                wt = w[i, 0] * w[j, 1] * w[k, 2]
-                gw = ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2],
-                                w[i, 0] * w[j, 1] * dw[k, 2]])
-                mvb = self.grid_mv_adj[base + off]
-                mb = self.grid_m_adj[base + off]
-                vbar += wt * mvb
-                Abar += wt * mvb.outer_product(dpos)
-                xbar += gw * (mvb.dot(mom + A @ dpos) + mb * mp) - wt * (A.transpose() @ mvb)
-            tau_bar = (-dt * self.vol[p] * kq) * Abar
-            P, dP = self._stress_and_diff_polar(Fe, self.R_s[p], self.S_s[p], self.gap_s[p], tau_bar @ Fe)  # P_bar = tau_bar Fe
-            Fe_bar = tau_bar.transpose() @ P + dP
-            Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
-            self.x_adj[p] += xbar
-            self.v_adj[p] += mp * damp * vbar
-            self.C_adj[p] += mp * Abar
-            self.F_adj[p] += Fhat_bar
-            slot = t if ti.static(self.cfg.control == "per_substep") else 0
-            self.ctrl_grad[slot, p] += Fhat_bar
+                off, dpos, wt, gw = self._node(fx, w, dw, i, j, k)
+                g += gw * (self.mass[p] * self.grid_m_adj[base + off])
+            self.x_adj[p] += g
 
     # ------------------------------------------------------------------ kernels: utilities
     @ti.kernel
@@ -592,7 +459,7 @@ class MPMSolver:
         self._require_loaded()
         for t in range(self.cfg.substeps):
             self._clear_grid()
-            self._p2g(t)
+            self._p2g(t, False)
             self._grid_update()
             self._g2p(t)
         self._forward_current = False
@@ -632,7 +499,7 @@ class MPMSolver:
             self._loss_backward()
         for t in reversed(range(self.cfg.substeps)):
             self._clear_grid()
-            self._p2g_recompute(t)
+            self._p2g(t, True)
             self._grid_update()
             self._clear_grid_adj()
             self._g2p_backward(t)
@@ -858,41 +725,3 @@ class MPMSolver:
                 raise MPMDivergenceError(
                     f"{name} became non-finite (NaN/Inf or |{name}| > {_BLOWUP:g}) at substep "
                     f"{t - 1} (particle {p})")
-
-
-_stress_kernels: dict = {}
-
-
-def evaluate_stress(Fe: np.ndarray,  # [N, 3, 3]
-                    dFe: np.ndarray,  # [N, 3, 3]
-                    mu: float, lam: float, precision: str = "float64") -> tuple[np.ndarray, np.ndarray]:
-    """Run the solver's Taichi stress P(Fe) and differential dP(Fe)[dFe] on arrays (for tests
-    and diagnostics). Returns (P [N, 3, 3], dP [N, 3, 3]) as float64."""
-    if not _runtime_ready():
-        init_taichi("cpu")
-    dtype = ti.f64 if precision == "float64" else ti.f32
-    npd = np.float64 if precision == "float64" else np.float32
-    key = (precision, float(mu), float(lam))
-    if key not in _stress_kernels:
-        _, _, stress_and_diff, _ = _make_stress_funcs(dtype, float(mu), float(lam))
-        mat = ti.types.matrix(3, 3, dtype)
-
-        @ti.kernel
-        def run(Fe: ti.types.ndarray(dtype=mat, ndim=1), dFe: ti.types.ndarray(dtype=mat, ndim=1),
-                P: ti.types.ndarray(dtype=mat, ndim=1), dP: ti.types.ndarray(dtype=mat, ndim=1)):
-            for p in range(Fe.shape[0]):
-                P[p], dP[p] = stress_and_diff(Fe[p], dFe[p])
-
-        _stress_kernels[key] = run
-    Fe = np.ascontiguousarray(Fe, dtype=npd).reshape(-1, 3, 3)
-    dFe = np.ascontiguousarray(dFe, dtype=npd).reshape(-1, 3, 3)
-    P = np.zeros_like(Fe)
-    dP = np.zeros_like(Fe)
-    _stress_kernels[key](Fe, dFe, P, dP)
-    return P.astype(np.float64), dP.astype(np.float64)
-
-
-def _runtime_ready() -> bool:
-    from ..taichi_runtime import taichi_state
-
-    return bool(taichi_state())

@@ -1,0 +1,40 @@
+"""Stages 1-2: fetch raw benchmark meshes and turn them into clean, watertight, normalised solids.
+
+fetch_mesh
+    Download (or copy from a local mirror) one raw mesh file and verify its SHA-256. The file is
+    written to ``<dest>.partial`` and renamed only after the checksum matches, so a failure never
+    leaves a file that looks finished.
+
+prepare_mesh
+    Load an OBJ/GLB (or build a procedural shape: the isosphere, extruded letters), repair it into
+    a watertight solid, centre its bounding box on the origin and scale its longest extent to
+    ``ShapeSpec.size`` (the paper's assets are ~14-20 units across in the [-16, 16]^3 domain).
+
+Repair order (the first step that yields a watertight mesh wins; every step is logged in the
+output's ``repair`` attribute):
+
+1. merge vertices ignoring UV/normal differences (Spot and Duck are split along UV seams),
+   drop degenerate and duplicate faces, fix winding/normals, fill small holes (trimesh);
+2. MeshFix (pymeshfix) for holes trimesh cannot close (the Bunny's base);
+3. a generalized-winding-number remesh: marching cubes of the winding-number field of the
+   triangle soup, which is well defined for open or self-intersecting input.
+
+A repaired mesh must keep its volume within ``volume_tolerance`` of the raw mesh's
+(divergence-theorem) volume, so a repair that silently drops components or caps a shape wrongly
+is an error, not a quiet change of shape.
+
+Modules: ``fetch`` (stage 1), ``shapes`` (specs, procedural shapes), ``repair`` (loading and
+repair), ``prepare`` (stage 2: normalise, write, read).
+"""
+
+from .errors import FetchError, MeshError
+from .fetch import fetch_mesh, sha256_of
+from .prepare import load_mesh, normalize_mesh, prepare_mesh
+from .repair import (DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, ray_parity_vote, remesh_winding_number, repair_mesh,
+                     winding_number)
+from .shapes import DEFAULT_LETTER_DEPTH_FRACTION, LETTER_GLYPHS, SHAPE_KINDS, ShapeSpec, isosphere, letter_mesh
+
+__all__ = ["DEFAULT_LETTER_DEPTH_FRACTION", "DEFAULT_VOLUME_TOLERANCE", "FetchError", "LETTER_GLYPHS", "MeshError",
+           "SHAPE_KINDS", "ShapeSpec", "fetch_mesh", "isosphere", "letter_mesh", "load_mesh", "load_raw_mesh",
+           "normalize_mesh", "prepare_mesh", "ray_parity_vote", "remesh_winding_number", "repair_mesh",
+           "sha256_of", "winding_number"]

@@ -1,0 +1,171 @@
+"""The constitutive model of the MPM solver (paper section 4): fixed corotated elasticity
+(Stomakhin et al. 2012) as Taichi functions, P(Fe) = 2 mu (Fe - R) + lam (J - 1) cof(Fe), its
+polar factors and its differential dP(Fe)[dFe] (the Hessian of Psi applied to dFe), plus
+evaluate_stress, which runs them on arrays (tests and diagnostics compare it with
+physmorph.mpm.reference and finite differences).
+
+The derivative of the rotation R (which Taichi's autodiff cannot do for ti.svd) is hand-written:
+dR = R omega^, (tr S - S) omega = axial(R^T dFe - dFe^T R), S = R^T Fe, with the pair sums
+s_i + s_j (eigenvalues of tr S - S) floored for the singular/inverted cases.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import taichi as ti
+
+from ..taichi_runtime import init_taichi
+
+# Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
+# dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
+_ROT_DENOM_FLOOR = 1e-6
+
+
+@ti.func
+def _cofactor(F):
+    """cof(F) = J F^-T, columns c0 = f1 x f2, c1 = f2 x f0, c2 = f0 x f1 (polynomial in F)."""
+    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    c0 = f1.cross(f2)
+    c1 = f2.cross(f0)
+    c2 = f0.cross(f1)
+    return ti.Matrix.cols([c0, c1, c2])
+
+
+@ti.func
+def _cofactor_diff(F, dF):
+    """d cof(F)[dF]: product rule on the cross products of _cofactor."""
+    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    d0 = ti.Vector([dF[0, 0], dF[1, 0], dF[2, 0]])
+    d1 = ti.Vector([dF[0, 1], dF[1, 1], dF[2, 1]])
+    d2 = ti.Vector([dF[0, 2], dF[1, 2], dF[2, 2]])
+    c0 = d1.cross(f2) + f1.cross(d2)
+    c1 = d2.cross(f0) + f2.cross(d0)
+    c2 = d0.cross(f1) + f0.cross(d1)
+    return ti.Matrix.cols([c0, c1, c2])
+
+
+def make_stress_funcs(dtype, mu: float, lam: float):
+    """Fixed-corotated P(Fe), its polar factors and the differential dP(Fe)[dFe], for one float
+    type. Returns a namespace of Taichi functions: stress(Fe), polar(Fe) -> (R, S, gap),
+    stress_from_polar(Fe, R), stress_and_diff(Fe, dFe), stress_and_diff_polar(Fe, R, S, gap, dFe)."""
+    newton_steps = 2 if dtype == ti.f64 else 0
+    # Python float constants would enter kernels as f32; typed constants keep float64 exact
+    two_mu = 2.0 * mu
+
+    @ti.func
+    def skew_solve(S, gap, rhs):
+        """omega with (tr(S) I - S) omega = rhs; the eigenvalues of that matrix are the pair
+        sums s_i + s_j of the signed singular values; the smallest one, gap, is floored."""
+        Mt = S.trace() * ti.Matrix.identity(dtype, 3) - S
+        floor = _ROT_DENOM_FLOOR * ti.sqrt((S * S).sum()) + 1e-30
+        if gap < floor:
+            Mt += (floor - gap) * ti.Matrix.identity(dtype, 3)
+        return Mt.inverse() @ rhs
+
+    @ti.func
+    def axial(W):
+        return ti.Vector([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+
+    @ti.func
+    def hat(w):
+        return ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype)
+
+    @ti.func
+    def polar(Fe):
+        """Fe = R S with det R = +1 (inversion-aware): ti.svd gives R = U V^T; in float64 two
+        Newton steps on the symmetry of R^T Fe polish it (ti.svd is only ~1e-6 accurate), each
+        R <- R exp(omega^), (tr S - S) omega = axial(S - S^T)."""
+        U, sig, V = ti.svd(Fe, dtype)
+        R = U @ V.transpose()
+        gap = sig[1, 1] + sig[2, 2]  # ti.svd sorts s0 >= s1 >= |s2|: smallest pair sum
+        for _ in ti.static(range(newton_steps)):
+            S0 = R.transpose() @ Fe
+            om = skew_solve(0.5 * (S0 + S0.transpose()), gap, axial(S0))
+            th2 = om.dot(om)
+            th = ti.sqrt(th2)
+            a = 1.0 - th2 / 6.0
+            b = 0.5 - th2 / 24.0
+            if th > 1e-4:
+                a = ti.sin(th) / th
+                b = (1.0 - ti.cos(th)) / th2
+            K = hat(om)
+            R = R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K))
+        S = R.transpose() @ Fe
+        return R, 0.5 * (S + S.transpose()), gap
+
+    @ti.func
+    def stress_from_polar(Fe, R):
+        """P = 2 mu (Fe - R) + lam (J - 1) cof(Fe)  (Stomakhin et al. 2012), R the rotation of Fe."""
+        cof = _cofactor(Fe)
+        J = (cof * Fe).sum() / 3.0  # det Fe = Fe : cof(Fe) / 3
+        return dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
+
+    @ti.func
+    def stress(Fe):
+        R, S, gap = polar(Fe)
+        return stress_from_polar(Fe, R)
+
+    @ti.func
+    def stress_and_diff_polar(Fe, R, S, gap, dFe):
+        """(P(Fe), dP[dFe]) with the polar factors given. dR = R omega^ with
+        (tr S - S) omega = axial(R^T dFe - dFe^T R) (floored pair sums: singular guard).
+        dP is the Hessian of Psi applied to dFe, hence self-adjoint: the same map gives the
+        reverse-mode product  Fe_bar = dP[P_bar]."""
+        cof = _cofactor(Fe)
+        J = (cof * Fe).sum() / 3.0
+        P = stress_from_polar(Fe, R)
+        om = skew_solve(S, gap, axial(R.transpose() @ dFe))
+        dR = R @ hat(om)
+        dJ = (cof * dFe).sum()
+        dP = dtype(two_mu) * (dFe - dR) + dtype(lam) * (dJ * cof + (J - 1.0) * _cofactor_diff(Fe, dFe))
+        return P, dP
+
+    @ti.func
+    def stress_and_diff(Fe, dFe):
+        R, S, gap = polar(Fe)
+        return stress_and_diff_polar(Fe, R, S, gap, dFe)
+
+    return SimpleNamespace(stress=stress, polar=polar, stress_from_polar=stress_from_polar,
+                           stress_and_diff=stress_and_diff, stress_and_diff_polar=stress_and_diff_polar)
+
+
+_stress_kernels: dict = {}
+
+
+def evaluate_stress(Fe: np.ndarray,  # [N, 3, 3]
+                    dFe: np.ndarray,  # [N, 3, 3]
+                    mu: float, lam: float, precision: str = "float64") -> tuple[np.ndarray, np.ndarray]:
+    """Run the solver's Taichi stress P(Fe) and differential dP(Fe)[dFe] on arrays (for tests
+    and diagnostics). Returns (P [N, 3, 3], dP [N, 3, 3]) as float64."""
+    if not _runtime_ready():
+        init_taichi("cpu")
+    dtype = ti.f64 if precision == "float64" else ti.f32
+    npd = np.float64 if precision == "float64" else np.float32
+    key = (precision, float(mu), float(lam))
+    if key not in _stress_kernels:
+        stress_and_diff = make_stress_funcs(dtype, float(mu), float(lam)).stress_and_diff
+        mat = ti.types.matrix(3, 3, dtype)
+
+        @ti.kernel
+        def run(Fe: ti.types.ndarray(dtype=mat, ndim=1), dFe: ti.types.ndarray(dtype=mat, ndim=1),
+                P: ti.types.ndarray(dtype=mat, ndim=1), dP: ti.types.ndarray(dtype=mat, ndim=1)):
+            for p in range(Fe.shape[0]):
+                P[p], dP[p] = stress_and_diff(Fe[p], dFe[p])
+
+        _stress_kernels[key] = run
+    Fe = np.ascontiguousarray(Fe, dtype=npd).reshape(-1, 3, 3)
+    dFe = np.ascontiguousarray(dFe, dtype=npd).reshape(-1, 3, 3)
+    P = np.zeros_like(Fe)
+    dP = np.zeros_like(Fe)
+    _stress_kernels[key](Fe, dFe, P, dP)
+    return P.astype(np.float64), dP.astype(np.float64)
+
+
+def _runtime_ready() -> bool:
+    from ..taichi_runtime import taichi_state
+
+    return bool(taichi_state())
