@@ -115,9 +115,9 @@ def make_stress_funcs(dtype, mu: float, lam: float):
         (tr S - S) omega = axial(R^T dFe - dFe^T R) (floored pair sums: singular guard).
         dP is the Hessian of Psi applied to dFe, hence self-adjoint: the same map gives the
         reverse-mode product  Fe_bar = dP[P_bar]."""
-        cof = _cofactor(Fe)
+        cof = _cofactor(Fe)  # shared by P and dP
         J = (cof * Fe).sum() / 3.0
-        P = stress_from_polar(Fe, R)
+        P = dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
         om = skew_solve(S, gap, axial(R.transpose() @ dFe))
         dR = R @ hat(om)
         dJ = (cof * dFe).sum()
