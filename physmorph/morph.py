@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
-from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, elastic_energy, total_volume
+from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
 from physmorph.plasticity import PlasticityConfig, absorb_control, chamfer_plasticity_step, rebase_control
@@ -125,7 +125,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     ceiling = float(getattr(target, "ceiling_alpha_mse", np.nan))
     tree = cKDTree(target.surface_points)
     N = len(parts.x)
-    solver = MPMSolver(cfg.mpm, N)
+    solver = solver_for(cfg.mpm, N)  # a reset solver, reused from the previous run of this config and size
     # MPM conserves mass, so a target of another total mass cannot be matched: the squared loss
     # would then be lowered by smearing the excess thinly. The target's mass distribution is
     # rescaled to the source's total mass (its shape is what is matched).

@@ -35,8 +35,9 @@ def tiny(tmp_path_factory, mesh_dir):
 
 
 def _run(tiny, experiment, out_name, **changes):
+    """One tiny run; without the experiment's release frames unless a test asks for them."""
     cfg, d = tiny
-    mc = dataclasses.replace(morph_config(cfg, experiment), progress=False, **changes)
+    mc = dataclasses.replace(morph_config(cfg, experiment), progress=False, **{"release_frames": 0, **changes})
     out = d / out_name
     run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, mc, name=out_name)
     return out
@@ -249,7 +250,7 @@ def _short(tiny):
 
 def _run_logged(tiny, out_name, target="t_bunny.h5", **changes):
     cfg, d = tiny
-    mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, **changes)
+    mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, **{"release_frames": 0, **changes})
     log = []
     run_morph(d / "p_iso.h5", d / target, d / out_name, mc, name=out_name, log=log.append)
     return d / out_name, log

@@ -510,6 +510,37 @@ def test_optimizer_state_round_trip(solver3, state):
         s.set_optimizer_state({**saved, "adam_m": saved["adam_m"][:, :1]})
 
 
+def test_reused_solver_computes_what_a_new_one_does(state):
+    """solver_for hands back the previous solver for an equal config and size, reset: after a
+    run that moved dFc and the Adam moments, it optimizes exactly as a freshly built solver."""
+    from physmorph.mpm import solver_for
+
+    cfg = cfg64(substeps=2)
+    target = stretched_target(ball_state(perturb=False), cfg)
+
+    def optimize(s):
+        s.set_target_grid_mass(target)
+        s.load_state(state)
+        stats = s.optimize_control(iters=3)
+        return stats["loss_final"], s.control(), s.optimizer_state()["adam_v"]
+
+    first = solver_for(cfg, state.n)
+    loss_a, ctrl_a, v_a = optimize(first)
+    assert np.abs(ctrl_a).max() > 0 and np.abs(v_a).max() > 0  # the run left state behind
+    again = solver_for(cfg, state.n)
+    assert again is first
+    assert np.abs(again.control()).max() == 0.0
+    with pytest.raises(RuntimeError, match="target"):  # the old target is gone too
+        again.optimize_control(iters=1)
+    loss_b, ctrl_b, v_b = optimize(again)
+    assert loss_b == loss_a
+    np.testing.assert_array_equal(ctrl_b, ctrl_a)
+    np.testing.assert_array_equal(v_b, v_a)
+    # another config or size gets its own solver
+    assert solver_for(cfg64(substeps=2, drag=0.5), state.n) is not first
+    assert solver_for(cfg, state.n) is not first  # only the last one is kept
+
+
 # ----------------------------------------------------------------------------- control carried in F
 @pytest.fixture(scope="module")
 def solver3_in_F(state):

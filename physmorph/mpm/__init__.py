@@ -42,12 +42,12 @@ from .state import ParticleState, elastic_energy, fixed_corotated_energy_density
 
 def __getattr__(name):
     # The solver imports Taichi: loaded on first use, so reading configs and run files stays light.
-    if name == "MPMSolver":
-        from .solver import MPMSolver
+    if name in ("MPMSolver", "solver_for"):
+        from . import solver
 
-        return MPMSolver
+        return getattr(solver, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["CFLWarning", "MPMConfig", "MPMConfigError", "MPMDivergenceError", "MPMError",
-           "MPMStateError", "MPMSolver", "ParticleState", "elastic_energy",
+           "MPMStateError", "MPMSolver", "solver_for", "ParticleState", "elastic_energy",
            "fixed_corotated_energy_density", "total_volume"]

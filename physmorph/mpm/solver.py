@@ -102,6 +102,12 @@ class MPMSolver:
         self._x_min = cfg.domain_lo + 1.0 * cfg.dx
         self._x_max = cfg.domain_lo + (R - 2.0) * cfg.dx
         self._clip_on = cfg.control_clip > 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to a freshly built solver: no state or target loaded, dFc and the Adam moments
+        zero. Every other field is written before it is read (load_state, set_target_grid_mass,
+        forward, backward), so a reset solver computes what a new one would."""
         self._has_target = False
         self._loaded = False
         self._forward_done = False
@@ -732,3 +738,22 @@ class MPMSolver:
                 raise MPMDivergenceError(
                     f"{name} became non-finite (NaN/Inf or |{name}| > {_BLOWUP:g}) at substep "
                     f"{t - 1} (particle {p})")
+
+
+# The solver last handed out by solver_for, with its config and size.
+_reusable: list = []
+
+
+def solver_for(cfg: MPMConfig, n_particles: int) -> MPMSolver:
+    """A reset MPMSolver for (cfg, n_particles): the one built by the previous call when both
+    are equal, else a new one. Building a solver compiles its kernels (about 36 Taichi kernels,
+    5-10 s on a CPU: more than a tiny run's frames), so several runs in one process (the tests,
+    the study scripts) share it. Not for two runs at once: each call resets the solver."""
+    n = int(n_particles)
+    if _reusable and _reusable[0] == cfg and _reusable[1] == n:
+        solver = _reusable[2]
+        solver.reset()
+        return solver
+    solver = MPMSolver(cfg, n)
+    _reusable[:] = [cfg, n, solver]
+    return solver
