@@ -18,7 +18,7 @@ from physmorph.mpm import MPMConfig
 BASE = "config/config.yaml"
 
 
-@pytest.mark.parametrize("profile", [[], ["config/test.yaml"], ["config/paper.yaml"]])
+@pytest.mark.parametrize("profile", [[], ["config/test.yaml"], ["config/paper.yaml"], ["config/paper_optimizer.yaml"]])
 def test_profiles_validate(profile):
     s = load_settings(BASE, *profile)
     assert s.sampling.grid_res >= 8
@@ -76,7 +76,7 @@ def test_the_domain_is_defined_once_and_reaches_the_solver():
 def test_schema_is_generated_from_the_settings():
     assert SCHEMA_PATH.read_text() == schema_text(), "run: python -m physmorph.config --schema"
     schema = yaml.safe_load(SCHEMA_PATH.read_text())
-    for profile in ([], ["config/test.yaml"], ["config/paper.yaml"]):
+    for profile in ([], ["config/test.yaml"], ["config/paper.yaml"], ["config/paper_optimizer.yaml"]):
         jsonschema.Draft202012Validator(schema).validate(load_mapping(BASE, *profile))
     assert schema["properties"]["mpm"]["properties"]["optimizer"] == {"enum": ["adam", "normalized_gd"],
                                                                        "default": "normalized_gd"}
