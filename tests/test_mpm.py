@@ -322,10 +322,17 @@ def test_gradients_match_torch_autograd(solver3, state):
                                atol=1e-8 * x0.grad.abs().max().item())
 
 
-def test_per_frame_control_is_shared_per_substep_control(solver3, state):
+@pytest.fixture(scope="module")
+def solver3_per_frame_log(state):
+    """As solver3, with one control per frame and the log mass loss."""
+    return make(cfg64(control="per_frame", mass_loss="log"), state)
+
+
+def test_per_frame_control_is_shared_per_substep_control(solver3, solver3_per_frame_log, state):
     """per_frame with control c == per_substep with c repeated; its gradient is the sum over t."""
-    cfg_f = cfg64(control="per_frame", mass_loss="log")
-    sf = make(cfg_f, state)
+    sf = solver3_per_frame_log
+    cfg_f = sf.cfg
+    sf.load_state(state)
     c1 = random_control(cfg_f, state.n)
     sf.set_control(c1)
     sf.forward()
@@ -339,10 +346,11 @@ def test_per_frame_control_is_shared_per_substep_control(solver3, state):
     _fd_check(sf, state, n_checks=6, seed=5)
 
 
-def test_log_loss_value_matches_reference(state):
-    cfg = cfg64(mass_loss="log", substeps=3, control="per_frame")
-    # reuse-free check of the documented formula on the reference grid mass
-    s = make(cfg, state)
+def test_log_loss_value_matches_reference(solver3_per_frame_log, state):
+    # the documented formula on the reference grid mass
+    s = solver3_per_frame_log
+    cfg = s.cfg
+    s.load_state(state)
     s.set_control(np.zeros((1, state.n, 3, 3)))
     L = s.forward()
     end = s.state_at(3)
@@ -536,9 +544,29 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     assert loss_b == loss_a
     np.testing.assert_array_equal(ctrl_b, ctrl_a)
     np.testing.assert_array_equal(v_b, v_a)
-    # another config or size gets its own solver
-    assert solver_for(cfg64(substeps=2, drag=0.5), state.n) is not first
-    assert solver_for(cfg, state.n) is not first  # only the last one is kept
+
+
+def test_solver_for_reuses_only_an_equal_config_and_size(monkeypatch):
+    """Another config or particle count gets its own solver; only the last one is kept (checked
+    with a stand-in class: building real solvers would only add compile time)."""
+    import physmorph.mpm.solver as solver_module
+
+    class Recorder:
+        def __init__(self, cfg, n):
+            self.cfg, self.n, self.resets = cfg, n, 0
+
+        def reset(self):
+            self.resets += 1
+
+    monkeypatch.setattr(solver_module, "MPMSolver", Recorder)
+    monkeypatch.setattr(solver_module, "_reusable", [])
+    a = solver_module.solver_for(cfg64(), 10)
+    assert solver_module.solver_for(cfg64(), 10) is a and a.resets == 1
+    b = solver_module.solver_for(cfg64(drag=0.5), 10)
+    assert b is not a and (b.cfg.drag, b.n) == (0.5, 10)
+    c = solver_module.solver_for(cfg64(drag=0.5), 11)
+    assert c is not b and c.n == 11
+    assert solver_module.solver_for(cfg64(), 10) is not a  # only the last one is kept
 
 
 # ----------------------------------------------------------------------------- control carried in F
