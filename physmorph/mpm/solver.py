@@ -746,9 +746,10 @@ _reusable: list = []
 
 def solver_for(cfg: MPMConfig, n_particles: int) -> MPMSolver:
     """A reset MPMSolver for (cfg, n_particles): the one built by the previous call when both
-    are equal, else a new one. Building a solver compiles its kernels (about 36 Taichi kernels,
-    about 5 s on a 2-core CPU: half of a 3-frame tiny run), so several runs in one process (the tests,
-    the study scripts) share it. Not for two runs at once: each call resets the solver."""
+    are equal, else a new one. Building a solver compiles its kernels (about 36 Taichi kernels:
+    18 s on a 2-core CPU with Taichi's offline cache empty, 5 s with it filled by an earlier
+    process; a second instance in one process pays again), so several runs in one process (the
+    tests, the study scripts) share it. Not for two runs at once: each call resets the solver."""
     n = int(n_particles)
     if _reusable and _reusable[0] == cfg and _reusable[1] == n:
         solver = _reusable[2]
