@@ -5,7 +5,8 @@ the paper's matched-convergence comparison between a baseline run and others.
 
 For each run: alpha MSE at frame 0 / best / final, the share of the reachable gap closed, and the
 alpha MSE at the frame where BASE reached 90 % of its total improvement (the paper's matched
-convergence, Table 2) with the improvement over BASE there (positive: lower error than BASE).
+convergence, Table 2) with the improvement over BASE there (positive: lower error than BASE), the
+in-run rebound and, for runs with release frames, the release rebound.
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ import sys
 
 import numpy as np
 
-from physmorph.metrics import improvement_percent, matched_convergence_frame
+import json
+
+from physmorph.metrics import improvement_percent, matched_convergence_frame, rebound_percent, release_rebound_percent
 from physmorph.quality import gap_closed
 from physmorph.runfile import read_metrics
 
@@ -30,7 +33,12 @@ def main(paths: list[str]) -> None:
         kk = min(k, len(a) - 1)
         print(f"{p}: a0 {a[0]:.4f} best {np.nanmin(a):.4f} final {a[-1]:.4f} "
               f"closed best/final {100 * gap_closed(a[0], np.nanmin(a), c):.1f}/{100 * gap_closed(a[0], a[-1], c):.1f} % "
-              f"at matched frame {a[kk]:.4f} ({improvement_percent(base[kk], a[kk]):+.1f} % vs baseline)")
+              f"at matched frame {a[kk]:.4f} ({improvement_percent(base[kk], a[kk]):+.1f} % vs baseline) "
+              f"in-run rebound {rebound_percent(a):.1f} %", end="")
+        if "release_alpha_mse" in m["attrs"]:
+            release = json.loads(m["attrs"]["release_alpha_mse"])
+            print(f", released {len(release) - 1} frames: rebound {release_rebound_percent(a, release):.1f} %", end="")
+        print()
 
 
 if __name__ == "__main__":

@@ -61,6 +61,8 @@ def main() -> None:
     overrides = parse_set(args.set)
     if args.frames:
         overrides.setdefault("morph", {})["frames"] = args.frames
+    # the row names the profile file too, so it says how to rerun it
+    recorded = {**({"--profile": args.profile} if args.profile else {}), **overrides}
     files = [REPO / "config" / "config.yaml"] + ([Path(args.profile)] if args.profile else [])
     cfg = load_settings(*files, overrides=overrides)
     res = cfg.sampling.tag
@@ -84,7 +86,7 @@ def main() -> None:
         a = m["alpha_mse"]
         k = int(np.nanargmin(a))
         iou = m.get("iou", np.full_like(a, np.nan))
-        row = {"tag": args.tag, "experiment": name, "frames": len(a) - 1, "overrides": json.dumps(overrides, sort_keys=True),
+        row = {"tag": args.tag, "experiment": name, "frames": len(a) - 1, "overrides": json.dumps(recorded, sort_keys=True),
                "a0": a[0], "a_best": a[k], "best_frame": k, "a_final": a[-1], "ceiling": ceil["alpha_mse"],
                "closed_best": gap_closed(a[0], a[k], ceil["alpha_mse"]),
                "closed_final": gap_closed(a[0], a[-1], ceil["alpha_mse"]),

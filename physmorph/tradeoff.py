@@ -100,16 +100,20 @@ def summarize_points(rows: list[dict]) -> pd.DataFrame:
 
 
 def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
-    """One row per knob: its best point by alpha MSE, the gain over the base and its cost."""
+    """One row per knob: its best point by alpha MSE, the gain over the base, its cost and a
+    verdict (free: faster and better, its gain_per_s inf; costs time; worse)."""
     base = df[df["name"] == "base"].iloc[0]
     rows = []
     for knob, g in df[df["knob"] != ""].groupby("knob"):
         best = g.loc[g["best_alpha_mse"].idxmin()]
         gain = base["best_alpha_mse"] - best["best_alpha_mse"]
         extra = best["time_s"] - base["time_s"]
+        # a knob that is both faster and better has no cost to divide by: "free" ranks it first
+        verdict = ("worse" if gain <= 0 else "free (faster and better)" if extra <= 1e-9 else "costs time")
         rows.append({"knob": knob, "best_value": best["value"], "alpha_mse": best["best_alpha_mse"],
                      "gain_vs_base": gain, "extra_time_s": extra,
-                     "gain_per_s": gain / extra if extra > 1e-9 else (np.inf if gain > 0 else 0.0)})
+                     "gain_per_s": gain / extra if extra > 1e-9 else (np.inf if gain > 0 else 0.0),
+                     "verdict": verdict})
     return pd.DataFrame(rows).sort_values("gain_per_s", ascending=False, ignore_index=True)
 
 

@@ -4,6 +4,7 @@ every experiment is resolved and a memory estimate is checked before any job run
 
 import dataclasses
 import json
+from pathlib import Path
 
 import jsonschema
 import pytest
@@ -16,10 +17,14 @@ from physmorph.morph import MorphConfig
 from physmorph.mpm import MPMConfig
 
 BASE = "config/config.yaml"
+# every profile overlay in config/ (paper_results.yaml is the paper's tables, not a profile)
+PROFILES = [[]] + [[str(p)] for p in sorted(Path("config").glob("*.yaml"))
+                   if p.name not in ("config.yaml", "paper_results.yaml")]
 
 
-@pytest.mark.parametrize("profile", [[], ["config/test.yaml"], ["config/paper.yaml"], ["config/paper_optimizer.yaml"]])
+@pytest.mark.parametrize("profile", PROFILES)
 def test_profiles_validate(profile):
+    assert len(PROFILES) >= 5 and ["config/test.yaml"] in PROFILES  # the glob found the overlays
     s = load_settings(BASE, *profile)
     assert s.sampling.grid_res >= 8
     assert s.mpm.grid_res == s.sampling.grid_res and s.mpm.density == s.sampling.density
@@ -76,7 +81,7 @@ def test_the_domain_is_defined_once_and_reaches_the_solver():
 def test_schema_is_generated_from_the_settings():
     assert SCHEMA_PATH.read_text() == schema_text(), "run: python -m physmorph.config --schema"
     schema = yaml.safe_load(SCHEMA_PATH.read_text())
-    for profile in ([], ["config/test.yaml"], ["config/paper.yaml"], ["config/paper_optimizer.yaml"]):
+    for profile in PROFILES:
         jsonschema.Draft202012Validator(schema).validate(load_mapping(BASE, *profile))
     assert schema["properties"]["mpm"]["properties"]["optimizer"] == {"enum": ["adam", "normalized_gd"],
                                                                        "default": "normalized_gd"}

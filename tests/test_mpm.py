@@ -2,7 +2,9 @@
 a dense torch reference, gradients vs central finite differences (float64), conservation,
 float32/float64 agreement, stability at the extremes, errors, and a small optimization.
 
-Solvers are built once per module (each instance compiles its Taichi kernels).
+Solvers are built once per module (each instance compiles its Taichi kernels); a test's own
+solver comes from solver_for, so tests whose configs differ only in driver settings (learning
+rate, optimiser, line search) share one.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import torch
 
 from physmorph.grid import Grid, splat_mass
 from physmorph.mpm import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMSolver,
-                           MPMStateError, ParticleState, elastic_energy, total_volume)
+                           MPMStateError, ParticleState, elastic_energy, solver_for, total_volume)
 from physmorph.mpm import reference as ref
 from physmorph.mpm.solver import evaluate_stress
 
@@ -44,8 +46,10 @@ def stretched_target(st: ParticleState, cfg: MPMConfig, stretch=(1.15, 0.93, 0.9
     return splat_mass(st.x * np.asarray(stretch), st.mass, Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi))
 
 
-def make(cfg: MPMConfig, st: ParticleState, target: bool = True) -> MPMSolver:
-    s = MPMSolver(cfg, st.n)
+def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = False) -> MPMSolver:
+    """A solver loaded with st (and the stretched target). reuse: take it from solver_for (for a
+    test's own solver; module fixtures build their own, which no later test may reset)."""
+    s = solver_for(cfg, st.n) if reuse else MPMSolver(cfg, st.n)
     if target:
         s.set_target_grid_mass(stretched_target(ball_state(perturb=False), cfg))
     s.load_state(st)
@@ -281,11 +285,19 @@ def _fd_check(s: MPMSolver, st: ParticleState, gF=None, gx=None, n_checks=6, h=1
 
 
 def test_one_substep_gradients_match_fd(state):
-    s = make(cfg64(substeps=1), state)
+    s = make(cfg64(substeps=1), state, reuse=True)
     s.set_control(random_control(s.cfg, state.n))
     _fd_check(s, state, n_checks=8)
     gF = 50.0 * np.random.default_rng(12).normal(size=(state.n, 3, 3))
     _fd_check(s, state, gF=gF, n_checks=6, seed=7)
+
+
+def test_warm_start_false_resets_control_on_load(state):
+    cfg = cfg64(substeps=1, warm_start=False)
+    s = make(cfg, state, reuse=True)  # the solver of the test above
+    s.set_control(random_control(cfg, state.n))
+    s.load_state(state)
+    assert np.abs(s.control()).max() == 0.0
 
 
 def test_three_substep_gradients_match_fd(solver3, state):
@@ -472,14 +484,6 @@ def test_optimization_reduces_mass_loss_by_half(solver20):
     s.set_target_grid_mass(stretched_target(ball_state(perturb=False), s.cfg))
 
 
-def test_warm_start_false_resets_control_on_load(state):
-    cfg = cfg64(substeps=1, warm_start=False)
-    s = make(cfg, state)
-    s.set_control(random_control(cfg, state.n))
-    s.load_state(state)
-    assert np.abs(s.control()).max() == 0.0
-
-
 def test_injected_adjoint_alone_is_the_difference(solver3, state):
     """backward(g, include_mass_loss=False) pulls back the injected adjoints alone: by linearity
     it equals backward(g) - backward(None) (float64)."""
@@ -520,10 +524,10 @@ def test_optimizer_state_round_trip(solver3, state):
 
 def test_reused_solver_computes_what_a_new_one_does(state):
     """solver_for hands back the previous solver for an equal config and size, reset: after a
-    run that moved dFc and the Adam moments, it optimizes exactly as a freshly built solver."""
-    from physmorph.mpm import solver_for
-
-    cfg = cfg64(substeps=2)
+    run that moved dFc and the Adam moments, it optimizes exactly as a freshly built solver; given
+    other driver settings (optimiser, learning rate, line search, log eps, ...) it optimizes as a
+    solver built with them."""
+    cfg = cfg64(substeps=2, mass_loss="log")
     target = stretched_target(ball_state(perturb=False), cfg)
 
     def optimize(s):
@@ -544,10 +548,51 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     assert loss_b == loss_a
     np.testing.assert_array_equal(ctrl_b, ctrl_a)
     np.testing.assert_array_equal(v_b, v_a)
+    # every driver field changed; the kernels compiled above (with cfg) are kept
+    driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
+                  grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9)
+    from physmorph.mpm.config import DRIVER_FIELDS
+    assert set(driver) == DRIVER_FIELDS
+    other = cfg64(substeps=2, mass_loss="log", **driver)
+    swapped = solver_for(other, state.n)
+    assert swapped is first and swapped.cfg is other
+    loss_c, ctrl_c, _ = optimize(swapped)
+    loss_d, ctrl_d, _ = optimize(MPMSolver(other, state.n))
+    assert loss_c == loss_d and loss_c != loss_a
+    np.testing.assert_array_equal(ctrl_c, ctrl_d)
+    with pytest.raises(MPMConfigError, match="drag"):
+        swapped.configure(cfg64(substeps=2, mass_loss="log", drag=0.5))
+
+
+def test_no_kernel_reads_a_driver_field():
+    """What lets configure change DRIVER_FIELDS on a built solver: no Taichi kernel or function,
+    and nothing __init__ turns into a compile-time constant, reads them (a static check of the
+    solver and stress sources; the test above checks the behaviour)."""
+    import ast
+    import inspect
+
+    import physmorph.mpm.solver as solver_module
+    import physmorph.mpm.stress as stress_module
+    from physmorph.mpm.config import DRIVER_FIELDS
+
+    def compiled_or_init(fn: ast.FunctionDef) -> bool:
+        names = {ast.unparse(d) for d in fn.decorator_list}
+        return fn.name in ("__init__", "make_stress_funcs") or bool(names & {"ti.kernel", "ti.func"})
+
+    read = set()
+    for module in (solver_module, stress_module):
+        for node in ast.walk(ast.parse(inspect.getsource(module))):
+            if isinstance(node, ast.FunctionDef) and compiled_or_init(node):
+                read |= {a.attr for a in ast.walk(node) if isinstance(a, ast.Attribute)
+                         and isinstance(a.value, (ast.Attribute, ast.Name))
+                         and getattr(a.value, "attr", getattr(a.value, "id", None)) == "cfg"}
+    assert "substeps" in read and "dt" in read  # the walk does see the kernels' settings
+    assert not read & DRIVER_FIELDS, read & DRIVER_FIELDS
 
 
 def test_solver_for_reuses_only_an_equal_config_and_size(monkeypatch):
-    """Another config or particle count gets its own solver; only the last one is kept (checked
+    """Other kernel settings or particle count get their own solver, other driver settings the
+    same one; only the last one is kept (checked
     with a stand-in class: building real solvers would only add compile time)."""
     import physmorph.mpm.solver as solver_module
 
@@ -558,10 +603,15 @@ def test_solver_for_reuses_only_an_equal_config_and_size(monkeypatch):
         def reset(self):
             self.resets += 1
 
+        def configure(self, cfg):
+            self.cfg = cfg
+
     monkeypatch.setattr(solver_module, "MPMSolver", Recorder)
     monkeypatch.setattr(solver_module, "_reusable", [])
     a = solver_module.solver_for(cfg64(), 10)
     assert solver_module.solver_for(cfg64(), 10) is a and a.resets == 1
+    faster = cfg64(learning_rate=0.5, optimizer="normalized_gd")  # driver settings only
+    assert solver_module.solver_for(faster, 10) is a and a.cfg is faster and a.resets == 2
     b = solver_module.solver_for(cfg64(drag=0.5), 10)
     assert b is not a and (b.cfg.drag, b.n) == (0.5, 10)
     c = solver_module.solver_for(cfg64(drag=0.5), 11)
@@ -623,7 +673,7 @@ def test_normalized_gd_line_search_decreases_the_objective_monotonically(state):
     within line_search_iters halvings is undone (the control is left unchanged)."""
     cfg = cfg64(substeps=5, optimizer="normalized_gd", learning_rate=0.01, line_search_iters=10)
     st = ball_state(perturb=False)
-    s = make(cfg, st)
+    s = make(cfg, st, reuse=True)
     s.set_target_grid_mass(stretched_target(st, cfg, stretch=(1.06, 0.97, 0.97)))
     gF = 10.0 * np.random.default_rng(2).normal(size=(st.n, 3, 3))
     s.reset_control()
@@ -635,7 +685,7 @@ def test_normalized_gd_line_search_decreases_the_objective_monotonically(state):
     assert all(b <= a for a, b in zip(objs, objs[1:])) and objs[-1] < objs[0]
     # line search exhausted (one try at a huge step): nothing changes
     big = MPMConfig(**{**cfg.__dict__, "learning_rate": 1e3, "line_search_iters": 1})
-    s2 = make(big, st)
+    s2 = make(big, st, reuse=True)  # s, reset and given the new driver settings
     s2.set_target_grid_mass(stretched_target(st, cfg, stretch=(1.06, 0.97, 0.97)))
     s2.reset_control()
     s2.load_state(st)
@@ -647,7 +697,7 @@ def test_normalized_gd_line_search_decreases_the_objective_monotonically(state):
 def test_normalized_gd_keeps_relative_gradient_sizes(state):
     """The step is -alpha g / rms(g): proportional to the gradient (unlike Adam's per-entry sign-like step)."""
     cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4)
-    s = make(cfg, state)
+    s = make(cfg, state, reuse=True)
     s.reset_control()
     s.load_state(state)
     s.forward()
@@ -663,7 +713,7 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     """With step_clip c the step is -alpha clip(g / rms(g), -c, c): entries under c are the plain
     normalised step, larger ones are cut to c alpha."""
     cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=1.5)
-    s = make(cfg, state)
+    s = make(cfg, state, reuse=True)
     s.reset_control()
     s.load_state(state)
     s.forward()

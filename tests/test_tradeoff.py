@@ -39,9 +39,12 @@ def test_knob_ranking_accuracy_per_second():
         {"name": "grid_res-48", "knob": "grid_res", "value": "48", "best_alpha_mse": 0.08, "time_s": 30.0},
         {"name": "cameras-4", "knob": "cameras", "value": "4", "best_alpha_mse": 0.11, "time_s": 8.0},
         {"name": "grad_iters-2", "knob": "grad_iters", "value": "2", "best_alpha_mse": 0.07, "time_s": 15.0},
+        {"name": "image-80x45", "knob": "image", "value": "80x45", "best_alpha_mse": 0.09, "time_s": 9.0},
     ]
     df = summarize_points(rows)
     assert df.set_index("name").loc["grid_res-48", "alpha_gain_per_s"] == pytest.approx(0.02 / 20)
     rank = knob_ranking(df)
-    assert rank["knob"].tolist()[0] == "grad_iters"  # 0.03 per 5 s beats 0.02 per 20 s
+    # faster and better first, then 0.03 per 5 s before 0.02 per 20 s, then the worse one
+    assert rank["knob"].tolist() == ["image", "grad_iters", "grid_res", "cameras"]
+    assert rank["verdict"].tolist() == ["free (faster and better)", "costs time", "costs time", "worse"]
     assert rank.set_index("knob").loc["cameras", "gain_vs_base"] == pytest.approx(-0.01)

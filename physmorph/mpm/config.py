@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal
 
 from ..grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
@@ -37,6 +37,11 @@ class CFLWarning(UserWarning):
 CONTROL_MODES = ("per_substep", "per_frame")
 MASS_LOSSES = ("squared", "log")
 OPTIMIZERS = ("adam", "normalized_gd")
+# Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
+# kernel bakes them in, so a built solver takes new values without compiling again
+# (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
+DRIVER_FIELDS = frozenset({"learning_rate", "optimizer", "line_search_iters", "step_clip", "grad_iters",
+                           "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
 
 @dataclass(frozen=True)
@@ -181,6 +186,10 @@ class MPMConfig:
     def stable_dt(self) -> float:
         """Largest accepted dt: cfl * dx / c."""
         return self.cfl * self.dx / self.wave_speed
+
+    def kernel_settings(self) -> tuple:
+        """The (name, value) pairs a solver's compiled kernels depend on: every field but DRIVER_FIELDS."""
+        return tuple((f.name, getattr(self, f.name)) for f in fields(self) if f.name not in DRIVER_FIELDS)
 
     @property
     def n_control_slots(self) -> int:

@@ -28,7 +28,7 @@ import taichi as ti
 
 from ..grid import BOUNDARY_CELLS, Grid
 from ..taichi_runtime import init_taichi
-from .config import MPMConfig, MPMDivergenceError, MPMStateError
+from .config import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
 from .state import ParticleState
 from .stress import evaluate_stress, make_stress_funcs  # noqa: F401 (evaluate_stress re-exported)
 
@@ -118,6 +118,15 @@ class MPMSolver:
         self._adam_step = 0
         self._log_eps = 0.0
         self.reset_control()
+
+    def configure(self, cfg: MPMConfig) -> None:
+        """Take cfg's driver settings (DRIVER_FIELDS: learning rate, optimiser, line search, ...)
+        without compiling again; every other field must equal the built solver's."""
+        if cfg.kernel_settings() != self.cfg.kernel_settings():
+            changed = [k for (k, a), (_, b) in zip(cfg.kernel_settings(), self.cfg.kernel_settings()) if a != b]
+            raise MPMConfigError(f"configure can only change driver settings; {', '.join(changed)} "
+                                 "would need a new solver (its kernels bake them in)")
+        self.cfg = cfg
 
     # ------------------------------------------------------------------ kernels
     # Each forward kernel is followed by its reverse. The 27-node quadratic B-spline stencil is
@@ -745,16 +754,19 @@ _reusable: list = []
 
 
 def solver_for(cfg: MPMConfig, n_particles: int) -> MPMSolver:
-    """A reset MPMSolver for (cfg, n_particles): the one built by the previous call when both
-    are equal, else a new one. Building a solver compiles its kernels (about 36 Taichi kernels:
-    18 s on a 2-core CPU with Taichi's offline cache empty, 5 s with it filled by an earlier
-    process; a second instance in one process pays again), so several runs in one process (the
-    tests, the study scripts) share it. Not for two runs at once: each call resets the solver."""
+    """A reset MPMSolver for (cfg, n_particles): the one built by the previous call when the
+    particle count and the kernel settings (every field but DRIVER_FIELDS: learning rate,
+    optimiser, line search, ...) are equal, given cfg, else a new one. Building a solver compiles
+    its kernels (about 36 Taichi kernels: 18 s on a 2-core CPU with Taichi's offline cache empty,
+    5 s with it filled by an earlier process; a second instance in one process pays again), so
+    several runs in one process (the tests, the study scripts) share it. Not for two runs at
+    once: each call resets the solver."""
     n = int(n_particles)
-    if _reusable and _reusable[0] == cfg and _reusable[1] == n:
+    if _reusable and _reusable[0] == cfg.kernel_settings() and _reusable[1] == n:
         solver = _reusable[2]
         solver.reset()
+        solver.configure(cfg)
         return solver
     solver = MPMSolver(cfg, n)
-    _reusable[:] = [cfg, n, solver]
+    _reusable[:] = [cfg.kernel_settings(), n, solver]
     return solver
