@@ -54,6 +54,10 @@ class MPMConfig:
     mass_loss: "squared": L = sum_I (m_I - m*_I)^2 over all grid nodes I (plain squared
         difference of grid masses, kg^2). "log": L = sum_I (log(m_I + eps) - log(m*_I + eps))^2
         with eps = log_mass_eps * (mean particle mass); it weights thin/low-density regions more.
+    mass_loss_levels: the mass loss summed over a pyramid of grids: level 0 the grid, level l the
+        grid mass summed over blocks of 2^l x 2^l x 2^l nodes, each level the same loss form (log:
+        eps x 8^l) with weight 1. Coarse levels see a missing feature (an ear) from farther away
+        than the 27-node stencil does. 1 = the grid alone (the paper's loss).
     warm_start: True keeps dFc and the Adam moments across frames (load_state does not touch
         them; the particles are the same material points from frame to frame); False makes
         load_state call reset_control.
@@ -98,6 +102,7 @@ class MPMConfig:
     adam_eps: float = 1e-8
     mass_loss: Literal["squared", "log"] = "log"
     log_mass_eps: float = 0.1
+    mass_loss_levels: int = 1
     warm_start: bool = True
     control_clip: float = 0.0
     cfl: float = 0.5
@@ -143,6 +148,10 @@ class MPMConfig:
         need(isinstance(self.line_search_iters, int) and self.line_search_iters >= 1,
              f"line_search_iters must be an int >= 1, got {self.line_search_iters!r}")
         need(self.log_mass_eps > 0, f"log_mass_eps must be > 0, got {self.log_mass_eps}")
+        need(isinstance(self.mass_loss_levels, int) and self.mass_loss_levels >= 1
+             and self.grid_res % (1 << (self.mass_loss_levels - 1)) == 0,
+             f"mass_loss_levels must be an int >= 1 whose blocks 2^(levels-1) divide grid_res "
+             f"{self.grid_res}, got {self.mass_loss_levels!r}")
         need(self.control_clip >= 0, f"control_clip must be >= 0, got {self.control_clip}")
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl}")
         need(0 < self.cfl_warn_fraction <= 1.0,

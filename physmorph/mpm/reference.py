@@ -101,12 +101,22 @@ def rollout_torch(x, v, C, F, ctrl, Fp, mass, vol, cfg: MPMConfig):
 
 
 def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> torch.Tensor:
-    """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2 (see MPMConfig)."""
-    m = grid_mass_torch(x, mass, cfg)
-    t = target.reshape(-1)
-    if cfg.mass_loss == "squared":
-        return ((m - t) ** 2).sum()
-    return ((torch.log(m + log_eps) - torch.log(t + log_eps)) ** 2).sum()
+    """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2 (see MPMConfig), summed
+    over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l."""
+    R = cfg.grid_res
+    m = grid_mass_torch(x, mass, cfg).reshape(R, R, R)
+    t = target.reshape(R, R, R)
+    total = torch.zeros((), dtype=m.dtype)
+    for level in range(cfg.mass_loss_levels):
+        b = 2 ** level
+        ml = m.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
+        tl = t.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
+        if cfg.mass_loss == "squared":
+            total = total + ((ml - tl) ** 2).sum()
+        else:
+            e = log_eps * 8.0 ** level
+            total = total + ((torch.log(ml + e) - torch.log(tl + e)) ** 2).sum()
+    return total
 
 
 def as_torch(a: np.ndarray, requires_grad: bool = False) -> torch.Tensor:

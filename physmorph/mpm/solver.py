@@ -82,6 +82,10 @@ class MPMSolver:
         self.grid_mv_adj = vec.field(shape=(R, R, R))
         self.grid_m_adj = ti.field(f, shape=(R, R, R))
         self.target_m = ti.field(f, shape=(R, R, R))
+        # the coarser levels of the mass-loss pyramid (mass_loss_levels > 1): block sums of the grid
+        # mass, of the target and their loss adjoints, level l = 1 .. levels - 1
+        self.pyramid = [tuple(ti.field(f, shape=(R >> lv,) * 3) for _ in range(3))
+                        for lv in range(1, cfg.mass_loss_levels)]
         self.loss_acc = ti.field(ti.f64, shape=())
         self.norm_acc = ti.field(ti.f64, shape=())
         # per-particle scratch of the substep being reversed: affine A, Fe and its SVD, so
@@ -362,6 +366,37 @@ class MPMSolver:
                 self.grid_m_adj[I] = 2.0 * r / (m + e)
 
     @ti.kernel
+    def _pyramid_loss(self, cm: ti.template(), ct: ti.template(), ca: ti.template(), block: ti.i32,
+                      log_eps: ti.f64):
+        """One coarse level of the mass loss (MPMConfig.mass_loss_levels): M_J = sum of m_I over
+        the block^3 nodes I of block J; loss (M - M*)^2 or (log(M + e) - log(M* + e))^2 added to
+        loss_acc, and its adjoint dL/dM_J added to dL/dm_I of every node of the block."""
+        for J in ti.grouped(cm):
+            cm[J] = 0.0
+        for I in ti.grouped(self.grid_m):
+            cm[I // block] += self.grid_m[I]
+        for J in ti.grouped(cm):
+            m = cm[J]
+            mt = ct[J]
+            if ti.static(self.cfg.mass_loss == "squared"):
+                r = m - mt
+                self.loss_acc[None] += ti.cast(r * r, ti.f64)
+                ca[J] = 2.0 * r
+            else:
+                e = ti.cast(log_eps, self.dtype)
+                r = ti.log(m + e) - ti.log(mt + e)
+                self.loss_acc[None] += ti.cast(r * r, ti.f64)
+                ca[J] = 2.0 * r / (m + e)
+        for I in ti.grouped(self.grid_m):
+            self.grid_m_adj[I] += ca[I // block]
+
+    def _loss_with_adjoint(self) -> None:
+        """Mass loss of the splatted grid_m into loss_acc, dL/dm_I into grid_m_adj (all levels)."""
+        self._mass_loss(self._log_eps)
+        for lv, (cm, ct, ca) in enumerate(self.pyramid, start=1):
+            self._pyramid_loss(cm, ct, ca, 1 << lv, self._log_eps * 8.0 ** lv)
+
+    @ti.kernel
     def _loss_backward(self):
         """Reverse of _splat_final and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
         of the injected g^x already there)."""
@@ -439,6 +474,9 @@ class MPMSolver:
         if not np.isfinite(m).all() or (m < 0).any():
             raise MPMStateError("target grid mass must be finite and >= 0")
         self.target_m.from_numpy(m.astype(self.np_dtype))
+        for lv, (_, ct, _) in enumerate(self.pyramid, start=1):
+            b = 1 << lv
+            ct.from_numpy(m.reshape(R // b, b, R // b, b, R // b, b).sum(axis=(1, 3, 5)).astype(self.np_dtype))
         self._has_target = True
         self._forward_current = False  # the cached loss refers to the old target
 
@@ -491,7 +529,7 @@ class MPMSolver:
         if self._has_target:
             self._clear_grid()
             self._splat_final()
-            self._mass_loss(self._log_eps)
+            self._loss_with_adjoint()
             self._last_loss = float(self.loss_acc[None])
         else:
             self._last_loss = float("nan")
@@ -517,7 +555,7 @@ class MPMSolver:
         if self._has_target and include_mass_loss:
             self._clear_grid()
             self._splat_final()
-            self._mass_loss(self._log_eps)
+            self._loss_with_adjoint()
             self._loss_backward()
         for t in reversed(range(self.cfg.substeps)):
             self._clear_grid()
