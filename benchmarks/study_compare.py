@@ -11,11 +11,10 @@ in-run rebound and, for runs with release frames, the release rebound.
 
 from __future__ import annotations
 
+import json
 import sys
 
 import numpy as np
-
-import json
 
 from physmorph.metrics import improvement_percent, matched_convergence_frame, rebound_percent, release_rebound_percent
 from physmorph.quality import gap_closed

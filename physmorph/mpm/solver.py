@@ -353,17 +353,26 @@ class MPMSolver:
         """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2."""
         self.loss_acc[None] = 0.0
         for I in ti.grouped(self.grid_m):
-            m = self.grid_m[I]
-            mt = self.target_m[I]
-            if ti.static(self.cfg.mass_loss == "squared"):
-                r = m - mt
-                self.loss_acc[None] += ti.cast(r * r, ti.f64)
-                self.grid_m_adj[I] = 2.0 * r
-            else:
-                e = ti.cast(log_eps, self.dtype)
-                r = ti.log(m + e) - ti.log(mt + e)
-                self.loss_acc[None] += ti.cast(r * r, ti.f64)
-                self.grid_m_adj[I] = 2.0 * r / (m + e)
+            r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
+            self.loss_acc[None] += r2
+            self.grid_m_adj[I] = adj
+
+    @ti.func
+    def _node_loss(self, m, mt, log_eps: ti.f64):
+        """One node's loss term and its derivative dL/dm: squared (m - m*)^2, 2 (m - m*); log
+        (log(m + e) - log(m* + e))^2, 2 r / (m + e)."""
+        r2 = ti.cast(0.0, ti.f64)
+        adj = ti.cast(0.0, self.dtype)
+        if ti.static(self.cfg.mass_loss == "squared"):
+            r = m - mt
+            r2 = ti.cast(r * r, ti.f64)
+            adj = 2.0 * r
+        else:
+            e = ti.cast(log_eps, self.dtype)
+            r = ti.log(m + e) - ti.log(mt + e)
+            r2 = ti.cast(r * r, ti.f64)
+            adj = 2.0 * r / (m + e)
+        return r2, adj
 
     @ti.kernel
     def _pyramid_loss(self, cm: ti.template(), ct: ti.template(), ca: ti.template(), block: ti.i32,
@@ -376,17 +385,9 @@ class MPMSolver:
         for I in ti.grouped(self.grid_m):
             cm[I // block] += self.grid_m[I]
         for J in ti.grouped(cm):
-            m = cm[J]
-            mt = ct[J]
-            if ti.static(self.cfg.mass_loss == "squared"):
-                r = m - mt
-                self.loss_acc[None] += ti.cast(r * r, ti.f64)
-                ca[J] = 2.0 * r
-            else:
-                e = ti.cast(log_eps, self.dtype)
-                r = ti.log(m + e) - ti.log(mt + e)
-                self.loss_acc[None] += ti.cast(r * r, ti.f64)
-                ca[J] = 2.0 * r / (m + e)
+            r2, adj = self._node_loss(cm[J], ct[J], log_eps)
+            self.loss_acc[None] += r2
+            ca[J] = adj
         for I in ti.grouped(self.grid_m):
             self.grid_m_adj[I] += ca[I // block]
 
