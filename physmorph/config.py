@@ -186,8 +186,122 @@ def to_plain(obj: Any) -> Any:
 
 
 def canonical_json(obj: Any) -> str:
-    """One string per value (sorted keys, no spaces): what Snakemake compares to rerun a job."""
+    """One string per value (sorted keys, no spaces): the full record a stage writes into its file."""
     return json.dumps(to_plain(obj), sort_keys=True, separators=(",", ":"))
+
+
+# --------------------------------------------------------------------------------------------
+# What rule params carry: every setting that differs from its default
+# --------------------------------------------------------------------------------------------
+# Snakemake reruns a job when its params string changes. If params held every field, adding a
+# field to a config class (a new option whose default changes nothing) would change the params
+# of every job that holds that class and rerun whole result trees for identical numbers. So a
+# field at its default is left out, and the job rebuilds its config from what is left (a left-out
+# field takes its default). The one case this would get wrong is a *changed* default: runs made
+# with the old one would keep their params and not rerun. FIRST_DEFAULTS_PATH records each
+# field's first default (append-only); a field whose default has changed since must be named in
+# its class's ALWAYS_IN_PARAMS (a ClassVar), which puts it in every params string, so the runs
+# that omitted it rerun once (tests/test_config.py checks both).
+FIRST_DEFAULTS_PATH = REPO_ROOT / "workflow" / "schemas" / "first_defaults.json"
+
+
+def _field_default(f) -> Any:
+    if f.default is not dataclasses_MISSING:
+        return f.default
+    if f.default_factory is not dataclasses_MISSING:
+        return f.default_factory()
+    return dataclasses_MISSING
+
+
+def without_defaults(obj: Any) -> Any:
+    """``to_plain(obj)`` with every dataclass field at its default left out, recursively (mappings
+    and lists of dataclasses too); a nested dataclass left with nothing is left out."""
+    if is_dataclass(obj) and not isinstance(obj, type):
+        keep = getattr(type(obj), "ALWAYS_IN_PARAMS", frozenset())
+        out = {}
+        for f in fields(obj):
+            value = getattr(obj, f.name)
+            plain = without_defaults(value)
+            if f.name not in keep:
+                default = _field_default(f)
+                if is_dataclass(value) and not isinstance(value, type):
+                    # Left out only when empty against its own class's defaults and the field's
+                    # default is that class's default instance (so rebuilding gives it back).
+                    if plain == {} and to_plain(default) == to_plain(type(value)()):
+                        continue
+                elif default is not dataclasses_MISSING and to_plain(value) == to_plain(default):
+                    continue
+            out[f.name] = plain
+        return out
+    if isinstance(obj, dict):
+        return {str(k): without_defaults(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [without_defaults(v) for v in obj]
+    return obj
+
+
+def params_json(obj: Any) -> str:
+    """What a rule's params hold: canonical JSON of ``obj`` without its fields at their defaults."""
+    return json.dumps(without_defaults(obj), sort_keys=True, separators=(",", ":"))
+
+
+def settings_classes() -> list[type]:
+    """Every config dataclass reachable from Settings and MorphConfig (and the tradeoff point)."""
+    from physmorph.tradeoff import TradeoffPoint
+
+    seen: list[type] = []
+
+    def walk(tp: Any) -> None:
+        if is_dataclass(tp) and isinstance(tp, type):
+            if tp in seen:
+                return
+            seen.append(tp)
+            for hint in get_type_hints(tp).values():
+                walk(hint)
+        for arg in get_args(tp):
+            walk(arg)
+
+    for root in (Settings, _morph_config_class(), TradeoffPoint):
+        walk(root)
+    return seen
+
+
+def current_defaults() -> dict[str, Any]:
+    """``{"Class.field": default}`` of every config class (fields without a default left out)."""
+    out = {}
+    for cls in settings_classes():
+        for f in fields(cls):
+            default = _field_default(f)
+            if default is not dataclasses_MISSING and not is_dataclass(default):
+                out[f"{cls.__name__}.{f.name}"] = to_plain(default)
+    return out
+
+
+def record_first_defaults(path: Path = FIRST_DEFAULTS_PATH) -> list[str]:
+    """Add the fields not yet recorded to ``path`` (never rewrites a recorded default); returns them."""
+    recorded = json.loads(path.read_text()) if path.exists() else {}
+    new = {k: v for k, v in current_defaults().items() if k not in recorded}
+    if new:
+        path.write_text(json.dumps({**recorded, **new}, indent=1, sort_keys=True) + "\n")
+    return sorted(new)
+
+
+def defaults_changed(path: Path = FIRST_DEFAULTS_PATH) -> list[str]:
+    """Problems with the first-defaults record: fields not yet recorded, and fields whose default
+    changed but which are not in their class's ALWAYS_IN_PARAMS (their old runs would not rerun)."""
+    recorded = json.loads(path.read_text()) if path.exists() else {}
+    problems = []
+    classes = {c.__name__: c for c in settings_classes()}
+    for key, default in current_defaults().items():
+        if key not in recorded:
+            problems.append(f"{key}: not recorded in {path.name}; run `python -m physmorph.config --defaults`")
+            continue
+        cls_name, name = key.split(".", 1)
+        if recorded[key] != default and name not in getattr(classes[cls_name], "ALWAYS_IN_PARAMS", ()):
+            problems.append(f"{key}: default changed {recorded[key]!r} -> {default!r}, so runs made with the old "
+                            f"default (which left it out of their params) would not rerun; add '{name}' to "
+                            f"{cls_name}.ALWAYS_IN_PARAMS")
+    return problems
 
 
 def schema_of(tp: Any, derived: dict | None = None) -> dict:
@@ -719,23 +833,24 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
 def morph_params(cfg) -> str:
     """Canonical JSON of what a morph run's results depend on (cfg: physmorph.morph.MorphConfig).
 
-    Settings the run's method never reads are left out, so changing them reruns nothing:
+    Settings at their defaults are left out (see ``without_defaults``: a new option reruns
+    nothing), and so are settings the run's method never reads, so changing them reruns nothing:
     plasticity outside ``full``, the injection gains and their calibration for ``physics_only``,
     ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
     it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
-    string (what is left out takes its default, unused)."""
-    d = to_plain(cfg)
+    string (what is left out takes its default)."""
+    d = without_defaults(cfg)
     d.pop("progress", None)
-    d["mpm"].pop("threads", None)
+    d.get("mpm", {}).pop("threads", None)
     if cfg.method != "full":
-        d.pop("plasticity")
+        d.pop("plasticity", None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):
-            d.pop(k)
+            d.pop(k, None)
         if cfg.metric_all_particles:
-            d.pop("surface")
+            d.pop("surface", None)
     else:
-        d.pop("gamma_x" if cfg.method != "position_inject" else "gamma")
+        d.pop("gamma_x" if cfg.method != "position_inject" else "gamma", None)
     return json.dumps(d, sort_keys=True, separators=(",", ":"))
 
 
@@ -753,5 +868,11 @@ if __name__ == "__main__":  # pragma: no cover - a maintenance command
     if sys.argv[1:] == ["--schema"]:
         SCHEMA_PATH.write_text(schema_text())
         print(f"wrote {SCHEMA_PATH}")
+    elif sys.argv[1:] == ["--defaults"]:
+        added = record_first_defaults()
+        print(f"{FIRST_DEFAULTS_PATH}: recorded {len(added)} new field(s)" + (": " + ", ".join(added) if added else ""))
+        for problem in defaults_changed():
+            print("  " + problem)
     else:
-        print("usage: python -m physmorph.config --schema   (regenerates workflow/schemas/config.schema.yaml)")
+        print("usage: python -m physmorph.config --schema     (regenerates workflow/schemas/config.schema.yaml)\n"
+              "       python -m physmorph.config --defaults   (records new fields' first defaults)")

@@ -32,7 +32,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -54,6 +54,8 @@ METHODS = ("physics_only", "f_inject", "full", "position_inject")
 
 @dataclass(frozen=True)
 class MorphConfig:
+    # always in a run's params (physmorph.config.without_defaults), so its record names the method
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method"})
     method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
     frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
@@ -268,7 +270,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     if cfg.release_frames and status == "complete":
         extra["release_alpha_mse"] = json.dumps(release_curve(solver, st, cfg.release_frames,
                                                               lambda s: metrics_for(s, mask)[0]["alpha_mse"], log, name))
-    run.finish(status, extra, json.loads(record))
+    # The file's provenance also keeps every setting resolved (the key leaves defaults out).
+    run.finish(status, extra, {**json.loads(record), "resolved": cfg.to_dict()})
 
 
 def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, log, name: str) -> list[float]:

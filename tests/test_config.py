@@ -10,8 +10,9 @@ import jsonschema
 import pytest
 import yaml
 
-from physmorph.config import (SCHEMA_PATH, ConfigError, SamplingConfig, Settings, build, load_mapping,
-                              load_settings, morph_params, schema_text)
+from physmorph.config import (FIRST_DEFAULTS_PATH, SCHEMA_PATH, ConfigError, SamplingConfig, Settings, build,
+                              current_defaults, defaults_changed, load_mapping, load_settings, morph_params,
+                              params_json, record_first_defaults, schema_text, settings_classes, without_defaults)
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO, Grid
 from physmorph.morph import MorphConfig
 from physmorph.mpm import MPMConfig
@@ -169,6 +170,63 @@ def test_experiment_resolution_and_its_params():
     # threads change no params
     s3 = load_settings(BASE, overrides={"threads": 1})
     assert morph_params(s3.experiment_config("iso_bunny_full")) == morph_params(full)
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_every_run_rebuilds_its_settings_from_its_params(profile):
+    s = load_settings(BASE, *profile)
+    for name in s.experiments:
+        cfg = s.experiment_config(name)
+        back = build(MorphConfig, json.loads(morph_params(cfg)), "morph")
+        # what the method never reads may differ (it is left out); what it reads may not
+        assert morph_params(back) == morph_params(cfg), name
+        assert back.mpm == dataclasses.replace(cfg.mpm, threads=back.mpm.threads), name
+        if cfg.method == "full":
+            assert back.plasticity == cfg.plasticity, name
+
+
+def test_params_leave_out_defaults_so_a_new_option_reruns_nothing():
+    full = load_settings(BASE).experiment_config("iso_bunny_full")
+    # an option added later, at a default that changes nothing, leaves every params string as it was
+    @dataclasses.dataclass(frozen=True)
+    class MPMWithNewOption(MPMConfig):
+        new_option: int = 1
+
+    mpm_plus = MPMWithNewOption(**{f.name: getattr(full.mpm, f.name) for f in dataclasses.fields(MPMConfig)})
+    with_option = dataclasses.replace(full, mpm=mpm_plus)
+    assert morph_params(with_option) == morph_params(full)
+    assert params_json(mpm_plus) == params_json(full.mpm)
+    # set to anything else, it is in the params
+    assert '"new_option":2' in morph_params(dataclasses.replace(with_option, mpm=dataclasses.replace(mpm_plus, new_option=2)))
+    # a setting given explicitly at its default is the same as not giving it
+    s_explicit = load_settings(BASE, overrides={"mpm": {"mass_loss_levels": 1}, "plasticity": {"absorb_rate": 1.0}})
+    assert morph_params(s_explicit.experiment_config("iso_bunny_full")) == morph_params(full)
+    # fields at their defaults are absent, others present; ALWAYS_IN_PARAMS fields always
+    d = json.loads(morph_params(full))
+    assert "mass_loss_levels" not in d["mpm"] and "absorb_rate" not in d.get("plasticity", {})
+    assert d["method"] == "full" and "drag" not in d["mpm"] and d["release_frames"] == 40  # the YAML sets 40
+    assert without_defaults(SamplingConfig()) == {} and without_defaults(SamplingConfig(grid_res=64)) == {"grid_res": 64}
+
+
+def test_first_defaults_are_recorded_and_a_changed_default_must_stay_in_params(tmp_path):
+    # the committed record holds every field, and no default changed behind the params' back
+    assert defaults_changed() == []
+    names = [c.__name__ for c in settings_classes()]
+    assert len(names) == len(set(names)) and {"MPMConfig", "MorphConfig", "SamplingConfig", "Experiment"} <= set(names)
+    # a changed default is caught, named, and told where to go
+    recorded = json.loads(FIRST_DEFAULTS_PATH.read_text())
+    path = tmp_path / "first_defaults.json"
+    path.write_text(json.dumps({**recorded, "MPMConfig.smoothing": 0.5, "MorphConfig.method": "f_inject"}))
+    problems = defaults_changed(path)
+    assert len(problems) == 1 and "MPMConfig.smoothing" in problems[0] and "MPMConfig.ALWAYS_IN_PARAMS" in problems[0]
+    # (MorphConfig.method is always in the params: its change needs nothing more)
+    # recording never rewrites a recorded default, and adds what is missing
+    del recorded["MPMConfig.drag"]
+    path.write_text(json.dumps({**recorded, "MPMConfig.smoothing": 0.5}))
+    assert any("MPMConfig.drag: not recorded" in p for p in defaults_changed(path))
+    assert record_first_defaults(path) == ["MPMConfig.drag"]
+    after = json.loads(path.read_text())
+    assert after["MPMConfig.smoothing"] == 0.5 and after["MPMConfig.drag"] == current_defaults()["MPMConfig.drag"]
 
 
 def test_unknown_experiment_lists_known():

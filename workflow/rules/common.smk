@@ -1,8 +1,9 @@
 # Shared helpers. The merged config is turned into typed, frozen settings once (physmorph.config:
 # the one validator; every experiment resolved and a memory estimate checked before any job
-# runs). Rules get what they depend on as canonical JSON `params`, so changing a setting reruns
+# runs). Rules get what they depend on as `params` (canonical JSON without the fields at their
+# defaults: physmorph.config.params_json), so changing a setting reruns
 # exactly the jobs that use it. Every output lives under results/{profile}/.
-from physmorph.config import Settings, canonical_json, morph_params, particle_estimate
+from physmorph.config import Settings, morph_params, params_json, particle_estimate, without_defaults
 from physmorph.config import morph_memory, sampling_memory, target_memory
 from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.tradeoff import tradeoff_points

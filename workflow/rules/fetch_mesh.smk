@@ -5,7 +5,7 @@ rule fetch_mesh:
     output:
         "resources/meshes/{file}",
     params:
-        source=lambda wc: canonical_json(S.raw_meshes[wc.file]),
+        source=lambda wc: params_json(S.raw_meshes[wc.file]),
         mesh_dir=S.mesh_dir,
     log:
         f"{R}/logs/fetch_mesh/{{file}}.log",

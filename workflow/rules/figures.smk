@@ -10,7 +10,7 @@ rule make_figures:
     params:
         names=list(S.tables.experiments),
         shapes=list(S.tables.shapes),
-        target=canonical_json(S.target),
+        target=params_json(S.target),
         out_dir=f"{R}/figures",
     log:
         f"{R}/logs/make_figures.log",

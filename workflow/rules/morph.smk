@@ -9,7 +9,7 @@ rule morph:
         f"{R}/runs/{{experiment}}.h5",
     params:
         settings=lambda wc: morph_params(S.experiment_config(wc.experiment)),
-        experiment=lambda wc: canonical_json(S.experiment(wc.experiment)),
+        experiment=lambda wc: params_json(S.experiment(wc.experiment)),
         name=lambda wc: wc.experiment,
     log:
         f"{R}/logs/morph/{{experiment}}.log",

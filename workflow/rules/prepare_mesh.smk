@@ -5,7 +5,7 @@ rule prepare_mesh:
     output:
         f"{R}/meshes/{{shape}}.h5",
     params:
-        spec=lambda wc: canonical_json(S.shape(wc.shape)),
+        spec=lambda wc: params_json(S.shape(wc.shape)),
         domain=list(S.domain),
         # the raw mesh is verified against its checksum again: it may have changed since it was fetched
         raw_sha256=lambda wc: S.raw_meshes[S.shape(wc.shape).file].sha256 if S.shape(wc.shape).file else None,

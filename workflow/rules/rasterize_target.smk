@@ -7,10 +7,10 @@ rule rasterize_target:
         h5=f"{R}/targets/{{shape}}_{{res}}.h5",
         png=f"{R}/previews/targets/{{shape}}_{{res}}.png",
     params:
-        sampling=lambda wc: canonical_json(S.sampling.with_tag(wc.res)),
-        target=canonical_json(S.target),
+        sampling=lambda wc: params_json(S.sampling.with_tag(wc.res)),
+        target=params_json(S.target),
         seed=S.seed,
-        render=canonical_json(S.render.__class__(**{**S.render.__dict__, "device": "cpu"})),
+        render=params_json(S.render.__class__(**{**S.render.__dict__, "device": "cpu"})),
     log:
         f"{R}/logs/rasterize_target/{{shape}}_{{res}}.log",
     benchmark:

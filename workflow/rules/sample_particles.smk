@@ -6,7 +6,7 @@ rule sample_particles:
         h5=f"{R}/particles/{{shape}}_{{res}}.h5",
         png=f"{R}/previews/particles/{{shape}}_{{res}}.png",
     params:
-        sampling=lambda wc: canonical_json(S.sampling.with_tag(wc.res)),
+        sampling=lambda wc: params_json(S.sampling.with_tag(wc.res)),
         seed=S.seed,
     log:
         f"{R}/logs/sample_particles/{{shape}}_{{res}}.log",

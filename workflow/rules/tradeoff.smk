@@ -9,11 +9,11 @@ rule rasterize_target_image:
     wildcard_constraints:
         img=r"\d+x\d+",
     params:
-        sampling=lambda wc: canonical_json(S.sampling.with_tag(wc.res)),
-        target=lambda wc: canonical_json(S.target.__class__(**{**S.target.__dict__, "width": int(wc.img.split("x")[0]),
+        sampling=lambda wc: params_json(S.sampling.with_tag(wc.res)),
+        target=lambda wc: params_json(S.target.__class__(**{**S.target.__dict__, "width": int(wc.img.split("x")[0]),
                                                                 "height": int(wc.img.split("x")[1])})),
         seed=S.seed,
-        render=canonical_json(S.render.__class__(**{**S.render.__dict__, "device": "cpu"})),
+        render=params_json(S.render.__class__(**{**S.render.__dict__, "device": "cpu"})),
     log:
         f"{R}/logs/rasterize_target/{{shape}}_{{res}}_{{img}}.log",
     benchmark:
@@ -36,7 +36,7 @@ rule tradeoff_point:
         point=r"[A-Za-z0-9_x-]+",
     params:
         settings=lambda wc: morph_params(point_settings(wc.point)[2]),
-        experiment=lambda wc: canonical_json({"tradeoff_point": wc.point, **S.experiment(S.tradeoff.experiment).__dict__}),
+        experiment=lambda wc: params_json({"tradeoff_point": wc.point, **without_defaults(S.experiment(S.tradeoff.experiment))}),
         name=lambda wc: f"tradeoff {wc.point}",
     log:
         f"{R}/logs/tradeoff/{{point}}.log",
@@ -62,7 +62,7 @@ rule make_tradeoff:
         png=report(f"{R}/tradeoff/pareto.png", caption="../report/pareto.rst", category="Speed / accuracy"),
     params:
         names=list(POINTS),
-        points=canonical_json(POINTS),
+        points=params_json(POINTS),
         out_dir=f"{R}/tradeoff",
     log:
         f"{R}/logs/make_tradeoff.log",
