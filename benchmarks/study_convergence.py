@@ -14,6 +14,7 @@ the share of the reachable gap closed at the best and last frame, silhouette IoU
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import csv
 import json
@@ -69,7 +70,7 @@ def main() -> None:
     for name in args.experiments:
         exp = cfg.experiment(name)
         mc = morph_config(cfg, name)
-        mc = type(mc)(**{**{f: getattr(mc, f) for f in mc.__dataclass_fields__}, "progress": False})
+        mc = dataclasses.replace(mc, progress=False)
         parts = REPO / "results" / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
         tpath = REPO / "results" / cfg.profile / "targets" / f"{exp.target}_{res}.h5"
         out = Path(args.workdir) / args.tag / f"{name}.h5"
