@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, fields
-from typing import Literal
+from typing import ClassVar, Literal
 
 from ..grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
 
@@ -80,6 +80,10 @@ class MPMConfig:
         Adam step (0 = off, the paper's behaviour).
     """
 
+    # Fields whose default changed after runs were made with the old one: always in a run's params
+    # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate"})
+
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
     domain_hi: float = DOMAIN_HI
@@ -92,7 +96,7 @@ class MPMConfig:
     smoothing: float = 0.955
     control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
-    learning_rate: float = 0.001
+    learning_rate: float = 0.002  # 0.001 until study session 7 (docs/convergence.md)
     optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
     line_search_iters: int = 10
     step_clip: float = 3.0
