@@ -49,7 +49,8 @@ def parse_set(items: list[str]) -> dict:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Run each named experiment once; returns the rows (also printed and, unless --no-csv, appended)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("experiments", nargs="+")
     ap.add_argument("--tag", required=True)
@@ -57,8 +58,11 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="dotted.key=value (YAML value)")
     ap.add_argument("--profile", default=None, help="extra config file merged on config/config.yaml")
     ap.add_argument("--workdir", default="/tmp/physmorph_study")
+    ap.add_argument("--results", default=str(REPO / "results"), help="where results/{profile}/ lives")
+    ap.add_argument("--csv", default=str(CSV), help="the record the rows are appended to")
     ap.add_argument("--no-csv", action="store_true")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    csv_path = Path(args.csv)
     overrides = parse_set(args.set)
     if args.frames:
         overrides.setdefault("morph", {})["frames"] = args.frames
@@ -67,12 +71,13 @@ def main() -> None:
     files = [REPO / "config" / "config.yaml"] + ([Path(args.profile)] if args.profile else [])
     cfg = load_settings(*files, overrides=overrides)
     res = cfg.sampling.tag
+    rows = []
     for name in args.experiments:
         exp = cfg.experiment(name)
         mc = morph_config(cfg, name)
         mc = dataclasses.replace(mc, progress=False)
-        parts = REPO / "results" / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
-        tpath = REPO / "results" / cfg.profile / "targets" / f"{exp.target}_{res}.h5"
+        parts = Path(args.results) / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
+        tpath = Path(args.results) / cfg.profile / "targets" / f"{exp.target}_{res}.h5"
         out = Path(args.workdir) / args.tag / f"{name}.h5"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.unlink(missing_ok=True)
@@ -98,13 +103,15 @@ def main() -> None:
         print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
         curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])
         print(f"  alpha curve: {curve}", flush=True)
+        rows.append(row)
         if not args.no_csv:
-            new = not CSV.exists()
-            with CSV.open("a", newline="") as fh:
+            new = not csv_path.exists()
+            with csv_path.open("a", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=COLUMNS)
                 if new:
                     w.writeheader()
                 w.writerow(row)
+    return rows
 
 
 if __name__ == "__main__":
