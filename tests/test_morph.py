@@ -218,8 +218,9 @@ def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
     base = morph_config(cfg, "iso_bunny_full")
     pl = dataclasses.replace(base.plasticity, absorb_control=True)
     # At the step size where absorb_control was measured (0.001, study session 3). At the default
-    # since session 7 (0.002) the tiny run closes 81 % but loses 107 % of it released, as much as
-    # f_inject (measured 2026-11-23; docs/convergence.md item 41): the property does not hold there.
+    # since session 7 (0.002) the tiny run closes 81 % but loses 107 % of it released: not by
+    # springing back (f_inject does), but because the absorbed control is a driving stress that
+    # keeps stretching the body past the target (docs/convergence.md item 42).
     mpm = dataclasses.replace(base.mpm, learning_rate=0.001)
     runs = {"absorb": read_metrics(_run(tiny, "iso_bunny_full", "absorb_release.h5", plasticity=pl, release_frames=12,
                                         mpm=mpm)),
