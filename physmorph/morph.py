@@ -42,7 +42,8 @@ from physmorph.injection import calibrate_injection
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
-from physmorph.plasticity import PlasticityConfig, absorb_control, chamfer_plasticity_step, rebase_control
+from physmorph.plasticity import (PlasticityConfig, absorb_control, absorb_shape, chamfer_plasticity_step,
+                                  rebase_control)
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
 from physmorph.stability import MorphDivergenceError, StabilityMonitor, anisotropy, check_state  # noqa: F401 (re-exported)
 from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
@@ -238,8 +239,11 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             # The deformation the stress sees is F + dFc (the control enters the stress, see
             # physmorph.mpm.solver): target_rest relaxes Fp toward it, averaged over substeps.
             F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
-            Fp_from = (absorb_control(st.F, solver.control(), st.Fp, cfg.plasticity.absorb_rate)
-                       if cfg.plasticity.absorb_control else st.Fp)
+            Fp_from = st.Fp
+            if cfg.plasticity.absorb_control and cfg.plasticity.absorb_target == "shape":
+                Fp_from = absorb_shape(st.F, st.Fp, cfg.plasticity.absorb_rate)
+            elif cfg.plasticity.absorb_control:
+                Fp_from = absorb_control(st.F, solver.control(), st.Fp, cfg.plasticity.absorb_rate)
             pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress)
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)

@@ -58,6 +58,10 @@ class PlasticityConfig:
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
     absorb_control: bool = False  # move the control into Fp before each update (absorb_control); implies continuous_stress
     absorb_rate: float = 1.0  # share of the control moved into Fp per update (absorb_control)
+    # what absorb_control moves into Fp: "control", the elastic deformation the control produced
+    # (absorb_control(); a driving stress, which a released body keeps following), or "shape", the
+    # stretch of F (absorb_shape(): the achieved shape becomes stress-free, docs/convergence.md item 46)
+    absorb_target: Literal["control", "shape"] = "control"
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
@@ -71,6 +75,8 @@ class PlasticityConfig:
             raise ValueError(f"plasticity.max_anisotropy must be >= 1, got {self.max_anisotropy}")
         if not 0 < self.absorb_rate <= 1:
             raise ValueError(f"plasticity.absorb_rate must be in (0, 1], got {self.absorb_rate}")
+        if self.absorb_target not in ("control", "shape"):
+            raise ValueError(f"plasticity.absorb_target must be control or shape, got {self.absorb_target!r}")
 
 
 def nearest_target_displacement(x: np.ndarray, target_tree: cKDTree, target_points: np.ndarray) -> np.ndarray:
@@ -168,6 +174,29 @@ def absorb_control(
     ok = np.linalg.det(A) > 1e-3
     out = Fp.copy()
     out[ok] = (1.0 - rate) * Fp[ok] + rate * (Fp[ok] @ np.linalg.solve(A[ok], F[ok]))
+    return out
+
+
+def absorb_shape(
+    F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
+    Fp: np.ndarray,  # [N, 3, 3]
+    rate: float = 1.0,
+) -> np.ndarray:  # [N, 3, 3]
+    """Fp' = (1 - r) Fp + r S with S = V diag(sigma) V^T the right stretch of F = U diag(sigma) V^T
+    (for det F > 0, F S^-1 = U V^T is a rotation): at r = 1, Fe = F Fp'^-1 = U V^T, a rotation, so the fixed-
+    corotated stress vanishes and the achieved shape is the rest shape (plastic flow to it).
+
+    Why: absorb_control keeps the elastic deformation the *control* produced, which is the stress
+    that drives the body; released, the body goes on along it, past the target (docs/convergence.md
+    item 42). This variant keeps the shape instead: with the control re-based afterwards
+    (rebase_control) the running morph sees the same stress, and a released one has none.
+    Particles with det F <= 1e-3 (near-inverted) keep their Fp.
+    """
+    _, sig, Vt = np.linalg.svd(F)
+    S = np.einsum("nji,nj,njk->nik", Vt, sig, Vt)  # V diag(sigma) V^T, symmetric positive
+    ok = np.linalg.det(F) > 1e-3
+    out = Fp.copy()
+    out[ok] = (1.0 - rate) * Fp[ok] + rate * S[ok]
     return out
 
 

@@ -6,6 +6,7 @@ from scipy.spatial import cKDTree
 
 from physmorph.plasticity import (
     absorb_control,
+    absorb_shape,
     PlasticityConfig,
     chamfer_plasticity_step,
     displacement_jacobian,
@@ -204,3 +205,43 @@ def test_absorb_rate_moves_that_share_of_the_control_into_fp():
     for bad in (0.0, -0.1, 1.5):
         with pytest.raises(ValueError, match="absorb_rate"):
             PlasticityConfig(absorb_rate=bad)
+
+
+def _rotation(rng):
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_absorbed_shape_is_stress_free_and_keeps_the_stress_of_the_running_morph():
+    """absorb_shape makes the achieved shape the rest shape: F Fp'^-1 is a rotation (the fixed-
+    corotated stress vanishes), Fp' is the symmetric stretch of F (F = R Fp'), a rate blends
+    linearly, and a near-inverted particle keeps its Fp. With the control re-based afterwards each
+    substep's Fe is unchanged, so only a released body notices."""
+    import torch
+
+    from physmorph.mpm.reference import stress_torch
+
+    rng = np.random.default_rng(4)
+    N, T = 7, 3
+    S_true = np.eye(3) + 0.3 * rng.standard_normal((N, 3, 3))
+    S_true = S_true @ S_true.transpose(0, 2, 1) + 0.2 * np.eye(3)  # symmetric positive stretches
+    R = np.stack([_rotation(rng) for _ in range(N)])
+    F = R @ S_true
+    F[0] = np.diag([1.0, 1.0, -0.5])  # inverted: keeps its Fp
+    Fp = np.eye(3) + 0.1 * rng.standard_normal((N, 3, 3))
+    Fp_new = absorb_shape(F, Fp)
+    np.testing.assert_allclose(Fp_new[0], Fp[0])
+    np.testing.assert_allclose(Fp_new[1:], S_true[1:], atol=1e-10)
+    Fe = F[1:] @ np.linalg.inv(Fp_new[1:])
+    np.testing.assert_allclose(Fe @ Fe.transpose(0, 2, 1), np.broadcast_to(np.eye(3), Fe.shape), atol=1e-10)
+    np.testing.assert_allclose(np.linalg.det(Fe), 1.0, atol=1e-10)
+    P = stress_torch(torch.from_numpy(Fe), mu=1.0, lam=1.0).numpy()
+    np.testing.assert_allclose(P, 0.0, atol=1e-8)
+    np.testing.assert_allclose(absorb_shape(F, Fp, rate=0.3), 0.7 * Fp + 0.3 * Fp_new, atol=1e-12)
+    ctrl = 0.05 * rng.standard_normal((T, N, 3, 3))
+    rebased = rebase_control(F, ctrl, Fp, Fp_new)
+    Fe_old = (F[None] + ctrl) @ np.linalg.inv(Fp)[None]
+    Fe_new = (F[None] + rebased) @ np.linalg.inv(Fp_new)[None]
+    np.testing.assert_allclose(Fe_new, Fe_old, atol=1e-10)
+    with pytest.raises(ValueError, match="absorb_target"):
+        PlasticityConfig(absorb_target="velocity")
