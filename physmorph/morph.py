@@ -251,8 +251,15 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 check_state(st, k, cfg)
             except MorphDivergenceError as exc:
                 raise MorphDivergenceError(f"{exc} (completed frames are kept in {partial})") from exc
-            if cfg.plasticity.continuous_stress or cfg.plasticity.absorb_control:
+            # The control is re-based so Fe stays continuous across: the whole update with
+            # continuous_stress (and with the control absorbed, as measured in session 3); only the
+            # absorption with the shape absorbed, so the Chamfer step's pull toward the target
+            # remains a stress, as in the default (docs/convergence.md item 47).
+            if cfg.plasticity.continuous_stress or (cfg.plasticity.absorb_control
+                                                    and cfg.plasticity.absorb_target == "control"):
                 solver.set_control(rebase_control(st.F, solver.control(), Fp_old, pl.Fp))
+            elif cfg.plasticity.absorb_control:
+                solver.set_control(rebase_control(st.F, solver.control(), Fp_old, Fp_from))
         t4 = time.time()
         m, per_view = metrics_for(st, mask)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan

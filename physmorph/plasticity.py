@@ -59,8 +59,10 @@ class PlasticityConfig:
     absorb_control: bool = False  # move the control into Fp before each update (absorb_control); implies continuous_stress
     absorb_rate: float = 1.0  # share of the control moved into Fp per update (absorb_control)
     # what absorb_control moves into Fp: "control", the elastic deformation the control produced
-    # (absorb_control(); a driving stress, which a released body keeps following), or "shape", the
-    # stretch of F (absorb_shape(): the achieved shape becomes stress-free, docs/convergence.md item 46)
+    # (absorb_control(); a driving stress, which a released body keeps following; the whole update
+    # is then re-based), or "shape", the stretch of F (absorb_shape(): the achieved shape becomes
+    # stress-free; only that is re-based, the Chamfer step stays a stress unless continuous_stress;
+    # docs/convergence.md items 46-47)
     absorb_target: Literal["control", "shape"] = "control"
 
     def __post_init__(self) -> None:

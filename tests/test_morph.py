@@ -238,8 +238,8 @@ def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
 
 
 # absorb_target: shape on the tiny profile at the default step size (measured 2026-11-23: release
-# rebound 26.9 % against f_inject's 102.6 %; the tiny run is still moving at its last frame, so part
-# of the body's momentum carries on; on the default profile the release rebound is 0.6 %).
+# rebound 13.4 % against f_inject's 102.6 %; 26.9 % with the Chamfer step re-based too). The tiny
+# run is still moving at its last frame, so part of the body's momentum carries on.
 RELEASE_REBOUND_SHAPE = 40.0
 
 
