@@ -42,7 +42,7 @@ from physmorph.injection import calibrate_injection
 from physmorph.mpm import MPMConfig, MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou
-from physmorph.plasticity import (PlasticityConfig, absorb_control, absorb_shape, chamfer_plasticity_step,
+from physmorph.plasticity import (PlasticityConfig, absorbed_rest, chamfer_plasticity_step, rebase_reference,
                                   rebase_control)
 from physmorph.render import RenderConfig, RenderTarget, render_and_grad, render_views
 from physmorph.stability import MorphDivergenceError, StabilityMonitor, anisotropy, check_state  # noqa: F401 (re-exported)
@@ -239,11 +239,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             # The deformation the stress sees is F + dFc (the control enters the stress, see
             # physmorph.mpm.solver): target_rest relaxes Fp toward it, averaged over substeps.
             F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
-            Fp_from = st.Fp
-            if cfg.plasticity.absorb_control and cfg.plasticity.absorb_target == "shape":
-                Fp_from = absorb_shape(st.F, st.Fp, cfg.plasticity.absorb_rate)
-            elif cfg.plasticity.absorb_control:
-                Fp_from = absorb_control(st.F, solver.control(), st.Fp, cfg.plasticity.absorb_rate)
+            absorbing = cfg.plasticity.absorbs_at(k, cfg.frames)
+            Fp_from = absorbed_rest(st.F, solver.control(), st.Fp, cfg.plasticity) if absorbing else st.Fp
             pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress)
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
@@ -251,15 +248,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 check_state(st, k, cfg)
             except MorphDivergenceError as exc:
                 raise MorphDivergenceError(f"{exc} (completed frames are kept in {partial})") from exc
-            # The control is re-based so Fe stays continuous across: the whole update with
-            # continuous_stress (and with the control absorbed, as measured in session 3); only the
-            # absorption with the shape absorbed, so the Chamfer step's pull toward the target
-            # remains a stress, as in the default (docs/convergence.md item 47).
-            if cfg.plasticity.continuous_stress or (cfg.plasticity.absorb_control
-                                                    and cfg.plasticity.absorb_target == "control"):
-                solver.set_control(rebase_control(st.F, solver.control(), Fp_old, pl.Fp))
-            elif cfg.plasticity.absorb_control:
-                solver.set_control(rebase_control(st.F, solver.control(), Fp_old, Fp_from))
+            rebase_to = rebase_reference(cfg.plasticity, absorbing, Fp_from, pl.Fp)
+            if rebase_to is not None:
+                solver.set_control(rebase_control(st.F, solver.control(), Fp_old, rebase_to))
         t4 = time.time()
         m, per_view = metrics_for(st, mask)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan

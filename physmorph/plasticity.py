@@ -64,6 +64,21 @@ class PlasticityConfig:
     # stress-free; only that is re-based, the Chamfer step stays a stress unless continuous_stress;
     # docs/convergence.md items 46-47)
     absorb_target: Literal["control", "shape"] = "control"
+    # first frame that absorbs: None, every update (from start_frame); n >= 0, from frame n; -n, the
+    # last n frames (-1: only the last, which commits the achieved shape to the rest state without
+    # changing the run). Before it the update is the plain one (re-based only with
+    # continuous_stress). docs/convergence.md, session 9.
+    absorb_start_frame: int | None = None
+
+    def absorbs_at(self, frame: int, frames: int) -> bool:
+        """Whether the update at ``frame`` (1..``frames``) absorbs: absorb_control on and frame past
+        absorb_start_frame (counted from the end when negative)."""
+        if not self.absorb_control:
+            return False
+        if self.absorb_start_frame is None:
+            return True
+        start = self.absorb_start_frame if self.absorb_start_frame >= 0 else frames + 1 + self.absorb_start_frame
+        return frame >= start
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
@@ -79,6 +94,9 @@ class PlasticityConfig:
             raise ValueError(f"plasticity.absorb_rate must be in (0, 1], got {self.absorb_rate}")
         if self.absorb_target not in ("control", "shape"):
             raise ValueError(f"plasticity.absorb_target must be control or shape, got {self.absorb_target!r}")
+        if self.absorb_start_frame == 0:
+            raise ValueError("plasticity.absorb_start_frame must be a frame >= 1, a count from the end < 0, "
+                             "or null (every update)")
 
 
 def nearest_target_displacement(x: np.ndarray, target_tree: cKDTree, target_points: np.ndarray) -> np.ndarray:
@@ -200,6 +218,39 @@ def absorb_shape(
     out = Fp.copy()
     out[ok] = (1.0 - rate) * Fp[ok] + rate * S[ok]
     return out
+
+
+def absorbed_rest(
+    F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
+    control: np.ndarray,  # [Tc, N, 3, 3] dFc per control slot
+    Fp: np.ndarray,  # [N, 3, 3]
+    cfg: PlasticityConfig,
+) -> np.ndarray:  # [N, 3, 3]
+    """The Fp an absorbing update starts from: the control (absorb_control) or the shape
+    (absorb_shape) moved into it, per cfg.absorb_target, at cfg.absorb_rate."""
+    if cfg.absorb_target == "shape":
+        return absorb_shape(F, Fp, cfg.absorb_rate)
+    return absorb_control(F, control, Fp, cfg.absorb_rate)
+
+
+def rebase_reference(
+    cfg: PlasticityConfig,
+    absorbing: bool,
+    Fp_absorbed: np.ndarray,  # [N, 3, 3] Fp after the absorption, before the Chamfer step
+    Fp_new: np.ndarray,  # [N, 3, 3] Fp after the whole update
+) -> np.ndarray | None:  # [N, 3, 3] or None
+    """The Fp to re-base the control onto (rebase_control), so Fe is continuous across that much of
+    the update; None: no re-base, the update is a stress step (the default).
+
+    The whole update with continuous_stress, and while the control is absorbed (as measured in
+    session 3); only the absorption while the shape is absorbed, so the Chamfer step's pull toward
+    the target remains a stress, as in the default (docs/convergence.md item 47).
+    """
+    if cfg.continuous_stress or (absorbing and cfg.absorb_target == "control"):
+        return Fp_new
+    if absorbing:
+        return Fp_absorbed
+    return None
 
 
 @dataclass

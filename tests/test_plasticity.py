@@ -7,12 +7,14 @@ from scipy.spatial import cKDTree
 from physmorph.plasticity import (
     absorb_control,
     absorb_shape,
+    absorbed_rest,
     PlasticityConfig,
     chamfer_plasticity_step,
     displacement_jacobian,
     knn_smooth,
     project_plastic,
     rebase_control,
+    rebase_reference,
 )
 
 
@@ -245,3 +247,39 @@ def test_absorbed_shape_is_stress_free_and_keeps_the_stress_of_the_running_morph
     np.testing.assert_allclose(Fe_new, Fe_old, atol=1e-10)
     with pytest.raises(ValueError, match="absorb_target"):
         PlasticityConfig(absorb_target="velocity")
+
+
+def test_absorption_starts_at_its_frame_and_picks_what_the_control_is_rebased_onto():
+    """absorbs_at: off without absorb_control, from every update without a start frame, from the
+    start frame with one. absorbed_rest dispatches on absorb_target. rebase_reference: no re-base
+    for the plain update, the whole update with continuous_stress or the control absorbed, only
+    the absorption with the shape absorbed; before the start frame the update is the plain one."""
+    rng = np.random.default_rng(5)
+    N, T = 4, 2
+    F = np.eye(3) + 0.1 * rng.standard_normal((N, 3, 3))
+    ctrl = 0.05 * rng.standard_normal((T, N, 3, 3))
+    Fp = np.eye(3) + 0.05 * rng.standard_normal((N, 3, 3))
+    Fp_absorbed, Fp_new = Fp + 0.01, Fp + 0.02
+    plain = PlasticityConfig()
+    assert not plain.absorbs_at(1, 40) and not plain.absorbs_at(40, 40)
+    assert rebase_reference(plain, False, Fp_absorbed, Fp_new) is None
+    assert rebase_reference(PlasticityConfig(continuous_stress=True), False, Fp_absorbed, Fp_new) is Fp_new
+
+    control = PlasticityConfig(absorb_control=True)
+    assert control.absorbs_at(1, 40)
+    np.testing.assert_array_equal(absorbed_rest(F, ctrl, Fp, control), absorb_control(F, ctrl, Fp))
+    assert rebase_reference(control, True, Fp_absorbed, Fp_new) is Fp_new
+
+    late = PlasticityConfig(absorb_control=True, absorb_target="shape", absorb_start_frame=30, absorb_rate=0.5)
+    assert [late.absorbs_at(k, 40) for k in (10, 29, 30, 40)] == [False, False, True, True]
+    last = PlasticityConfig(absorb_control=True, absorb_start_frame=-1)
+    assert [last.absorbs_at(k, 40) for k in (1, 39, 40)] == [False, False, True]
+    assert [PlasticityConfig(absorb_control=True, absorb_start_frame=-3).absorbs_at(k, 12)
+            for k in (9, 10, 12)] == [False, True, True]
+    np.testing.assert_array_equal(absorbed_rest(F, ctrl, Fp, late), absorb_shape(F, Fp, rate=0.5))
+    assert rebase_reference(late, True, Fp_absorbed, Fp_new) is Fp_absorbed
+    assert rebase_reference(late, False, Fp_absorbed, Fp_new) is None
+    late_cs = PlasticityConfig(absorb_control=True, absorb_target="shape", absorb_start_frame=30, continuous_stress=True)
+    assert rebase_reference(late_cs, True, Fp_absorbed, Fp_new) is Fp_new
+    with pytest.raises(ValueError, match="absorb_start_frame"):
+        PlasticityConfig(absorb_start_frame=0)
