@@ -493,7 +493,7 @@ class Tables:
 
 
 def _morph_config_class():
-    from physmorph.morph import MorphConfig
+    from physmorph.morph_config import MorphConfig
 
     return MorphConfig
 

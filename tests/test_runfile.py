@@ -207,8 +207,13 @@ def test_nothing_opens_a_run_file_in_a_mode_that_can_create_it():
     assert modes and all(('"r")' in line or '"w-")' in line) for line in modes), modes
 
 
-def test_reading_runs_and_building_tables_imports_neither_taichi_nor_torch():
+def test_reading_settings_and_runs_and_building_tables_imports_neither_taichi_nor_torch():
+    # the workflow parses the config (every experiment's MorphConfig) on each snakemake call,
+    # dry runs included: Taichi and torch would add ~3 s to each
     code = ("import sys, physmorph.runfile, physmorph.tables, physmorph.tradeoff, physmorph.figures; "
+            "from physmorph.config import load_settings; "
+            f"s = load_settings({str(REPO / 'config' / 'config.yaml')!r}); "
+            "[s.experiment_config(e) for e in s.experiments]; "
             "print(sorted(m for m in ('taichi', 'torch') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": str(REPO)})

@@ -1,0 +1,60 @@
+"""The configuration of one morph run (:class:`MorphConfig`): the method, frames and injection
+gains, with the MPM, render, plasticity and surface sections. Kept apart from the loop
+(physmorph.morph, which imports Taichi and torch) so reading and checking settings stays light:
+the workflow builds every experiment's MorphConfig when it parses its config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import ClassVar, Literal
+
+from physmorph.mpm.config import MPMConfig
+from physmorph.plasticity import PlasticityConfig
+from physmorph.render.config import RenderConfig
+from physmorph.surface import SurfaceMaskConfig
+
+METHODS = ("physics_only", "f_inject", "full", "position_inject")
+
+
+@dataclass(frozen=True)
+class MorphConfig:
+    # always in a run's params (physmorph.config.without_defaults), so its record names the method
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method"})
+    method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
+    frames: int = 40
+    gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
+    gamma_x: float = 0.1  # render-x gain (position_inject only), relative
+    # "first_frame": c = gamma |grad mass| / |grad inject| measured once (see calibrate_injection);
+    # "every_frame": measured again each frame, so the injection stays gamma of the mass
+    # gradient as the mass loss converges (one more backward pass per frame);
+    # "absolute": no calibration, c = gamma (gamma_x): the paper's eq. 3 as printed, in this
+    # project's loss units (the F-vs-position comparison at equal gain, docs/convergence.md)
+    injection_calibration: Literal["first_frame", "every_frame", "absolute"] = "every_frame"
+    cameras: int | None = None  # render-loss views, evenly spaced on the ring (None: all)
+    save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
+    metric_all_particles: bool = True  # alpha MSE from all particles (else the masked subset)
+    max_F_norm: float = 50.0  # divergence bound on |F|_max entries
+    max_Fp_norm: float = 10.0
+    # after the last frame, this many frames with the control off (no optimisation, no
+    # plasticity): the alpha MSE curve shows how much of the morph the rest state keeps
+    release_frames: int = 0
+    progress: bool = True
+    mpm: MPMConfig = field(default_factory=MPMConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
+    surface: SurfaceMaskConfig = field(default_factory=SurfaceMaskConfig)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.injection_calibration not in ("first_frame", "every_frame", "absolute"):
+            raise ValueError("injection_calibration must be first_frame, every_frame or absolute, "
+                             f"got {self.injection_calibration!r}")
+        if self.frames < 1:
+            raise ValueError(f"frames must be >= 1, got {self.frames}")
+        if self.release_frames < 0:
+            raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
