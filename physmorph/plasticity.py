@@ -35,7 +35,7 @@ frames).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -46,6 +46,9 @@ UPDATES = ("incremental", "target_rest")
 
 @dataclass(frozen=True)
 class PlasticityConfig:
+    # defaults changed since runs were first made (physmorph.config.without_defaults): always in a
+    # run's params, so runs made with the old default rerun
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame"})
     eta: float = 0.02  # base rate (the paper: 0.2; config/paper.yaml uses it, see config/config.yaml)
     k_neighbors: int = 64
     smooth_iters: int = 3
@@ -56,19 +59,22 @@ class PlasticityConfig:
     jacobian: Literal["paper", "least_squares"] = "paper"
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
-    absorb_control: bool = False  # move the control into Fp before each update (absorb_control); implies continuous_stress
+    # move the control (or the shape, absorb_target) into Fp at the updates absorb_start_frame
+    # picks; the default, the shape at the last update only, commits the final shape to the rest
+    # state without changing the run, so it persists with the control off (docs/convergence.md 49)
+    absorb_control: bool = True
     absorb_rate: float = 1.0  # share of the control moved into Fp per update (absorb_control)
     # what absorb_control moves into Fp: "control", the elastic deformation the control produced
     # (absorb_control(); a driving stress, which a released body keeps following; the whole update
     # is then re-based), or "shape", the stretch of F (absorb_shape(): the achieved shape becomes
     # stress-free; only that is re-based, the Chamfer step stays a stress unless continuous_stress;
     # docs/convergence.md items 46-47)
-    absorb_target: Literal["control", "shape"] = "control"
+    absorb_target: Literal["control", "shape"] = "shape"
     # first frame that absorbs: None, every update (from start_frame); n >= 0, from frame n; -n, the
     # last n frames (-1: only the last, which commits the achieved shape to the rest state without
     # changing the run). Before it the update is the plain one (re-based only with
     # continuous_stress). docs/convergence.md, session 9.
-    absorb_start_frame: int | None = None
+    absorb_start_frame: int | None = -1
 
     def absorbs_at(self, frame: int, frames: int) -> bool:
         """Whether the update at ``frame`` (1..``frames``) absorbs: absorb_control on and frame past

@@ -260,19 +260,21 @@ def test_absorption_starts_at_its_frame_and_picks_what_the_control_is_rebased_on
     ctrl = 0.05 * rng.standard_normal((T, N, 3, 3))
     Fp = np.eye(3) + 0.05 * rng.standard_normal((N, 3, 3))
     Fp_absorbed, Fp_new = Fp + 0.01, Fp + 0.02
-    plain = PlasticityConfig()
+    plain = PlasticityConfig(absorb_control=False)
     assert not plain.absorbs_at(1, 40) and not plain.absorbs_at(40, 40)
     assert rebase_reference(plain, False, Fp_absorbed, Fp_new) is None
-    assert rebase_reference(PlasticityConfig(continuous_stress=True), False, Fp_absorbed, Fp_new) is Fp_new
+    assert rebase_reference(PlasticityConfig(continuous_stress=True, absorb_control=False), False, Fp_absorbed,
+                            Fp_new) is Fp_new
 
-    control = PlasticityConfig(absorb_control=True)
+    control = PlasticityConfig(absorb_control=True, absorb_target="control", absorb_start_frame=None)
     assert control.absorbs_at(1, 40)
     np.testing.assert_array_equal(absorbed_rest(F, ctrl, Fp, control), absorb_control(F, ctrl, Fp))
     assert rebase_reference(control, True, Fp_absorbed, Fp_new) is Fp_new
 
     late = PlasticityConfig(absorb_control=True, absorb_target="shape", absorb_start_frame=30, absorb_rate=0.5)
     assert [late.absorbs_at(k, 40) for k in (10, 29, 30, 40)] == [False, False, True, True]
-    last = PlasticityConfig(absorb_control=True, absorb_start_frame=-1)
+    last = PlasticityConfig()  # the default: the shape, at the last update only
+    assert last.absorb_target == "shape"
     assert [last.absorbs_at(k, 40) for k in (1, 39, 40)] == [False, False, True]
     assert [PlasticityConfig(absorb_control=True, absorb_start_frame=-3).absorbs_at(k, 12)
             for k in (9, 10, 12)] == [False, True, True]
