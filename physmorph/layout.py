@@ -53,12 +53,23 @@ class PlasticityPair:
 
 
 @dataclass(frozen=True)
+class InjectionPair:
+    """The F-injection run and the position-injection run (same source, target and gain) that
+    the directions table compares, and the paper's claim about them (text)."""
+
+    f_inject: str
+    position_inject: str
+    paper: str = ""
+
+
+@dataclass(frozen=True)
 class TableLayout:
     main: dict[str, MainComparison] = field(default_factory=dict)  # target shape -> comparison
     components: dict[str, ComponentReference] = field(default_factory=dict)  # experiment -> paper
     drag: dict[str, DragReference] = field(default_factory=dict)  # experiment -> paper
     source_invariance: dict[str, float] = field(default_factory=dict)  # experiment -> paper best alpha MSE
     plasticity: PlasticityPair | None = None
+    injection: InjectionPair | None = None  # the directions table's F vs position pair
     shapes: tuple[str, ...] = ()
 
 
@@ -79,6 +90,8 @@ class PaperLayout:
         names |= set(t.components) | set(t.drag) | set(t.source_invariance) | set(t.shapes)
         if t.plasticity is not None:
             names |= {t.plasticity.with_, t.plasticity.without}
+        if t.injection is not None:
+            names |= {t.injection.f_inject, t.injection.position_inject}
         return names | {n for runs in self.figures.values() for n in runs}
 
     def paper_alpha_mse(self, name: str) -> tuple[float, str]:

@@ -16,7 +16,7 @@ import numpy as np
 
 # The tables `snakemake tables` writes (physmorph.tables builds them).
 TABLE_NAMES = ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing",
-               "convergence")
+               "convergence", "directions")
 # The figures `snakemake figures` writes (physmorph.figures builds them).
 FIGURE_NAMES = ("sequences_main", "sequences_cross_shape", "sequences_letters", "drag_ablation",
                 "trajectory_divergence", "trajectory_frames", "plasticity_effect", "optimization_traces",

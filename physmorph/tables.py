@@ -172,6 +172,48 @@ def timing_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def directions_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
+    """The paper's three directions, each as a comparison where lower is better: ``ours`` (the
+    paper's choice) against ``baseline``; ``ours_vs_baseline_%`` = 100 (baseline - ours) / baseline,
+    ``holds`` yes when ours is lower, empty when a run is missing. Rows: full vs physics-only
+    alpha MSE at the matched-convergence frame (one per main-table target); F- vs position
+    injection, final alpha MSE; plasticity vs none, rebound % in the run and, where the runs were
+    released (morph.release_frames), after the release."""
+    rows = []
+
+    def add(direction, case, measure, ours, baseline, paper):
+        row = {"direction": direction, "case": case, "measure": measure, "ours": ours, "baseline": baseline,
+               "ours_vs_baseline_%": np.nan, "holds": "", "paper": paper}
+        if np.isfinite(ours) and np.isfinite(baseline):
+            row["holds"] = "yes" if ours < baseline else "no"
+            if baseline != 0:
+                row["ours_vs_baseline_%"] = improvement_percent(baseline, ours)
+        rows.append(row)
+
+    main = main_table(m, t).set_index("target")
+    for target, c in t.main.items():
+        r = main.loc[target]
+        frame = f" (frame {int(r['frame'])})" if "frame" in r and np.isfinite(r["frame"]) else ""
+        add("full beats physics-only at matched convergence", target, "alpha MSE at the matched frame" + frame,
+            float(r.get("ours", np.nan)), float(r.get("physics_only", np.nan)), f"{c.paper_improvement_percent:+g} %")
+    if t.injection is not None:
+        f, x = m.get(t.injection.f_inject), m.get(t.injection.position_inject)
+        add("F-injection beats position injection", f"{t.injection.f_inject} vs {t.injection.position_inject}",
+            "final alpha MSE", np.nan if f is None else float(f["alpha_mse"][-1]),
+            np.nan if x is None else float(x["alpha_mse"][-1]), t.injection.paper)
+    plast = plasticity_table(m, t)
+    if len(plast) == 2:
+        with_, without = plast.iloc[0], plast.iloc[1]
+        case = f"{with_['experiment']} vs {without['experiment']}"
+        for column, measure in (("rebound_%", "rebound % after the best frame"),
+                                ("release_rebound_%", "release rebound % (control off)")):
+            if column in plast:
+                add("plasticity lowers rebound", case, measure, float(with_[column]), float(without[column]),
+                    f"{t.plasticity.paper_rebound} %" if column == "rebound_%" else "")
+    return pd.DataFrame(rows, columns=["direction", "case", "measure", "ours", "baseline", "ours_vs_baseline_%", "holds",
+                                       "paper"])
+
+
 def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: PaperLayout) -> dict[str, pd.DataFrame]:
     """Write every table as {out_dir}/{name}.csv, .md and .tex; returns the DataFrames. ``layout``
     (physmorph.layout): which runs each table compares and the paper's numbers."""
@@ -181,7 +223,7 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: Paper
     out.mkdir(parents=True, exist_ok=True)
     tables = {"main": main_table(m, t), "ablation_components": components_table(m, t), "ablation_drag": drag_table(m, t),
               "source_invariance": source_table(m, t), "plasticity": plasticity_table(m, t), "shapes": shapes_table(m, t),
-              "timing": timing_table(m), "convergence": convergence_table(m, layout)}
+              "timing": timing_table(m), "convergence": convergence_table(m, layout), "directions": directions_table(m, t)}
     assert set(tables) == set(TABLE_NAMES), "physmorph.metrics.TABLE_NAMES lists the tables written here"
     for name, df in tables.items():
         df.to_csv(out / f"{name}.csv", index=False)

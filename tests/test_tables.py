@@ -94,3 +94,42 @@ def test_run_without_ceiling_names_the_file(tmp_path):
     run = write_run(tmp_path / "iso_duck_full.h5", [0.05, 0.03], {"method": "full"})
     with pytest.raises(ValueError, match=r"iso_duck_full\.h5.*ceiling_alpha_mse.*rerun the rasterize_target"):
         build_tables({"iso_duck_full": run}, tmp_path / "tables", LAYOUT)
+
+
+def test_directions_table_states_each_paper_direction_from_the_runs(tmp_path):
+    """Lower is better in every row; 'holds' when the paper's choice (ours) is below its baseline.
+    Hand-made curves: physics-only reaches 90 % of its improvement at frame 2 (0.02), where full
+    is at 0.018 (+10 %); F-injection ends at 0.025 against position injection's 0.022 (-13.6 %);
+    in-run rebound 100 (0.019 - 0.018) / 0.042 = 2.38 % vs 100 (0.025 - 0.02) / 0.04 = 12.5 %;
+    released, 100 (0.02 - 0.019) / 0.041 = 2.44 % vs 100 (0.05 - 0.025) / 0.035 = 71.4 %."""
+    ceiling = {"ceiling_alpha_mse": 0.01, "ceiling_iou": 0.9}
+    runs = {
+        "iso_bunny_physics_only": write_run(tmp_path / "po.h5", [0.06, 0.03, 0.02, 0.02],
+                                            {"method": "physics_only", **ceiling}),
+        "iso_bunny_full": write_run(tmp_path / "full.h5", [0.06, 0.03, 0.018, 0.019],
+                                    {"method": "full", "release_alpha_mse": "[0.019, 0.02]", **ceiling}),
+        "iso_bunny_f_inject": write_run(tmp_path / "fi.h5", [0.06, 0.03, 0.02, 0.025],
+                                        {"method": "f_inject", "release_alpha_mse": "[0.025, 0.05]", **ceiling}),
+        "iso_bunny_position_inject": write_run(tmp_path / "xi.h5", [0.06, 0.03, 0.02, 0.022],
+                                               {"method": "position_inject", **ceiling}),
+    }
+    out = tmp_path / "tables"
+    d = build_tables(runs, out, LAYOUT)["directions"]
+    assert "directions" in TABLE_NAMES
+    main = d[d["direction"].str.startswith("full beats")].set_index("case")
+    assert list(main.index) == ["bunny", "cow", "duck"]
+    assert main.loc["bunny", "ours"] == pytest.approx(0.018) and main.loc["bunny", "baseline"] == pytest.approx(0.02)
+    assert main.loc["bunny", "ours_vs_baseline_%"] == pytest.approx(10.0) and main.loc["bunny", "holds"] == "yes"
+    assert "frame 2" in main.loc["bunny", "measure"] and main.loc["bunny", "paper"] == "+25.8 %"
+    assert main.loc["cow", "holds"] == "" and np.isnan(main.loc["cow", "ours"])  # not run
+    inj = d[d["direction"].str.startswith("F-injection")].iloc[0]
+    assert (inj["ours"], inj["baseline"]) == pytest.approx((0.025, 0.022))
+    assert inj["ours_vs_baseline_%"] == pytest.approx(100 * (0.022 - 0.025) / 0.022) and inj["holds"] == "no"
+    reb = d[d["direction"] == "plasticity lowers rebound"].set_index("measure")
+    assert len(reb) == 2 and (reb["holds"] == "yes").all()
+    in_run = reb.loc["rebound % after the best frame"]
+    assert (in_run["ours"], in_run["baseline"]) == pytest.approx((100 / 42, 12.5))
+    released = reb.loc["release rebound % (control off)"]
+    assert (released["ours"], released["baseline"]) == pytest.approx((100 / 41, 2500 / 35))
+    md = (out / "directions.md").read_text()
+    assert md.startswith("| direction | case |") and "F-injection beats position injection" in md

@@ -150,8 +150,11 @@ def test_tables_on_test_profile(test_run):
     conv = pd.read_csv(r / "tables/convergence.csv").set_index("experiment")
     assert set(conv.index) == {"iso_bunny_physics_only", "iso_bunny_full"}
     assert (conv["ceiling"] > 0).all() and np.isfinite(conv[["closed_best_%", "closed_final_%"]].to_numpy()).all()
+    directions = pd.read_csv(r / "tables/directions.csv", keep_default_na=False).set_index("case")
+    assert directions.loc["bunny", "holds"] in ("yes", "no")  # both runs made here
+    assert directions.loc["iso_bunny_f_inject vs iso_bunny_position_inject", "holds"] == ""  # not run here
     for name in ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing",
-                 "convergence"):
+                 "convergence", "directions"):
         md = (r / f"tables/{name}.md").read_text().splitlines()
         assert md[0].startswith("|") and set(md[1]) <= set("|-")
         assert "\\begin{tabular}" in (r / f"tables/{name}.tex").read_text()
