@@ -6,7 +6,7 @@ merge), exactly as Snakemake merges ``--configfile`` onto the Snakefile's ``conf
 validator: unknown keys, wrong types and values outside a field's allowed set are refused with
 the dotted key and the allowed values; numbers are accepted as int, float or numeric strings
 (``--config 'mpm={smoothing: 0.5}'`` hands Snakemake a string); every experiment is resolved to
-its full :class:`~physmorph.morph.MorphConfig` and a memory estimate per stage is checked against
+its full :class:`~physmorph.morph_config.MorphConfig` and a memory estimate per stage is checked against
 the machine's memory, so a bad config fails before any job runs.
 
 Every default lives in a dataclass: the sections ``mpm``, ``render``, ``plasticity``, ``surface``
@@ -31,6 +31,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 import yaml
 
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO
+from physmorph.morph_config import METHODS, MorphConfig
 from physmorph.mpm.config import MPMConfig
 from physmorph.plasticity import PlasticityConfig
 from physmorph.render.config import RenderConfig
@@ -39,7 +40,6 @@ from physmorph.surface import SurfaceMaskConfig
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
 RES_PATTERN = r"(\d+)x(\d+)x(\d+)"
-METHODS = ("physics_only", "f_inject", "full", "position_inject")
 
 
 class ConfigError(ValueError):
@@ -261,7 +261,7 @@ def settings_classes() -> list[type]:
         for arg in get_args(tp):
             walk(arg)
 
-    for root in (Settings, _morph_config_class(), TradeoffPoint):
+    for root in (Settings, MorphConfig, TradeoffPoint):
         walk(root)
     return seen
 
@@ -492,12 +492,6 @@ class Tables:
     experiments: tuple[str, ...] = ()
 
 
-def _morph_config_class():
-    from physmorph.morph_config import MorphConfig
-
-    return MorphConfig
-
-
 @dataclass(frozen=True)
 class Settings:
     """Everything the workflow needs, typed and frozen. Build with :meth:`from_mapping`."""
@@ -518,7 +512,7 @@ class Settings:
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
     surface: SurfaceMaskConfig = field(default_factory=SurfaceMaskConfig)
-    morph: Any = None  # physmorph.morph.MorphConfig (its mpm/render/plasticity/surface are the sections above)
+    morph: Any = None  # physmorph.morph_config.MorphConfig (its mpm/render/plasticity/surface are the sections above)
     experiments: dict[str, Experiment] = field(default_factory=dict)
     tradeoff: Tradeoff | None = None
     tables: Tables = field(default_factory=Tables)
@@ -568,7 +562,7 @@ class Settings:
         render = build(RenderConfig, cfg.get("render"), "render", derived=_section_derived("render", s.sampling, s.device, s.domain))
         plasticity = build(PlasticityConfig, cfg.get("plasticity"), "plasticity")
         surface = build(SurfaceMaskConfig, cfg.get("surface"), "surface")
-        morph = build(_morph_config_class(), cfg.get("morph"), "morph",
+        morph = build(MorphConfig, cfg.get("morph"), "morph",
                       derived={"method": ("experiments.<name>.method", "full"), "mpm": ("the mpm section", mpm),
                                "render": ("the render section", render),
                                "plasticity": ("the plasticity section", plasticity),
@@ -752,7 +746,7 @@ def json_schema() -> dict:
     sections = {"mpm": (MPMConfig, _section_derived("mpm", SamplingConfig(), "auto", (0, 1))),
                 "render": (RenderConfig, {"device": None}), "plasticity": (PlasticityConfig, {}),
                 "surface": (SurfaceMaskConfig, {}),
-                "morph": (_morph_config_class(), {k: None for k in ("method", "mpm", "render", "plasticity", "surface")})}
+                "morph": (MorphConfig, {k: None for k in ("method", "mpm", "render", "plasticity", "surface")})}
     for name, (cls, derived) in sections.items():
         out["properties"][name] = schema_of(cls, derived)
     out["properties"]["profile"]["pattern"] = "^[A-Za-z0-9][A-Za-z0-9_.-]*$"
@@ -831,7 +825,7 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
 # --------------------------------------------------------------------------------------------
 
 def morph_params(cfg) -> str:
-    """Canonical JSON of what a morph run's results depend on (cfg: physmorph.morph.MorphConfig).
+    """Canonical JSON of what a morph run's results depend on (cfg: physmorph.morph_config.MorphConfig).
 
     Settings at their defaults are left out (see ``without_defaults``: a new option reruns
     nothing), and so are settings the run's method never reads, so changing them reruns nothing:

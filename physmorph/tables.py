@@ -172,13 +172,14 @@ def timing_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def directions_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
+def directions_table(m: dict[str, dict], t: TableLayout, main: pd.DataFrame, plast: pd.DataFrame) -> pd.DataFrame:
     """The paper's three directions, each as a comparison where lower is better: ``ours`` (the
     paper's choice) against ``baseline``; ``ours_vs_baseline_%`` = 100 (baseline - ours) / baseline,
     ``holds`` yes when ours is lower, empty when a run is missing. Rows: full vs physics-only
     alpha MSE at the matched-convergence frame (one per main-table target); F- vs position
     injection, final alpha MSE; plasticity vs none, rebound % in the run and, where the runs were
-    released (morph.release_frames), after the release."""
+    released (morph.release_frames), after the release. ``main`` and ``plast``: the main and
+    plasticity tables of the same runs."""
     rows = []
 
     def add(direction, case, measure, ours, baseline, paper):
@@ -190,7 +191,7 @@ def directions_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
                 row["ours_vs_baseline_%"] = improvement_percent(baseline, ours)
         rows.append(row)
 
-    main = main_table(m, t).set_index("target")
+    main = main.set_index("target")
     for target, c in t.main.items():
         r = main.loc[target]
         frame = f" (frame {int(r['frame'])})" if "frame" in r and np.isfinite(r["frame"]) else ""
@@ -201,7 +202,6 @@ def directions_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
         add("F-injection beats position injection", f"{t.injection.f_inject} vs {t.injection.position_inject}",
             "final alpha MSE", np.nan if f is None else float(f["alpha_mse"][-1]),
             np.nan if x is None else float(x["alpha_mse"][-1]), t.injection.paper)
-    plast = plasticity_table(m, t)
     if len(plast) == 2:
         with_, without = plast.iloc[0], plast.iloc[1]
         case = f"{with_['experiment']} vs {without['experiment']}"
@@ -223,7 +223,8 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: Paper
     out.mkdir(parents=True, exist_ok=True)
     tables = {"main": main_table(m, t), "ablation_components": components_table(m, t), "ablation_drag": drag_table(m, t),
               "source_invariance": source_table(m, t), "plasticity": plasticity_table(m, t), "shapes": shapes_table(m, t),
-              "timing": timing_table(m), "convergence": convergence_table(m, layout), "directions": directions_table(m, t)}
+              "timing": timing_table(m), "convergence": convergence_table(m, layout)}
+    tables["directions"] = directions_table(m, t, tables["main"], tables["plasticity"])
     assert set(tables) == set(TABLE_NAMES), "physmorph.metrics.TABLE_NAMES lists the tables written here"
     for name, df in tables.items():
         df.to_csv(out / f"{name}.csv", index=False)
