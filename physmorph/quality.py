@@ -16,6 +16,10 @@ raised to at least ceiling + tol (tol = ``rel_tol`` x ceiling):
 
 This equals the plain ratio whenever the gap exceeds tol, is continuous in a_0, has a
 denominator >= tol, and gives 1 for a run that stays at the ceiling.
+
+Silhouettes from a ring of cameras can be matched without the volume behind them (a hollow or
+flattened body, particles dragged along the view rays). :func:`volume_iou` is the 3D check: the
+IoU of the grid cells the particles fill and the cells the target's own sampling fills.
 """
 
 from __future__ import annotations
@@ -25,12 +29,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from physmorph.cameras import Cameras
+from physmorph.grid import Grid, splat_mass
 
 if TYPE_CHECKING:
     from physmorph.render import RenderConfig
 
 # tol of gap_closed relative to the ceiling.
 GAP_REL_TOL = 0.1
+# volume_iou: a node is filled above this share of the target's interior node mass ...
+VOLUME_FILL = 0.5
+# ... which is this percentile of the target's non-empty node masses (deep inside a solid every
+# node carries the same mass, density x dx^3; the lower percentiles are the boundary layer)
+INTERIOR_PERCENTILE = 90.0
 
 
 def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
@@ -42,6 +52,36 @@ def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
     inter = (a & t).sum(axis=(1, 2)).astype(float)
     union = (a | t).sum(axis=(1, 2)).astype(float)
     return np.where(union > 0, inter / np.maximum(union, 1.0), 1.0)
+
+
+def volume_iou(x: np.ndarray,  # [N, 3] particle positions
+               mass: np.ndarray,  # [N]
+               target_grid_mass: np.ndarray,  # [R, R, R] the target's own particles splatted (Target.grid_mass)
+               grid: Grid) -> float:
+    """3D IoU of the filled grid nodes: |A & B| / |A | B| with
+
+        A = {I : m_I > f m_int},   B = {I : m*_I > f m_int},   m_I = sum_p w_Ip m_p (P2G, eq. of the
+        MPM mass transfer), m* the target's grid mass rescaled to the particles' total mass,
+        m_int its interior node mass (the INTERIOR_PERCENTILE of its non-empty nodes), f = VOLUME_FILL.
+
+    One threshold for both, so a body stretched to less than half the target's density (a loose
+    cloud of particles) does not count as filling its cells. The target's own sampling scores 1;
+    a source of another volume at the same density cannot reach 1 (it has too little or too much
+    material to fill the target's cells), so compare methods on the same experiment.
+    """
+    x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+    mass = np.asarray(mass, dtype=np.float64).reshape(-1)
+    target = np.asarray(target_grid_mass, dtype=np.float64)
+    if target.shape != (grid.res,) * 3:
+        raise ValueError(f"target grid mass has shape {target.shape}, expected {(grid.res,) * 3}")
+    filled = target[target > 0]
+    if filled.size == 0 or not mass.sum() > 0:
+        raise ValueError("volume_iou needs a non-empty target grid mass and particles with mass")
+    target = target * (mass.sum() / filled.sum())
+    threshold = VOLUME_FILL * float(np.percentile(target[target > 0], INTERIOR_PERCENTILE))
+    a = splat_mass(x, mass, grid) > threshold
+    b = target > threshold
+    return float((a & b).sum() / max(int((a | b).sum()), 1))
 
 
 def gap_closed(a0: float, a: np.ndarray | float, ceiling: float, rel_tol: float = GAP_REL_TOL) -> np.ndarray | float:

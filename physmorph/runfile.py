@@ -52,7 +52,7 @@ SCALARS = (
     "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
     "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
-    "mask_fraction", "chamfer", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+    "mask_fraction", "chamfer", "volume_iou", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 
@@ -397,7 +397,7 @@ class RunWriter:
             f.attrs.update(self.key.attrs())
             g = f.create_group("metrics")
             for name in SCALARS + ("alpha_mse_views",):
-                g.create_dataset(name, data=np.stack([fr["metrics"][name] for fr in frames]))
+                g.create_dataset(name, data=np.stack([_frame_metric(fr, name) for fr in frames]))
             st = f.create_group("states")
             for k, fr in enumerate(frames):
                 if fr["state"] is not None:
@@ -441,10 +441,18 @@ def _partial_metrics(d: Path) -> dict[str, np.ndarray]:
         with _open_run_h5(path, remedy) as f:
             _check_format(f, path, FRAME_FORMAT, remedy)
             frames.append(_frame_content(f))
-    out = {name: np.stack([fr["metrics"][name] for fr in frames]) for name in SCALARS + ("alpha_mse_views",)}
+    out = {name: np.stack([_frame_metric(fr, name) for fr in frames]) for name in SCALARS + ("alpha_mse_views",)}
     out["attrs"] = {**(frames[0]["meta"] or {}), "status": "running", "frames_completed": last,
                     "warnings": json.dumps([w for fr in frames for w in fr["warnings"]])}
     return out
+
+
+def _frame_metric(frame: dict, name: str):
+    """One metric of a committed frame; NaN for a scalar the frame's writer did not know yet (a run
+    begun before that metric existed and resumed after)."""
+    if name in frame["metrics"] or name not in SCALARS:
+        return frame["metrics"][name]
+    return np.float64(np.nan)
 
 
 def read_metrics(path: str | os.PathLike) -> dict[str, np.ndarray]:

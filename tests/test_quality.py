@@ -54,3 +54,34 @@ def test_ceiling_metrics_compares_particles_at_rest_with_the_target():
     assert moved["alpha_mse_views"].shape == (2,) and np.all(moved["alpha_mse_views"] > 1e-3)
     assert np.all(moved["iou_views"] < 0.9)
     assert moved["alpha_mse"] == pytest.approx(moved["alpha_mse_views"].mean())
+
+
+def _ball(n_side: int, radius: float, centre=(0.0, 0.0, 0.0)):
+    """Particles on a lattice inside a ball (spacing 2 radius / n_side), unit mass each."""
+    t = np.linspace(-radius, radius, n_side)
+    x = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3)
+    x = x[np.linalg.norm(x, axis=1) <= radius] + np.asarray(centre)
+    return x, np.ones(len(x))
+
+
+def test_volume_iou_is_one_for_the_targets_own_sampling_and_drops_when_moved_or_spread():
+    from physmorph.grid import Grid, splat_mass
+    from physmorph.quality import volume_iou
+
+    grid = Grid(res=32)  # dx = 1
+    x, m = _ball(25, 6.0)  # 4 particles per dx along each axis
+    target = splat_mass(x, 75.0 * m, grid)  # another density and total mass: rescaled, same cells
+    assert volume_iou(x, m, target, grid) == pytest.approx(1.0)
+    # moved by d = 3 cells: the IoU of two balls of radius R = 6 whose centres are d apart,
+    # lens / (2 V - lens) with lens = pi (4 R + d)(2 R - d)^2 / 12 and V = 4/3 pi R^3 (0.463)
+    R, d = 6.0, 3.0
+    lens = np.pi * (4 * R + d) * (2 * R - d) ** 2 / 12
+    exact = lens / (2 * 4 / 3 * np.pi * R ** 3 - lens)
+    assert volume_iou(x + np.array([d, 0.0, 0.0]), m, target, grid) == pytest.approx(exact, abs=0.03)
+    # the same particles spread to twice the radius: 1/8 of the density, no cell counts as filled
+    assert volume_iou(2.0 * x, m, target, grid) < 0.05
+    # a flattened body with the target's silhouette along z only (squashed in z): fills less
+    squashed = volume_iou(x * np.array([1.0, 1.0, 0.5]), m, target, grid)
+    assert squashed < 0.7
+    with pytest.raises(ValueError, match="shape"):
+        volume_iou(x, m, target[:-1], grid)
