@@ -40,7 +40,7 @@ from physmorph.injection import calibrate_injection
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, total_volume
 from physmorph.particles import load_particles
-from physmorph.quality import gap_closed, silhouette_iou, volume_iou
+from physmorph.quality import gap_closed, silhouette_iou, volume_metrics
 from physmorph.plasticity import (absorbed_rest, chamfer_plasticity_step, rebase_reference,
                                   rebase_control)
 from physmorph.render import RenderTarget, render_and_grad, render_views
@@ -105,7 +105,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 "mask_size": int(mask.sum()) if need_mask else np.nan,
                 "mask_fraction": float(mask.mean()) if need_mask else np.nan,
                 "chamfer": float(d.mean()),
-                "volume_iou": volume_iou(st.x, parts.mass, target.grid_mass, target.grid)}, per_view
+                **volume_metrics(st.x, parts.mass, target.grid_mass, target.grid)}, per_view
 
     monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
     checkpoint = run.resume(log=lambda msg: log(f"[{name}] {msg}"))

@@ -19,7 +19,8 @@ denominator >= tol, and gives 1 for a run that stays at the ceiling.
 
 Silhouettes from a ring of cameras can be matched without the volume behind them (a hollow or
 flattened body, particles dragged along the view rays). :func:`volume_iou` is the 3D check: the
-IoU of the grid cells the particles fill and the cells the target's own sampling fills.
+IoU of the grid cells the particles fill and the cells the target's own sampling fills, and the
+share of the mass packed above twice the target's density (:func:`volume_metrics`).
 """
 
 from __future__ import annotations
@@ -36,8 +37,10 @@ if TYPE_CHECKING:
 
 # tol of gap_closed relative to the ceiling.
 GAP_REL_TOL = 0.1
-# volume_iou: a node is filled above this share of the target's interior node mass ...
+# volume_metrics: a node is filled above this share of the target's interior node mass, and
+# overfilled above OVERFILL times it ...
 VOLUME_FILL = 0.5
+OVERFILL = 2.0
 # ... which is this percentile of the target's non-empty node masses (deep inside a solid every
 # node carries the same mass, density x dx^3; the lower percentiles are the boundary layer)
 INTERIOR_PERCENTILE = 90.0
@@ -54,20 +57,24 @@ def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
     return np.where(union > 0, inter / np.maximum(union, 1.0), 1.0)
 
 
-def volume_iou(x: np.ndarray,  # [N, 3] particle positions
-               mass: np.ndarray,  # [N]
-               target_grid_mass: np.ndarray,  # [R, R, R] the target's own particles splatted (Target.grid_mass)
-               grid: Grid) -> float:
-    """3D IoU of the filled grid nodes: |A & B| / |A | B| with
+def volume_metrics(x: np.ndarray,  # [N, 3] particle positions
+                   mass: np.ndarray,  # [N]
+                   target_grid_mass: np.ndarray,  # [R, R, R] the target's own particles splatted (Target.grid_mass)
+                   grid: Grid) -> dict[str, float]:
+    """The 3D checks, from the particles' grid mass m_I = sum_p w_Ip m_p (the MPM P2G transfer)
+    and the target's m*_I rescaled to the particles' total mass, with m_int the target's interior
+    node mass (the INTERIOR_PERCENTILE of its non-empty nodes):
 
-        A = {I : m_I > f m_int},   B = {I : m*_I > f m_int},   m_I = sum_p w_Ip m_p (P2G, eq. of the
-        MPM mass transfer), m* the target's grid mass rescaled to the particles' total mass,
-        m_int its interior node mass (the INTERIOR_PERCENTILE of its non-empty nodes), f = VOLUME_FILL.
+        volume_iou      = |A & B| / |A | B|,  A = {I : m_I > f m_int},  B = {I : m*_I > f m_int},
+                          f = VOLUME_FILL: the filled nodes against the target's;
+        overfilled_mass = sum_{I : m_I > c m_int} m_I / sum_I m_I,  c = OVERFILL: the share of the
+                          mass on nodes packed above c times the target's density (collapsed material).
 
-    One threshold for both, so a body stretched to less than half the target's density (a loose
-    cloud of particles) does not count as filling its cells. The target's own sampling scores 1;
-    a source of another volume at the same density cannot reach 1 (it has too little or too much
-    material to fill the target's cells), so compare methods on the same experiment.
+    One threshold for both fields, so a body stretched to less than half the target's density (a
+    loose cloud of particles) does not count as filling its cells, and one collapsed into clumps
+    fills few. The target's own sampling scores volume_iou 1 and overfilled_mass 0. A source of
+    another volume at the same density cannot reach 1 (it has too little or too much material
+    to fill the target's cells), so compare methods on the same experiment.
     """
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     mass = np.asarray(mass, dtype=np.float64).reshape(-1)
@@ -76,12 +83,21 @@ def volume_iou(x: np.ndarray,  # [N, 3] particle positions
         raise ValueError(f"target grid mass has shape {target.shape}, expected {(grid.res,) * 3}")
     filled = target[target > 0]
     if filled.size == 0 or not mass.sum() > 0:
-        raise ValueError("volume_iou needs a non-empty target grid mass and particles with mass")
+        raise ValueError("volume_metrics needs a non-empty target grid mass and particles with mass")
     target = target * (mass.sum() / filled.sum())
-    threshold = VOLUME_FILL * float(np.percentile(target[target > 0], INTERIOR_PERCENTILE))
-    a = splat_mass(x, mass, grid) > threshold
-    b = target > threshold
-    return float((a & b).sum() / max(int((a | b).sum()), 1))
+    interior = float(np.percentile(target[target > 0], INTERIOR_PERCENTILE))
+    m = splat_mass(x, mass, grid)
+    a, b = m > VOLUME_FILL * interior, target > VOLUME_FILL * interior
+    return {"volume_iou": float((a & b).sum() / max(int((a | b).sum()), 1)),
+            "overfilled_mass": float(m[m > OVERFILL * interior].sum() / m.sum())}
+
+
+def volume_iou(x: np.ndarray,  # [N, 3]
+               mass: np.ndarray,  # [N]
+               target_grid_mass: np.ndarray,  # [R, R, R]
+               grid: Grid) -> float:
+    """The volume IoU of :func:`volume_metrics`."""
+    return volume_metrics(x, mass, target_grid_mass, grid)["volume_iou"]
 
 
 def gap_closed(a0: float, a: np.ndarray | float, ceiling: float, rel_tol: float = GAP_REL_TOL) -> np.ndarray | float:

@@ -108,8 +108,9 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
     """One row per run: alpha MSE at frame 0, best (and its frame) and final frame, the ceiling
     (the target's own particles at rest, physmorph.quality), the share of the reachable gap closed
     at the best and final frame (%), silhouette IoU at frame 0, its maximum and final frame, the
-    ceiling IoU, the volume IoU (physmorph.quality.volume_iou: the 3D check, 1 for the target's own
-    sampling) at frame 0 and the final frame, and the paper's alpha MSE for the experiment where it
+    ceiling IoU, the 3D checks (physmorph.quality.volume_metrics): the volume IoU at frame 0 and
+    the final frame (1 for the target's own sampling) and the final share of the mass packed above
+    twice the target's density (0 for it), and the paper's alpha MSE for the experiment where it
     has one (and which one). Runs written before a metric existed show it as NaN."""
     rows = []
     for name, r in m.items():
@@ -119,17 +120,18 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
         iou = np.asarray(r["iou"], dtype=float) if "iou" in r else np.full(len(a), np.nan)
         has_iou = bool(np.isfinite(iou).any())
         viou = np.asarray(r["volume_iou"], dtype=float) if "volume_iou" in r else np.full(len(a), np.nan)
+        over = np.asarray(r["overfilled_mass"], dtype=float) if "overfilled_mass" in r else np.full(len(a), np.nan)
         paper, paper_which = layout.paper_alpha_mse(name)
         rows.append({"experiment": name, "method": str(r["attrs"].get("method", "")), "frames": len(a) - 1,
                      "alpha_mse_0": a[0], "alpha_mse_best": a[k], "best_frame": k, "alpha_mse_final": a[-1],
                      "ceiling": _ceiling(r), "closed_best_%": closed_best, "closed_final_%": closed_final,
                      "iou_0": iou[0], "iou_best": float(np.nanmax(iou)) if has_iou else np.nan, "iou_final": iou[-1],
                      "ceiling_iou": float(r["attrs"].get("ceiling_iou", np.nan)),
-                     "volume_iou_0": viou[0], "volume_iou_final": viou[-1],
+                     "volume_iou_0": viou[0], "volume_iou_final": viou[-1], "overfilled_mass_final": over[-1],
                      "paper_alpha_mse": paper, "paper_which": paper_which})
     columns = ["experiment", "method", "frames", "alpha_mse_0", "alpha_mse_best", "best_frame", "alpha_mse_final",
                "ceiling", "closed_best_%", "closed_final_%", "iou_0", "iou_best", "iou_final", "ceiling_iou",
-               "volume_iou_0", "volume_iou_final", "paper_alpha_mse", "paper_which"]
+               "volume_iou_0", "volume_iou_final", "overfilled_mass_final", "paper_alpha_mse", "paper_which"]
     return pd.DataFrame(rows, columns=columns)
 
 

@@ -195,6 +195,7 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
     assert np.all(np.abs(m["gap_closed"]) < 50)
     # the source is the target's own sampling: its filled cells are the target's
     assert m["volume_iou"][0] == pytest.approx(1.0) and np.all(m["volume_iou"] > 0.95)
+    assert m["overfilled_mass"][0] == 0.0
 
 
 def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):

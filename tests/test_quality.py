@@ -64,9 +64,9 @@ def _ball(n_side: int, radius: float, centre=(0.0, 0.0, 0.0)):
     return x, np.ones(len(x))
 
 
-def test_volume_iou_is_one_for_the_targets_own_sampling_and_drops_when_moved_or_spread():
+def test_volume_checks_score_the_targets_own_sampling_and_see_moved_spread_and_collapsed_bodies():
     from physmorph.grid import Grid, splat_mass
-    from physmorph.quality import volume_iou
+    from physmorph.quality import volume_iou, volume_metrics
 
     grid = Grid(res=32)  # dx = 1
     x, m = _ball(25, 6.0)  # 4 particles per dx along each axis
@@ -80,6 +80,12 @@ def test_volume_iou_is_one_for_the_targets_own_sampling_and_drops_when_moved_or_
     assert volume_iou(x + np.array([d, 0.0, 0.0]), m, target, grid) == pytest.approx(exact, abs=0.03)
     # the same particles spread to twice the radius: 1/8 of the density, no cell counts as filled
     assert volume_iou(2.0 * x, m, target, grid) < 0.05
+    # ... and collapsed to half the radius: 8 times the density, (nearly) all of it overfilled
+    assert volume_metrics(x, m, target, grid)["overfilled_mass"] == 0.0
+    assert volume_metrics(0.5 * x, m, target, grid)["overfilled_mass"] > 0.85  # all but its rim
+    core = np.linalg.norm(x, axis=1) < 3.0  # the core alone collapsed (to 0.9 cells): its share of the mass
+    clumped = np.where(core[:, None], 0.3 * x, x)
+    assert volume_metrics(clumped, m, target, grid)["overfilled_mass"] == pytest.approx(core.mean(), abs=0.03)
     # a flattened body with the target's silhouette along z only (squashed in z): fills less
     squashed = volume_iou(x * np.array([1.0, 1.0, 0.5]), m, target, grid)
     assert squashed < 0.7

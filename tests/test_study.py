@@ -81,7 +81,7 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     assert float(row["closed_best"]) == pytest.approx(gap_closed(a[0], a[k], ceiling), rel=1e-3, abs=1e-4)
     assert float(row["closed_final"]) == pytest.approx(gap_closed(a[0], a[-1], ceiling), rel=1e-3, abs=1e-4)
     assert int(written[1]["frames"]) == 3 and written[1]["experiment"] == "iso_bunny_physics_only"
-    # The volume IoU recomputed from the saved states (the study tool for older run files)
+    # The 3D checks recomputed from the saved states (the study tool for older run files)
     # equals the one the run recorded at those frames (states are stored as float32).
     import h5py
     from physmorph.targets import load_target
@@ -89,7 +89,8 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     res = test_profile_results / "test"
     with h5py.File(res / "particles" / f"iso_{tag}.h5", "r") as f:
         mass = f["mass"][()]
-    saved = _load("study_volume_iou").saved_volume_iou(str(run), mass, load_target(res / "targets" / f"bunny_{tag}.h5"))
+    saved = _load("study_volume_iou").saved_volume_metrics(str(run), mass, load_target(res / "targets" / f"bunny_{tag}.h5"))
     assert sorted(saved) == [0, 2]
     for k, v in saved.items():
-        assert v == pytest.approx(m["volume_iou"][k], abs=0.01)
+        assert v["volume_iou"] == pytest.approx(m["volume_iou"][k], abs=0.01)
+        assert v["overfilled_mass"] == pytest.approx(m["overfilled_mass"][k], abs=0.01)

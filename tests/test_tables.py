@@ -18,9 +18,9 @@ from physmorph.tables import build_tables
 LAYOUT = load_layout(Path(__file__).resolve().parents[1] / "config" / "paper_results.yaml")
 
 
-def write_run(path, alpha_mse, attrs, iou=None, volume_iou=None):
-    """A minimal run file: the metrics every table reads, plus ``iou`` and ``volume_iou`` when
-    given (older run files carry only alpha MSE and the ceiling attributes)."""
+def write_run(path, alpha_mse, attrs, iou=None, volume_iou=None, overfilled_mass=None):
+    """A minimal run file: the metrics every table reads, plus ``iou``, ``volume_iou`` and
+    ``overfilled_mass`` when given (older run files carry only alpha MSE and the ceiling attributes)."""
     a = np.asarray(alpha_mse, dtype=float)
     n = len(a)
     with h5py.File(path, "w") as f:
@@ -37,6 +37,8 @@ def write_run(path, alpha_mse, attrs, iou=None, volume_iou=None):
             g["iou"] = np.asarray(iou, dtype=float)
         if volume_iou is not None:
             g["volume_iou"] = np.asarray(volume_iou, dtype=float)
+        if overfilled_mass is not None:
+            g["overfilled_mass"] = np.asarray(overfilled_mass, dtype=float)
         f.attrs.update({"status": "complete", "n_particles": 100, "peak_rss_mb": 10.0, **attrs})
     return path
 
@@ -47,7 +49,7 @@ def runs(tmp_path):
     # closed (0.06 - 0.02) / (0.06 - 0.01) = 80 % at best, (0.06 - 0.03) / 0.05 = 60 % at the end.
     full = write_run(tmp_path / "iso_bunny_full.h5", [0.06, 0.04, 0.02, 0.03],
                      {"method": "full", "ceiling_alpha_mse": 0.01, "ceiling_iou": 0.95}, iou=[0.5, 0.7, 0.9, 0.8],
-                     volume_iou=[0.55, 0.7, 0.85, 0.82])
+                     volume_iou=[0.55, 0.7, 0.85, 0.82], overfilled_mass=[0.0, 0.3, 0.1, 0.05])
     # An older-style run (no iou): best at frame 1 (0.03), final 0.045, ceiling 0.02:
     # closed 0.02 / 0.03 = 66.7 % at best, 0.005 / 0.03 = 16.7 % at the end.
     cross = write_run(tmp_path / "duck_cow_full.h5", [0.05, 0.03, 0.045],
@@ -68,8 +70,9 @@ def test_convergence_table_reports_the_share_of_the_reachable_gap(runs, tmp_path
     assert bunny["ceiling"] == pytest.approx(0.01)
     assert bunny["closed_best_%"] == pytest.approx(80.0) and bunny["closed_final_%"] == pytest.approx(60.0)
     assert (bunny["iou_0"], bunny["iou_best"], bunny["iou_final"], bunny["ceiling_iou"]) == pytest.approx((0.5, 0.9, 0.8, 0.95))
-    assert (bunny["volume_iou_0"], bunny["volume_iou_final"]) == pytest.approx((0.55, 0.82))
-    assert np.isnan(cross["volume_iou_0"]) and np.isnan(cross["volume_iou_final"])  # written before the metric
+    assert (bunny["volume_iou_0"], bunny["volume_iou_final"], bunny["overfilled_mass_final"]) == pytest.approx((0.55, 0.82, 0.05))
+    # written before the 3D checks existed
+    assert np.isnan(cross["volume_iou_0"]) and np.isnan(cross["volume_iou_final"]) and np.isnan(cross["overfilled_mass_final"])
     assert bunny["paper_alpha_mse"] == pytest.approx(0.0546)  # the paper's best (drag ablation)
     assert cross["best_frame"] == 1
     assert cross["closed_best_%"] == pytest.approx(200 / 3) and cross["closed_final_%"] == pytest.approx(50 / 3)
