@@ -35,7 +35,7 @@ class CFLWarning(UserWarning):
 
 
 CONTROL_MODES = ("per_substep", "per_frame")
-MASS_LOSSES = ("squared", "log")
+MASS_LOSSES = ("squared", "log", "sqrt")
 OPTIMIZERS = ("adam", "normalized_gd")
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
@@ -53,7 +53,11 @@ class MPMConfig:
         of a frame (T times less memory, gradient summed over substeps).
     mass_loss: "squared": L = sum_I (m_I - m*_I)^2 over all grid nodes I (plain squared
         difference of grid masses, kg^2). "log": L = sum_I (log(m_I + eps) - log(m*_I + eps))^2
-        with eps = log_mass_eps * (mean particle mass); it weights thin/low-density regions more.
+        with eps = log_mass_eps * (mean particle mass); it weights thin/low-density regions more,
+        but its pull on a node falls as 1/m, so mass packed into a few nodes is cheap.
+        "sqrt": L = sum_I (sqrt(m_I + eps) - sqrt(m*_I + eps))^2 (a squared Hellinger distance),
+        between the two: a node's pull, (1 - sqrt((m* + eps) / (m + eps))), stays bounded as m grows
+        and as it falls to zero (docs/convergence.md, session 11).
     mass_loss_levels: the mass loss summed over a pyramid of grids: level 0 the grid, level l the
         grid mass summed over blocks of 2^l x 2^l x 2^l nodes, each level the same loss form (log:
         eps x 8^l) with weight 1. Coarse levels see a missing feature (an ear) from farther away
@@ -104,7 +108,7 @@ class MPMConfig:
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
-    mass_loss: Literal["squared", "log"] = "log"
+    mass_loss: Literal["squared", "log", "sqrt"] = "log"
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
     warm_start: bool = True
