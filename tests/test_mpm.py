@@ -766,10 +766,19 @@ def test_optimizer_config_is_checked():
         cfg64(line_search_iters=0)
 
 
-def test_sqrt_loss_value_and_gradients_match_reference_and_fd(state):
-    """mass_loss = "sqrt" (with a two-level pyramid): the documented formula on the reference grid
-    mass, the control gradient against central finite differences and torch autograd."""
-    cfg = cfg64(substeps=2, mass_loss="sqrt", mass_loss_levels=2)
+def _node_losses(m, t, eps, kind):  # the documented per-node formulas, in NumPy
+    if kind == "sqrt":
+        return (np.sqrt(m + eps) - np.sqrt(t + eps)) ** 2
+    below = (np.log(m + eps) - np.log(t + eps)) ** 2
+    above = 4.0 / (t + eps) * (np.sqrt(m + eps) - np.sqrt(t + eps)) ** 2
+    return np.where(m <= t, below, above)
+
+
+@pytest.mark.parametrize("kind", ["sqrt", "log_bounded"])
+def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
+    """mass_loss = "sqrt" / "log_bounded" (with a two-level pyramid): the documented formula on the
+    reference grid mass, the control gradient against central finite differences and torch autograd."""
+    cfg = cfg64(substeps=2, mass_loss=kind, mass_loss_levels=2)
     s = make(cfg, state)
     s.load_state(state)
     s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
@@ -780,8 +789,9 @@ def test_sqrt_loss_value_and_gradients_match_reference_and_fd(state):
     eps = cfg.log_mass_eps * state.mass.mean()
     R = cfg.grid_res
     blocks = lambda a: a.reshape(R // 2, 2, R // 2, 2, R // 2, 2).sum(axis=(1, 3, 5))  # noqa: E731
-    want = ((np.sqrt(m + eps) - np.sqrt(t + eps)) ** 2).sum() \
-        + ((np.sqrt(blocks(m) + 8 * eps) - np.sqrt(blocks(t) + 8 * eps)) ** 2).sum()
+    want = _node_losses(m, t, eps, kind).sum() + _node_losses(blocks(m), blocks(t), 8 * eps, kind).sum()
+    if kind == "log_bounded":  # the test's state has nodes on both branches
+        assert (m > t).any() and (m < t).any()
     assert L == pytest.approx(want, rel=1e-10)
     ctrl = random_control(cfg, state.n)
     s.set_control(ctrl)

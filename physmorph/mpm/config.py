@@ -35,7 +35,7 @@ class CFLWarning(UserWarning):
 
 
 CONTROL_MODES = ("per_substep", "per_frame")
-MASS_LOSSES = ("squared", "log", "sqrt")
+MASS_LOSSES = ("squared", "log", "sqrt", "log_bounded")
 OPTIMIZERS = ("adam", "normalized_gd")
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
@@ -58,6 +58,10 @@ class MPMConfig:
         "sqrt": L = sum_I (sqrt(m_I + eps) - sqrt(m*_I + eps))^2 (a squared Hellinger distance),
         between the two: a node's pull, (1 - sqrt((m* + eps) / (m + eps))), stays bounded as m grows
         and as it falls to zero (docs/convergence.md, session 11).
+        "log_bounded": the log loss where m_I <= m*_I (empty and thin nodes), and above it
+        (4 / (m*_I + eps)) (sqrt(m_I + eps) - sqrt(m*_I + eps))^2, the sqrt loss scaled to the log
+        loss's curvature at m = m* (C^2 there): an overfilled node pulls with up to 4 / (m* + eps)
+        instead of the log loss's vanishing 2 log(m / m*) / m.
     mass_loss_levels: the mass loss summed over a pyramid of grids: level 0 the grid, level l the
         grid mass summed over blocks of 2^l x 2^l x 2^l nodes, each level the same loss form (log:
         eps x 8^l) with weight 1. Coarse levels see a missing feature (an ear) from farther away
@@ -108,7 +112,7 @@ class MPMConfig:
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
-    mass_loss: Literal["squared", "log", "sqrt"] = "log"
+    mass_loss: Literal["squared", "log", "sqrt", "log_bounded"] = "log"
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
     warm_start: bool = True

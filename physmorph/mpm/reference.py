@@ -102,7 +102,8 @@ def rollout_torch(x, v, C, F, ctrl, Fp, mass, vol, cfg: MPMConfig):
 
 def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> torch.Tensor:
     """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2; sqrt: sum (sqrt(m + e) -
-    sqrt(m* + e))^2 (see MPMConfig), summed
+    sqrt(m* + e))^2; log_bounded: log where m <= m*, 4 (sqrt(m + e) - sqrt(m* + e))^2 / (m* + e) above
+    (see MPMConfig), summed
     over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l."""
     R = cfg.grid_res
     m = grid_mass_torch(x, mass, cfg).reshape(R, R, R)
@@ -114,6 +115,11 @@ def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> to
         tl = t.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
         if cfg.mass_loss == "squared":
             total = total + ((ml - tl) ** 2).sum()
+        elif cfg.mass_loss == "log_bounded":
+            e = log_eps * 8.0 ** level
+            below = (torch.log(ml + e) - torch.log(tl + e)) ** 2
+            above = 4.0 / (tl + e) * (torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2
+            total = total + torch.where(ml <= tl, below, above).sum()
         elif cfg.mass_loss == "sqrt":
             e = log_eps * 8.0 ** level
             total = total + ((torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2).sum()

@@ -351,7 +351,8 @@ class MPMSolver:
     @ti.kernel
     def _mass_loss(self, log_eps: ti.f64):
         """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2;
-        sqrt: (sqrt(m+e) - sqrt(m*+e))^2."""
+        sqrt: (sqrt(m+e) - sqrt(m*+e))^2; log_bounded: log below m*, 4 (sqrt(m+e) - sqrt(m*+e))^2 / (m*+e)
+        above it."""
         self.loss_acc[None] = 0.0
         for I in ti.grouped(self.grid_m):
             r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
@@ -362,13 +363,26 @@ class MPMSolver:
     def _node_loss(self, m, mt, log_eps: ti.f64):
         """One node's loss term and its derivative dL/dm: squared (m - m*)^2, 2 (m - m*); log
         (log(m + e) - log(m* + e))^2, 2 r / (m + e); sqrt (sqrt(m + e) - sqrt(m* + e))^2,
-        r / sqrt(m + e)."""
+        r / sqrt(m + e); log_bounded: log for m <= m*, else k r^2 and k r / sqrt(m + e) with
+        r = sqrt(m + e) - sqrt(m* + e) and k = 4 / (m* + e)."""
         r2 = ti.cast(0.0, ti.f64)
         adj = ti.cast(0.0, self.dtype)
         if ti.static(self.cfg.mass_loss == "squared"):
             r = m - mt
             r2 = ti.cast(r * r, ti.f64)
             adj = 2.0 * r
+        elif ti.static(self.cfg.mass_loss == "log_bounded"):
+            e = ti.cast(log_eps, self.dtype)
+            if m <= mt:
+                r = ti.log(m + e) - ti.log(mt + e)
+                r2 = ti.cast(r * r, ti.f64)
+                adj = 2.0 * r / (m + e)
+            else:
+                root = ti.sqrt(m + e)
+                r = root - ti.sqrt(mt + e)
+                k = 4.0 / (mt + e)
+                r2 = ti.cast(k * r * r, ti.f64)
+                adj = k * r / root
         elif ti.static(self.cfg.mass_loss == "sqrt"):
             e = ti.cast(log_eps, self.dtype)
             root = ti.sqrt(m + e)
@@ -386,8 +400,7 @@ class MPMSolver:
     def _pyramid_loss(self, cm: ti.template(), ct: ti.template(), ca: ti.template(), block: ti.i32,
                       log_eps: ti.f64):
         """One coarse level of the mass loss (MPMConfig.mass_loss_levels): M_J = sum of m_I over
-        the block^3 nodes I of block J; loss (M - M*)^2, (log(M + e) - log(M* + e))^2 or
-        (sqrt(M + e) - sqrt(M* + e))^2 added to
+        the block^3 nodes I of block J; the node loss of _node_loss on M and M* added to
         loss_acc, and its adjoint dL/dM_J added to dL/dm_I of every node of the block."""
         for J in ti.grouped(cm):
             cm[J] = 0.0
