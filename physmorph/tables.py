@@ -104,6 +104,11 @@ def source_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _per_frame(r: dict, key: str, n: int) -> np.ndarray:  # [n]
+    """A per-frame metric of a run, NaN throughout for a run written before the metric existed."""
+    return np.asarray(r[key], dtype=float) if key in r else np.full(n, np.nan)
+
+
 def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
     """One row per run: alpha MSE at frame 0, best (and its frame) and final frame, the ceiling
     (the target's own particles at rest, physmorph.quality), the share of the reachable gap closed
@@ -117,10 +122,8 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
         a = np.asarray(r["alpha_mse"], dtype=float)
         k = int(np.nanargmin(a))
         closed_best, closed_final = _closed_percent(r)
-        iou = np.asarray(r["iou"], dtype=float) if "iou" in r else np.full(len(a), np.nan)
+        iou, viou, over = (_per_frame(r, key, len(a)) for key in ("iou", "volume_iou", "overfilled_mass"))
         has_iou = bool(np.isfinite(iou).any())
-        viou = np.asarray(r["volume_iou"], dtype=float) if "volume_iou" in r else np.full(len(a), np.nan)
-        over = np.asarray(r["overfilled_mass"], dtype=float) if "overfilled_mass" in r else np.full(len(a), np.nan)
         paper, paper_which = layout.paper_alpha_mse(name)
         rows.append({"experiment": name, "method": str(r["attrs"].get("method", "")), "frames": len(a) - 1,
                      "alpha_mse_0": a[0], "alpha_mse_best": a[k], "best_frame": k, "alpha_mse_final": a[-1],

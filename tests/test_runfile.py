@@ -71,6 +71,24 @@ def test_frames_commit_read_and_finish(tmp_path):
         read_metrics(out)
 
 
+def test_frames_written_before_a_metric_existed_resume_with_it_as_nan(tmp_path, monkeypatch):
+    """A run begun by a writer that did not know a scalar yet, finished by one that does: the
+    finished file has the scalar, NaN for the older frames and its value for the newer."""
+    out = tmp_path / "run.h5"
+    old = tuple(name for name in SCALARS if name != "volume_iou")
+    monkeypatch.setattr(runfile, "SCALARS", old)
+    _write_frames(out, 2)
+    monkeypatch.setattr(runfile, "SCALARS", SCALARS)
+    with RunWriter(out, KEY) as w:
+        assert w.resume(log=lambda m: None).frame == 1
+        st = _state(2)
+        w.commit(2, {"alpha_mse": 1 / 3, "volume_iou": 0.7}, np.full(V, 1 / 3), st, [], {"x": st["x"]})
+        w.finish("complete", {}, {"frames": 3})
+    m = read_metrics(out)
+    np.testing.assert_allclose(m["volume_iou"], [np.nan, np.nan, 0.7])
+    np.testing.assert_allclose(m["alpha_mse"], [1.0, 0.5, 1 / 3])
+
+
 def _damage(path: Path, how: str) -> None:
     data = path.read_bytes()
     if how == "truncated":
