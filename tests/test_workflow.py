@@ -200,8 +200,10 @@ def test_changed_settings_rerun_exactly_the_runs_that_use_them(test_run):
     # runs on them; the prepared meshes stay
     out = _run(wd, "-n", "tables", *base, "sampling={sigma_scale: 0.8}")
     assert planned_jobs(out) == {"sample_particles": 2, "rasterize_target": 2, "morph": 2, "make_tables": 1, "tables": 1}
-    # the thread count changes no result
+    # the thread count changes no result, nor does where the mesh mirror lies (or that there is none)
     assert planned_jobs(_run(wd, "-n", *targets, *base, "threads=1")) == {}
+    assert planned_jobs(_run(wd, "-n", *targets, *TEST, "--config", f"mesh_dir={wd / 'elsewhere'}")) == {}
+    assert planned_jobs(_run(wd, "-n", *targets, *TEST, "--config", "mesh_dir=null")) == {}
     # a setting at its default is left out of the params (physmorph.config.params_json), so an
     # option added later at a default that changes nothing reruns nothing
     assert planned_jobs(_run(wd, "-n", *targets, *base, "mpm={mass_loss_levels: 1}", "plasticity={absorb_rate: 1.0}",

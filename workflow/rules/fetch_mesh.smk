@@ -4,9 +4,11 @@
 rule fetch_mesh:
     output:
         "resources/meshes/{file}",
+    # Only the source (URL and SHA-256: what the file is) is a param. Where a mirror lies
+    # (`mesh_dir`) changes no byte of the output, so the script reads it from the config: a
+    # profile run with a mirror must not make every other profile's runs rerun.
     params:
         source=lambda wc: params_json(S.raw_meshes[wc.file]),
-        mesh_dir=S.mesh_dir,
     log:
         f"{R}/logs/fetch_mesh/{{file}}.log",
     benchmark:
