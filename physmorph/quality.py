@@ -18,9 +18,9 @@ This equals the plain ratio whenever the gap exceeds tol, is continuous in a_0, 
 denominator >= tol, and gives 1 for a run that stays at the ceiling.
 
 Silhouettes from a ring of cameras can be matched without the volume behind them (a hollow or
-flattened body, particles dragged along the view rays). :func:`volume_iou` is the 3D check: the
-IoU of the grid cells the particles fill and the cells the target's own sampling fills, and the
-share of the mass packed above twice the target's density (:func:`volume_metrics`).
+flattened body, particles dragged along the view rays). :func:`volume_metrics` gives the 3D
+checks: the IoU of the grid cells the particles fill and the cells the target's own sampling
+fills, and the share of the mass packed above twice the target's density.
 """
 
 from __future__ import annotations
@@ -84,20 +84,13 @@ def volume_metrics(x: np.ndarray,  # [N, 3] particle positions
     filled = target[target > 0]
     if filled.size == 0 or not mass.sum() > 0:
         raise ValueError("volume_metrics needs a non-empty target grid mass and particles with mass")
-    target = target * (mass.sum() / filled.sum())
-    interior = float(np.percentile(target[target > 0], INTERIOR_PERCENTILE))
+    scale = mass.sum() / filled.sum()
+    target = target * scale
+    interior = float(np.percentile(filled, INTERIOR_PERCENTILE)) * scale
     m = splat_mass(x, mass, grid)
     a, b = m > VOLUME_FILL * interior, target > VOLUME_FILL * interior
     return {"volume_iou": float((a & b).sum() / max(int((a | b).sum()), 1)),
             "overfilled_mass": float(m[m > OVERFILL * interior].sum() / m.sum())}
-
-
-def volume_iou(x: np.ndarray,  # [N, 3]
-               mass: np.ndarray,  # [N]
-               target_grid_mass: np.ndarray,  # [R, R, R]
-               grid: Grid) -> float:
-    """The volume IoU of :func:`volume_metrics`."""
-    return volume_metrics(x, mass, target_grid_mass, grid)["volume_iou"]
 
 
 def gap_closed(a0: float, a: np.ndarray | float, ceiling: float, rel_tol: float = GAP_REL_TOL) -> np.ndarray | float:

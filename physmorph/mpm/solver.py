@@ -367,34 +367,36 @@ class MPMSolver:
         r = sqrt(m + e) - sqrt(m* + e) and k = 4 / (m* + e)."""
         r2 = ti.cast(0.0, ti.f64)
         adj = ti.cast(0.0, self.dtype)
+        e = ti.cast(log_eps, self.dtype)
         if ti.static(self.cfg.mass_loss == "squared"):
             r = m - mt
             r2 = ti.cast(r * r, ti.f64)
             adj = 2.0 * r
         elif ti.static(self.cfg.mass_loss == "log_bounded"):
-            e = ti.cast(log_eps, self.dtype)
             if m <= mt:
-                r = ti.log(m + e) - ti.log(mt + e)
-                r2 = ti.cast(r * r, ti.f64)
-                adj = 2.0 * r / (m + e)
+                r2, adj = self._log_term(m, mt, e)
             else:
-                root = ti.sqrt(m + e)
-                r = root - ti.sqrt(mt + e)
                 k = 4.0 / (mt + e)
-                r2 = ti.cast(k * r * r, ti.f64)
-                adj = k * r / root
+                r2, adj = self._sqrt_term(m, mt, e)
+                r2, adj = ti.cast(k, ti.f64) * r2, k * adj
         elif ti.static(self.cfg.mass_loss == "sqrt"):
-            e = ti.cast(log_eps, self.dtype)
-            root = ti.sqrt(m + e)
-            r = root - ti.sqrt(mt + e)
-            r2 = ti.cast(r * r, ti.f64)
-            adj = r / root
+            r2, adj = self._sqrt_term(m, mt, e)
         else:
-            e = ti.cast(log_eps, self.dtype)
-            r = ti.log(m + e) - ti.log(mt + e)
-            r2 = ti.cast(r * r, ti.f64)
-            adj = 2.0 * r / (m + e)
+            r2, adj = self._log_term(m, mt, e)
         return r2, adj
+
+    @ti.func
+    def _log_term(self, m, mt, e):
+        """(log(m + e) - log(m* + e))^2 and its derivative 2 r / (m + e)."""
+        r = ti.log(m + e) - ti.log(mt + e)
+        return ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
+
+    @ti.func
+    def _sqrt_term(self, m, mt, e):
+        """(sqrt(m + e) - sqrt(m* + e))^2 and its derivative r / sqrt(m + e)."""
+        root = ti.sqrt(m + e)
+        r = root - ti.sqrt(mt + e)
+        return ti.cast(r * r, ti.f64), r / root
 
     @ti.kernel
     def _pyramid_loss(self, cm: ti.template(), ct: ti.template(), ca: ti.template(), block: ti.i32,
