@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "convergence" / "runs.csv"
 COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_frame", "a_final", "ceiling",
            "closed_best", "closed_final", "iou0", "iou_best", "iou_final", "ceiling_iou", "chamfer0",
-           "chamfer_final", "fp_det_min", "status", "wall_s"]
+           "chamfer_final", "fp_det_min", "status", "wall_s", "volume_iou0", "volume_iou_final", "overfilled_final"]
 
 
 def parse_set(items: list[str]) -> dict:
@@ -98,7 +98,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                "closed_final": gap_closed(a[0], a[-1], ceil["alpha_mse"]),
                "iou0": iou[0], "iou_best": np.nanmax(iou), "iou_final": iou[-1], "ceiling_iou": ceil["iou"],
                "chamfer0": m["chamfer"][0], "chamfer_final": m["chamfer"][-1],
-               "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall}
+               "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall,
+               "volume_iou0": m["volume_iou"][0], "volume_iou_final": m["volume_iou"][-1],
+               "overfilled_final": m["overfilled_mass"][-1]}
         row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
         print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
         curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])
@@ -106,6 +108,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
         rows.append(row)
         if not args.no_csv:
             new = not csv_path.exists()
+            if not new:
+                with csv_path.open(newline="") as fh:
+                    header = next(csv.reader(fh), [])
+                if header != COLUMNS:
+                    raise SystemExit(f"{csv_path}: its header {header} is not this driver's columns {COLUMNS}; "
+                                     "add the missing columns (empty for the older rows) or pass --csv")
             with csv_path.open("a", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=COLUMNS)
                 if new:

@@ -81,6 +81,8 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     assert float(row["closed_best"]) == pytest.approx(gap_closed(a[0], a[k], ceiling), rel=1e-3, abs=1e-4)
     assert float(row["closed_final"]) == pytest.approx(gap_closed(a[0], a[-1], ceiling), rel=1e-3, abs=1e-4)
     assert int(written[1]["frames"]) == 3 and written[1]["experiment"] == "iso_bunny_physics_only"
+    assert float(row["volume_iou_final"]) == pytest.approx(m["volume_iou"][-1], rel=1e-3)
+    assert float(row["overfilled_final"]) == pytest.approx(m["overfilled_mass"][-1], rel=1e-3, abs=1e-4)
     # The 3D checks recomputed from the saved states (the study tool for older run files)
     # equals the one the run recorded at those frames (states are stored as float32).
     import h5py

@@ -35,6 +35,7 @@ class CFLWarning(UserWarning):
 
 
 CONTROL_MODES = ("per_substep", "per_frame")
+SMOOTHING_MODES = ("full", "isochoric")
 MASS_LOSSES = ("squared", "log", "sqrt", "log_bounded")
 OPTIMIZERS = ("adam", "normalized_gd")
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
@@ -84,6 +85,25 @@ class MPMConfig:
     step_clip: normalized_gd only: if > 0, each entry of the normalised step g / rms(g) is clamped
         to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
         iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
+    smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
+        each substep's motion. "isochoric" (not in the paper): that blend rescaled to the
+        determinant of F_new, F' = (det F_new / det F_s)^(1/3) F_s, so the volume ratio J = det F
+        follows the motion exactly (J' = det(I + dt C') J) and only the shape is smoothed. With
+        "full", a morph can pack its material at many times its density while det F stays near
+        0.9, since the elastic stress sees 4.5 % of the compression (docs/convergence.md, items 62
+        and 67).
+    volume_stiffness: K (Pa) of a pressure that resists packing, 0 = off (the paper has none).
+        At each frame's start every particle's density rho_p = sum_I w_Ip m_I / dx^3 is measured
+        from the P2G mass; where it exceeds volume_onset x density, the particle carries the
+        pressure p = K ln(rho_p / (volume_onset density)) through the frame's substeps (Kirchhoff
+        stress -p I in the P2G affine term). The F smoothing lets F follow ~4.5 % of the motion, so
+        the elastic stress barely sees compression and a morph can pack its material at many
+        times its density (docs/convergence.md, items 62 and 67); this term measures the packing
+        from the particles' positions instead. Held fixed within the frame, it is a known force
+        to that frame's control, so the control gradient is exact (the initial-state gradient
+        holds it fixed too).
+    volume_onset: the density ratio above which the pressure acts (the sampled source at rest
+        reaches ~2x its density at the 99th percentile, on its surface shell).
     control_clip: if > 0, dFc entries are clamped to [-control_clip, control_clip] after each
         Adam step (0 = off, the paper's behaviour).
     """
@@ -102,6 +122,7 @@ class MPMConfig:
     density: float = 75.0
     drag: float = 0.9
     smoothing: float = 0.955
+    smoothing_mode: Literal["full", "isochoric"] = "full"
     control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
     learning_rate: float = 0.002  # 0.001 until study session 7 (docs/convergence.md)
@@ -116,6 +137,8 @@ class MPMConfig:
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
     warm_start: bool = True
+    volume_stiffness: float = 0.0
+    volume_onset: float = 2.0
     control_clip: float = 0.0
     cfl: float = 0.5
     cfl_warn_fraction: float = 0.8
@@ -146,6 +169,8 @@ class MPMConfig:
              f"drag must satisfy 0 <= drag * dt <= 1 (momentum factor 1 - dt*d in [0, 1]), "
              f"got drag={self.drag}, dt={self.dt}")
         need(0.0 <= self.smoothing < 1.0, f"smoothing s must be in [0, 1), got {self.smoothing}")
+        need(self.smoothing_mode in SMOOTHING_MODES,
+             f"smoothing_mode must be one of {SMOOTHING_MODES}, got {self.smoothing_mode!r}")
         need(self.control in CONTROL_MODES, f"control must be one of {CONTROL_MODES}, got {self.control!r}")
         need(self.mass_loss in MASS_LOSSES, f"mass_loss must be one of {MASS_LOSSES}, got {self.mass_loss!r}")
         need(math.isfinite(self.learning_rate) and self.learning_rate > 0,
@@ -164,6 +189,10 @@ class MPMConfig:
              and self.grid_res % (1 << (self.mass_loss_levels - 1)) == 0,
              f"mass_loss_levels must be an int >= 1 whose blocks 2^(levels-1) divide grid_res "
              f"{self.grid_res}, got {self.mass_loss_levels!r}")
+        need(math.isfinite(self.volume_stiffness) and self.volume_stiffness >= 0,
+             f"volume_stiffness must be finite and >= 0 (0 = off), got {self.volume_stiffness}")
+        need(math.isfinite(self.volume_onset) and self.volume_onset > 0,
+             f"volume_onset must be > 0, got {self.volume_onset}")
         need(self.control_clip >= 0, f"control_clip must be >= 0, got {self.control_clip}")
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl}")
         need(0 < self.cfl_warn_fraction <= 1.0,

@@ -59,14 +59,26 @@ def grid_mass_torch(x: torch.Tensor, mass: torch.Tensor, cfg: MPMConfig) -> torc
     return out.index_add(0, flat.reshape(-1), (W * mass[:, None]).reshape(-1))
 
 
-def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig):
-    """One MLS-MPM substep (see physmorph.mpm.solver's module docstring); all [N, ...] float64."""
+def frame_pressure_torch(x, mass, cfg: MPMConfig) -> torch.Tensor:  # x [N, 3], mass [N] -> [N]
+    """K ln(rho_p / (c rho0)) where rho_p = sum_I w_Ip m_I / dx^3 exceeds c rho0, else 0."""
+    W, flat, _, _ = _stencil(x, cfg)
+    m = grid_mass_torch(x, mass, cfg)
+    rho = (W * m[flat]).sum(1) / cfg.dx ** 3
+    ratio = rho / (cfg.volume_onset * cfg.density)
+    return torch.where(ratio > 1, cfg.volume_stiffness * torch.log(torch.clamp(ratio, min=1.0)), torch.zeros_like(ratio))
+
+
+def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig, press=None):
+    """One MLS-MPM substep (see physmorph.mpm.solver's module docstring); all [N, ...] float64.
+    press [N]: the frame's packing pressure (frame_pressure_torch), None = none."""
     R, dt = cfg.grid_res, cfg.dt
     kq = 4.0 / cfg.dx ** 2
     W, flat, dpos, nodes = _stencil(x, cfg)
     Fe = (F + dFc) @ Fp_inv
     tau = stress_torch(Fe, cfg.mu, cfg.lam) @ Fe.transpose(1, 2)
     A = -dt * kq * vol[:, None, None] * tau + mass[:, None, None] * C
+    if press is not None:
+        A = A + (dt * kq * vol * press)[:, None, None] * torch.eye(3, dtype=x.dtype)
     mom = (mass * (1.0 - dt * cfg.drag))[:, None] * v
     contrib = W[..., None] * (mom[:, None, :] + torch.einsum("pab,pnb->pna", A, dpos))  # [N,27,3]
     mv = torch.zeros(R ** 3, 3, dtype=x.dtype).index_add(0, flat.reshape(-1), contrib.reshape(-1, 3))
@@ -86,16 +98,20 @@ def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig):
     nx = torch.clamp(x + dt * nv, x_min, x_max)
     Fn = (torch.eye(3, dtype=x.dtype) + dt * nC) @ (F + dFc if cfg.control_in_F else F)
     nF = (1.0 - cfg.smoothing) * Fn + cfg.smoothing * F
+    if cfg.smoothing_mode == "isochoric":
+        nF = (torch.linalg.det(Fn) / torch.linalg.det(nF))[:, None, None] ** (1.0 / 3.0) * nF
     return nx, nv, nC, nF
 
 
 def rollout_torch(x, v, C, F, ctrl, Fp, mass, vol, cfg: MPMConfig):
-    """T substeps; ctrl: [Tc, N, 3, 3]. Returns the list of states [(x, v, C, F)] for t = 0..T."""
+    """T substeps; ctrl: [Tc, N, 3, 3]. Returns the list of states [(x, v, C, F)] for t = 0..T.
+    The packing pressure (volume_stiffness > 0) is measured at x and held, without a gradient."""
     Fp_inv = torch.linalg.inv(Fp)
+    press = frame_pressure_torch(x.detach(), mass, cfg) if cfg.volume_stiffness > 0 else None
     states = [(x, v, C, F)]
     for t in range(cfg.substeps):
         slot = t if cfg.control == "per_substep" else 0
-        x, v, C, F = substep_torch(x, v, C, F, ctrl[slot], Fp_inv, mass, vol, cfg)
+        x, v, C, F = substep_torch(x, v, C, F, ctrl[slot], Fp_inv, mass, vol, cfg, press)
         states.append((x, v, C, F))
     return states
 

@@ -9,7 +9,12 @@ One substep t (state s_t = (x, v, C, F), control dFc_t, constants Fp, m, V0):
     grid: v_I = mv_I / m_I, outward component zeroed on the BOUNDARY_CELLS layer of each face
     G2P:  v' = sum_I w_Ip v_I,  C' = 4/dx^2 sum_I w_Ip v_I (x_I - x_p)^T,  x' = x + dt v'
           F_new = (I + dt C') F,   F' = (1 - s) F_new + s F
+    (with smoothing_mode "isochoric", not in the paper: F' <- (det F_new / det F')^(1/3) F', the
+    volume ratio follows the motion and only the shape is smoothed)
     (with control_in_F: F_new = (I + dt C') (F + dFc_t), the authors' code)
+    (with volume_stiffness K > 0, not in the paper: A += dt V0 (4/dx^2) p I, a packing pressure
+    p = K ln(rho / (c rho0)) where the P2G density at the frame's start, rho = sum_I w_Ip m_I / dx^3,
+    exceeds c rho0; held over the frame's substeps)
 
 P = 2 mu (Fe - R) + lam (J - 1) cof(Fe), with cof(Fe) = J Fe^-T written with cross products
 so it stays finite for singular Fe. The control dFc enters the stress only (it acts like an
@@ -64,6 +69,7 @@ class MPMSolver:
         self.Fp_inv = mat.field(shape=N)
         self.mass = ti.field(f, shape=N)
         self.vol = ti.field(f, shape=N)
+        self.press = ti.field(f, shape=N)  # the frame's packing pressure (volume_stiffness)
         # control field and Adam moments, index [slot, p]
         self.ctrl = mat.field(shape=(Tc, N))
         self.ctrl_grad = mat.field(shape=(Tc, N))
@@ -106,6 +112,7 @@ class MPMSolver:
         self._x_min = cfg.domain_lo + 1.0 * cfg.dx
         self._x_max = cfg.domain_lo + (R - 2.0) * cfg.dx
         self._clip_on = cfg.control_clip > 0
+        self._pressure_on = cfg.volume_stiffness > 0
         self.reset()
 
     def reset(self) -> None:
@@ -188,6 +195,9 @@ class MPMSolver:
             R, S, gap = self._stress_model.polar(Fe)
             P = self._stress_model.stress_from_polar(Fe, R)
             A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
+            if ti.static(self._pressure_on):  # Kirchhoff stress -p I; constant in the frame, so the
+                # backward's x adjoint (through A, saved below) is all it needs
+                A += (self.dtype(self.cfg.dt) * self.vol[p] * kq * self.press[p]) * ti.Matrix.identity(self.dtype, 3)
             if ti.static(save):
                 self.A_s[p] = A
                 self.Fe_s[p] = Fe
@@ -235,6 +245,31 @@ class MPMSolver:
             self.F_adj[p] += Fhat_bar
             slot = t if ti.static(self.cfg.control == "per_substep") else 0
             self.ctrl_grad[slot, p] += Fhat_bar
+
+    @ti.kernel
+    def _frame_pressure(self):
+        """Packing pressure of the frame (MPMConfig.volume_stiffness): m_I = sum_p w_Ip m_p at x_0,
+        rho_p = sum_I w_Ip m_I / dx^3, p_p = K ln(rho_p / (c rho0)) where rho_p > c rho0, else 0."""
+        for I in ti.grouped(self.grid_m):
+            self.grid_m[I] = 0.0
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[0, p])
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = self._node(fx, w, i, j, k)
+                self.grid_m[base + off] += wt * self.mass[p]
+        inv_cell = self.dtype(self._inv_dx) ** 3
+        rho_on = self.dtype(self.cfg.volume_onset * self.cfg.density)
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[0, p])
+            rho = ti.cast(0.0, self.dtype)
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = self._node(fx, w, i, j, k)
+                rho += wt * self.grid_m[base + off]
+            rho *= inv_cell
+            pr = ti.cast(0.0, self.dtype)
+            if rho > rho_on:
+                pr = self.dtype(self.cfg.volume_stiffness) * ti.log(rho / rho_on)
+            self.press[p] = pr
 
     @ti.func
     def _boundary(self, I, v):
@@ -297,7 +332,20 @@ class MPMSolver:
             self.v[t + 1, p] = nv
             self.C[t + 1, p] = nC
             self.x[t + 1, p] = ti.math.clamp(xp + self.dtype(self.cfg.dt) * nv, self.dtype(self._x_min), self.dtype(self._x_max))
-            self.F[t + 1, p] = (1.0 - self.dtype(self.cfg.smoothing)) * Fn + self.dtype(self.cfg.smoothing) * Fo
+            Fs = (1.0 - self.dtype(self.cfg.smoothing)) * Fn + self.dtype(self.cfg.smoothing) * Fo
+            if ti.static(self.cfg.smoothing_mode == "isochoric"):
+                Fs *= self._volume_scale(Fn, Fs)
+            self.F[t + 1, p] = Fs
+
+    @ti.func
+    def _volume_scale(self, Fn, Fs):
+        """r = (det F_new / det F_s)^(1/3) (smoothing_mode "isochoric"); 1 where the ratio is not
+        positive (an inverted F, which the blend cannot rescale)."""
+        q = Fn.determinant() / Fs.determinant()
+        r = ti.cast(1.0, self.dtype)
+        if q > 0:
+            r = ti.pow(q, self.dtype(1.0 / 3.0))
+        return r
 
     @ti.kernel
     def _g2p_backward(self, t: ti.i32):
@@ -320,8 +368,24 @@ class MPMSolver:
             Cn = self.C[t + 1, p]
             Fbar_n = self.F_adj[p]
             Fbar_new = (1.0 - s) * Fbar_n
+            Fbar = s * Fbar_n
+            if ti.static(self.cfg.smoothing_mode == "isochoric"):
+                # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
+                # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs>
+                Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
+                Fs = (1.0 - s) * Fn + s * self.F[t, p]
+                r = self._volume_scale(Fn, Fs)
+                Fs_bar = r * Fbar_n
+                if (Fn.determinant() / Fs.determinant()) > 0:
+                    k3 = r * (Fbar_n * Fs).sum() / 3.0
+                    Fs_bar -= k3 * Fs.inverse().transpose()
+                    Fbar_new = k3 * Fn.inverse().transpose()
+                else:
+                    Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
+                Fbar_new += (1.0 - s) * Fs_bar
+                Fbar = s * Fs_bar
             Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
-            Fbar = s * Fbar_n + Fh_bar
+            Fbar += Fh_bar
             if ti.static(self.cfg.control_in_F):
                 self.ctrl_grad[slot, p] += Fh_bar
             Cbar = self.C_adj[p] + dt * Fbar_new @ Fh.transpose()
@@ -521,6 +585,8 @@ class MPMSolver:
         self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
         self.mass.from_numpy(st.mass.astype(dt_))
         self.vol.from_numpy(st.volume.astype(dt_))
+        if self._pressure_on:
+            self._frame_pressure()
         self._Fp = st.Fp.copy()
         self._log_eps = float(self.cfg.log_mass_eps * st.mass.mean())
         self._loaded = True
@@ -739,6 +805,11 @@ class MPMSolver:
         self._clear_grid()
         self._splat_final()
         return self.grid_m.to_numpy().astype(np.float64)
+
+    def frame_pressure(self) -> np.ndarray:  # [N]
+        """The loaded frame's packing pressure per particle (zeros when volume_stiffness is 0)."""
+        self._require_loaded()
+        return self.press.to_numpy().astype(np.float64) if self._pressure_on else np.zeros(self.n)
 
     def control(self) -> np.ndarray:  # [Tc, N, 3, 3]
         return self.ctrl.to_numpy().astype(np.float64)
