@@ -91,7 +91,7 @@ class MPMConfig:
         follows the motion exactly (J' = det(I + dt C') J) and only the shape is smoothed. With
         "full", a morph can pack its material at many times its density while det F stays near
         0.9, since the elastic stress sees 4.5 % of the compression (docs/convergence.md, items 62
-        and 67).
+        and 69-71).
     volume_stiffness: K (Pa) of a pressure that resists packing, 0 = off (the paper has none).
         At each frame's start every particle's density rho_p = sum_I w_Ip m_I / dx^3 is measured
         from the P2G mass; where it exceeds volume_onset x density, the particle carries the
