@@ -315,24 +315,32 @@ def test_injected_adjoints_match_fd(solver3, state):
     _fd_check(solver3, state, gx=gx, n_checks=6, seed=3)
 
 
-def test_gradients_match_torch_autograd(solver3, state):
-    cfg = solver3.cfg
-    ctrl = random_control(cfg, state.n)
-    gF = np.random.default_rng(4).normal(size=(state.n, 3, 3))
-    solver3.load_state(state)
-    solver3.set_control(ctrl)
-    solver3.forward()
-    solver3.backward(gF, None)
-    x0 = ref.as_torch(state.x, True)
+def _autograd_check(s: MPMSolver, st: ParticleState, ctrl, gF=None, check_x0=True):
+    """The solver's gradient of L + <gF, F_T> (squared mass loss) on dFc, and on x0 with check_x0,
+    against torch autograd through the reference rollout; returns the reference's states."""
+    s.load_state(st)
+    s.set_control(ctrl)
+    s.forward()
+    s.backward(gF, None)
+    x0 = ref.as_torch(st.x, True)
     c = ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(x0, ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
-    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(solver3.target_m.to_numpy()), cfg)
-    loss = loss + (states[-1][3] * ref.as_torch(gF)).sum()
+    states = ref.rollout_torch(x0, ref.as_torch(st.v), ref.as_torch(st.C), ref.as_torch(st.F), c,
+                               ref.as_torch(st.Fp), ref.as_torch(st.mass), ref.as_torch(st.volume), s.cfg)
+    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(st.mass), ref.as_torch(s.target_m.to_numpy()), s.cfg)
+    if gF is not None:
+        loss = loss + (states[-1][3] * ref.as_torch(gF)).sum()
     loss.backward()
-    np.testing.assert_allclose(solver3.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
-    np.testing.assert_allclose(solver3.initial_state_gradients()["x"], x0.grad.numpy(), rtol=1e-6,
-                               atol=1e-8 * x0.grad.abs().max().item())
+    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+    if check_x0:
+        np.testing.assert_allclose(s.initial_state_gradients()["x"], x0.grad.numpy(), rtol=1e-6,
+                                   atol=1e-8 * x0.grad.abs().max().item())
+    return states
+
+
+def test_gradients_match_torch_autograd(solver3, state):
+    ctrl = random_control(solver3.cfg, state.n)
+    gF = np.random.default_rng(4).normal(size=(state.n, 3, 3))
+    _autograd_check(solver3, state, ctrl, gF)
 
 
 @pytest.fixture(scope="module")
@@ -823,16 +831,8 @@ def test_packing_pressure_matches_reference_and_gradients_match_fd(state):
     ctrl = random_control(cfg, state.n)
     s.set_control(ctrl)
     _fd_check(s, state, n_checks=6, seed=5, state_names=("v", "F"))
-    s.load_state(state)
-    s.set_control(ctrl)
-    s.forward()
-    s.backward()
-    c = ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(ref.as_torch(state.x), ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
+    states = _autograd_check(s, state, ctrl, check_x0=False)
     np.testing.assert_allclose(s.state_at(cfg.substeps).x, states[-1][0].detach().numpy(), rtol=1e-9, atol=1e-9)
-    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(s.target_m.to_numpy()), cfg).backward()
-    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
 
 
 def test_packing_pressure_spreads_a_packed_ball_and_is_off_below_the_onset():
@@ -871,17 +871,5 @@ def test_isochoric_smoothing_keeps_the_volume_and_matches_reference_and_fd(state
     assert np.abs(np.linalg.det(plain.state_at(3).F) - np.linalg.det(s.state_at(3).F)).max() > 1e-3
     gF = np.random.default_rng(8).normal(size=(state.n, 3, 3))
     _fd_check(s, state, gF=gF, n_checks=6, seed=9)
-    s.load_state(state)
-    s.set_control(ctrl)
-    s.forward()
-    s.backward(gF, None)
-    x0 = ref.as_torch(state.x, True)
-    c = ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(x0, ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
+    states = _autograd_check(s, state, ctrl, gF)
     np.testing.assert_allclose(s.state_at(3).F, states[-1][3].detach().numpy(), rtol=1e-9, atol=1e-12)
-    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(s.target_m.to_numpy()), cfg)
-    (loss + (states[-1][3] * ref.as_torch(gF)).sum()).backward()
-    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
-    np.testing.assert_allclose(s.initial_state_gradients()["x"], x0.grad.numpy(), rtol=1e-6,
-                               atol=1e-8 * x0.grad.abs().max().item())

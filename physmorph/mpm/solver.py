@@ -246,17 +246,15 @@ class MPMSolver:
             slot = t if ti.static(self.cfg.control == "per_substep") else 0
             self.ctrl_grad[slot, p] += Fhat_bar
 
-    @ti.kernel
-    def _frame_pressure(self):
+    def _frame_pressure(self) -> None:
         """Packing pressure of the frame (MPMConfig.volume_stiffness): m_I = sum_p w_Ip m_p at x_0,
         rho_p = sum_I w_Ip m_I / dx^3, p_p = K ln(rho_p / (c rho0)) where rho_p > c rho0, else 0."""
-        for I in ti.grouped(self.grid_m):
-            self.grid_m[I] = 0.0
-        for p in range(self.n):
-            base, fx, w, dw = self._stencil(self.x[0, p])
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self._node(fx, w, i, j, k)
-                self.grid_m[base + off] += wt * self.mass[p]
+        self._clear_grid()
+        self._splat_mass(0)
+        self._pressure_from_grid_mass()
+
+    @ti.kernel
+    def _pressure_from_grid_mass(self):
         inv_cell = self.dtype(self._inv_dx) ** 3
         rho_on = self.dtype(self.cfg.volume_onset * self.cfg.density)
         for p in range(self.n):
@@ -404,10 +402,10 @@ class MPMSolver:
             self.C_adj[p] = ti.Matrix.zero(self.dtype, 3, 3)
 
     @ti.kernel
-    def _splat_final(self):
-        """m_I = sum_p w_Ip m_p of x_T (the physmorph.grid.splat_mass transfer)."""
+    def _splat_mass(self, t: ti.i32):
+        """m_I += sum_p w_Ip m_p of x_t (the physmorph.grid.splat_mass transfer)."""
         for p in range(self.n):
-            base, fx, w, dw = self._stencil(self.x[self.cfg.substeps, p])
+            base, fx, w, dw = self._stencil(self.x[t, p])
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 self.grid_m[base + off] += wt * self.mass[p]
@@ -487,7 +485,7 @@ class MPMSolver:
 
     @ti.kernel
     def _loss_backward(self):
-        """Reverse of _splat_final and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
+        """Reverse of _splat_mass(T) and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
         of the injected g^x already there)."""
         T = self.cfg.substeps
         for p in range(self.n):
@@ -619,7 +617,7 @@ class MPMSolver:
         self._forward_current = True
         if self._has_target:
             self._clear_grid()
-            self._splat_final()
+            self._splat_mass(self.cfg.substeps)
             self._loss_with_adjoint()
             self._last_loss = float(self.loss_acc[None])
         else:
@@ -645,7 +643,7 @@ class MPMSolver:
         self._zero_ctrl_grad()
         if self._has_target and include_mass_loss:
             self._clear_grid()
-            self._splat_final()
+            self._splat_mass(self.cfg.substeps)
             self._loss_with_adjoint()
             self._loss_backward()
         for t in reversed(range(self.cfg.substeps)):
@@ -803,7 +801,7 @@ class MPMSolver:
     def grid_mass(self) -> np.ndarray:  # [res, res, res]
         """Grid mass of x_T from the last forward (valid right after forward/rollout)."""
         self._clear_grid()
-        self._splat_final()
+        self._splat_mass(self.cfg.substeps)
         return self.grid_m.to_numpy().astype(np.float64)
 
     def frame_pressure(self) -> np.ndarray:  # [N]
