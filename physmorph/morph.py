@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
-from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, total_volume
+from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, kinetic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou, volume_metrics
 from physmorph.plasticity import (absorbed_rest, chamfer_plasticity_step, rebase_reference,
@@ -101,7 +101,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         d, _ = tree.query(st.x, k=1)
         return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
                 "fp_anisotropy_max": float(anisotropy(st.Fp).max()),
-                "elastic_energy": float(elastic_energy(st, cfg.mpm)), "total_volume": float(total_volume(st)),
+                "elastic_energy": float(elastic_energy(st, cfg.mpm)), "kinetic_energy": kinetic_energy(st),
+                "total_volume": float(total_volume(st)),
                 "mask_size": int(mask.sum()) if need_mask else np.nan,
                 "mask_fraction": float(mask.mean()) if need_mask else np.nan,
                 "chamfer": float(d.mean()),
@@ -138,6 +139,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         log(f"[{name}] resuming after frame {resumed_from}/{cfg.frames}")
 
     scale = float(ck["injection_scale"]) if resumed_from is not None else float("nan")
+    restart_on = {"mass_loss": "physics_loss", "alpha_mse": "alpha_mse"}.get(cfg.momentum_restart)
+    previous = run.frame_metric(start - 1, restart_on) if restart_on else float("nan")
     inject_F = cfg.method in ("f_inject", "full")
     inject_x = cfg.method == "position_inject"
     want_grad = inject_F or inject_x
@@ -209,6 +212,16 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         m, per_view = metrics_for(st, mask)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
+        if restart_on:
+            # the objective rose over this frame: the state is moving away from the target, so
+            # the next frame starts with (most of) that momentum removed
+            now = scal[restart_on]
+            restart = bool(np.isfinite(previous) and now > previous)
+            if restart:
+                st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
+                                   mass=st.mass, volume=st.volume)
+            scal["momentum_restart"] = float(restart)
+            previous = now
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"])
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames

@@ -20,7 +20,7 @@ METHODS = ("physics_only", "f_inject", "full", "position_inject")
 @dataclass(frozen=True)
 class MorphConfig:
     # always in a run's params (physmorph.config.without_defaults), so its record names the method
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method"})
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart"})
     method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
     frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
@@ -40,6 +40,14 @@ class MorphConfig:
     # plasticity): the alpha MSE curve shows how much of the morph the rest state keeps
     release_frames: int = 0
     progress: bool = True
+    # Between frames, when the frame's objective rose (mass_loss: the physics loss at the frame's
+    # end; alpha_mse: the rendered alpha MSE), keep only restart_keep of every particle's velocity
+    # (v and the APIC C): the function-value restart of momentum methods (O'Donoghue & Candes
+    # 2015). The physics carries momentum across frames, but each frame's control only sees its
+    # own frame, so a shape that reaches its target at speed rings (docs/convergence.md, item 73).
+    # Not in the paper; "off" is the paper's loop.
+    momentum_restart: Literal["off", "mass_loss", "alpha_mse"] = "mass_loss"
+    restart_keep: float = 0.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -53,6 +61,10 @@ class MorphConfig:
                              f"got {self.injection_calibration!r}")
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
+        if self.momentum_restart not in ("off", "mass_loss", "alpha_mse"):
+            raise ValueError(f"momentum_restart must be off, mass_loss or alpha_mse, got {self.momentum_restart!r}")
+        if not 0.0 <= self.restart_keep <= 1.0:
+            raise ValueError(f"restart_keep must be in [0, 1], got {self.restart_keep}")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

@@ -37,7 +37,7 @@ Design decisions (documented here and in the docstrings they refer to):
 
 from .config import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMError,
                      MPMStateError)
-from .state import ParticleState, elastic_energy, fixed_corotated_energy_density, total_volume
+from .state import ParticleState, elastic_energy, kinetic_energy, fixed_corotated_energy_density, total_volume
 
 
 def __getattr__(name):
@@ -49,5 +49,5 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["CFLWarning", "MPMConfig", "MPMConfigError", "MPMDivergenceError", "MPMError",
-           "MPMStateError", "MPMSolver", "solver_for", "ParticleState", "elastic_energy",
+           "MPMStateError", "MPMSolver", "solver_for", "ParticleState", "elastic_energy", "kinetic_energy",
            "fixed_corotated_energy_density", "total_volume"]

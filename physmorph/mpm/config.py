@@ -86,7 +86,7 @@ class MPMConfig:
         to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
         iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
-        each substep's motion. "isochoric" (not in the paper): that blend rescaled to the
+        each substep's motion. "isochoric" (the default since session 13; not in the paper): that blend rescaled to the
         determinant of F_new, F' = (det F_new / det F_s)^(1/3) F_s, so the volume ratio J = det F
         follows the motion exactly (J' = det(I + dt C') J) and only the shape is smoothed. With
         "full", a morph can pack its material at many times its density while det F stays near
@@ -110,7 +110,7 @@ class MPMConfig:
 
     # Fields whose default changed after runs were made with the old one: always in a run's params
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate"})
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -122,7 +122,7 @@ class MPMConfig:
     density: float = 75.0
     drag: float = 0.9
     smoothing: float = 0.955
-    smoothing_mode: Literal["full", "isochoric"] = "full"
+    smoothing_mode: Literal["full", "isochoric"] = "isochoric"
     control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
     learning_rate: float = 0.002  # 0.001 until study session 7 (docs/convergence.md)

@@ -90,3 +90,9 @@ def elastic_energy(state: ParticleState, cfg: MPMConfig) -> float:
 def total_volume(state: ParticleState) -> float:
     """Current total volume sum_p det(F_p) V0_p."""
     return float((np.linalg.det(np.asarray(state.F)) * np.asarray(state.volume)).sum())
+
+
+def kinetic_energy(state: ParticleState) -> float:
+    """Translational kinetic energy sum_p m_p |v_p|^2 / 2 (the APIC affine part left out), in J."""
+    v = np.asarray(state.v)
+    return float(0.5 * (np.asarray(state.mass) * (v * v).sum(axis=1)).sum())
