@@ -14,7 +14,7 @@ import pytest
 import physmorph.morph as morph
 import physmorph.runfile as runfile
 from physmorph.config import load_settings
-from physmorph.morph import MorphDivergenceError, morph_config, read_metrics, run_morph
+from physmorph.morph import MorphConfig, MorphDivergenceError, morph_config, read_metrics, run_morph
 from physmorph.metrics import rebound_percent, release_rebound_percent
 from physmorph.h5io import stored_checksum
 from physmorph.runfile import RunFileError, RunKey, RunLockedError, RunWriter, read_checkpoint
@@ -250,23 +250,35 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
     assert m["overfilled_mass"][0] == 0.0
 
 
+def _paper_loop(cfg: MorphConfig) -> dict:
+    """The changes that make a run use the paper's loop: its F smoothing, no momentum restart."""
+    return dict(mpm=dataclasses.replace(cfg.mpm, smoothing_mode="full"), momentum_restart="off")
+
+
 def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
     """The paper's eta = 0.2 on the tiny iso -> bunny run (plasticity from frame 4 of 12): with the
     control re-based at each Fp update (plasticity.continuous_stress) the morph keeps closing its
-    gap with no rebound; with a stress step at each update the elastic body rings and the run
-    ends worse than it started (docs/convergence.md)."""
+    gap with no rebound. With a stress step at each update, the paper's loop (its F smoothing, no
+    momentum restart) rings and ends worse than it started (64 % rebound, 20 % closed against
+    81 %, measured 2026-11-24); the default's restart damps that ringing (4 % rebound)."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     out = {}
     for cs in (True, False):
         pl = dataclasses.replace(base.plasticity, eta=0.2, continuous_stress=cs, absorb_control=False)
         out[cs] = read_metrics(_run(tiny, "iso_bunny_full", f"eta02_cs{int(cs)}.h5", plasticity=pl))
-    steady = out[True]
-    assert steady["fp_det_min"][-1] < 0.99  # plasticity acted
-    assert rebound_percent(steady["alpha_mse"]) < 5.0
-    assert steady["gap_closed"][-1] >= TINY_CLOSED_FINAL
-    assert not json.loads(steady["attrs"].get("warnings", "[]"))
-    assert out[False]["gap_closed"][-1] < steady["gap_closed"][-1] - 0.3
+        out["paper", cs] = read_metrics(_run(tiny, "iso_bunny_full", f"eta02_cs{int(cs)}_paper.h5", plasticity=pl,
+                                             **_paper_loop(base)))
+    for steady in (out[True], out["paper", True]):
+        assert steady["fp_det_min"][-1] < 0.99  # plasticity acted
+        assert rebound_percent(steady["alpha_mse"]) < 5.0
+        assert steady["gap_closed"][-1] >= TINY_CLOSED_FINAL
+        assert not json.loads(steady["attrs"].get("warnings", "[]"))
+    assert out["paper", False]["gap_closed"][-1] < out["paper", True]["gap_closed"][-1] - 0.3
+    assert rebound_percent(out["paper", False]["alpha_mse"]) > 30.0
+    assert rebound_percent(out[False]["alpha_mse"]) < 10.0
+
+
 def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
     """plasticity.absorb_control moves the achieved deformation into the rest state: released
     (control off, morph.release_frames) the tiny iso -> bunny morph keeps most of its gain, while
@@ -278,10 +290,13 @@ def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
     # since session 7 (0.002) the tiny run closes 81 % but loses 107 % of it released: not by
     # springing back (f_inject does), but because the absorbed control is a driving stress that
     # keeps stretching the body past the target (docs/convergence.md item 42).
-    mpm = dataclasses.replace(base.mpm, learning_rate=0.001)
+    # Measured with the paper's loop (its F smoothing, no momentum restart; the tiny run closes 39 %
+    # of its gap at this step with the default's isochoric smoothing).
+    paper = _paper_loop(base)
+    paper["mpm"] = dataclasses.replace(paper["mpm"], learning_rate=0.001)
     runs = {"absorb": read_metrics(_run(tiny, "iso_bunny_full", "absorb_release.h5", plasticity=pl, release_frames=12,
-                                        mpm=mpm)),
-            "none": read_metrics(_run(tiny, "iso_bunny_f_inject", "f_inject_release.h5", release_frames=12, mpm=mpm))}
+                                        **paper)),
+            "none": read_metrics(_run(tiny, "iso_bunny_f_inject", "f_inject_release.h5", release_frames=12, **paper))}
     rebound = {}
     for key, m in runs.items():
         release = json.loads(m["attrs"]["release_alpha_mse"])
