@@ -104,6 +104,11 @@ class MPMConfig:
         holds it fixed too).
     volume_onset: the density ratio above which the pressure acts (the sampled source at rest
         reaches ~2x its density at the 99th percentile, on its surface shell).
+    min_volume_ratio: a floor J_min on det F (isochoric smoothing only; 0 = off, the paper has
+        none): the rescaled blend takes det F' = max(det F_new, J_min). The fixed-corotated stress
+        stays finite as det F -> 0, so under a strong control a particle can be crushed to a
+        singular F, whose smoothed blend the rescale then blows up (docs/convergence.md item 76).
+        The authors' code bounds det F in compression too (a trust region on C).
     control_clip: if > 0, dFc entries are clamped to [-control_clip, control_clip] after each
         Adam step (0 = off, the paper's behaviour).
     """
@@ -139,6 +144,7 @@ class MPMConfig:
     warm_start: bool = True
     volume_stiffness: float = 0.0
     volume_onset: float = 2.0
+    min_volume_ratio: float = 0.0
     control_clip: float = 0.0
     cfl: float = 0.5
     cfl_warn_fraction: float = 0.8
@@ -193,6 +199,10 @@ class MPMConfig:
              f"volume_stiffness must be finite and >= 0 (0 = off), got {self.volume_stiffness}")
         need(math.isfinite(self.volume_onset) and self.volume_onset > 0,
              f"volume_onset must be > 0, got {self.volume_onset}")
+        need(math.isfinite(self.min_volume_ratio) and 0 <= self.min_volume_ratio < 1,
+             f"min_volume_ratio must be in [0, 1) (0 = off), got {self.min_volume_ratio}")
+        need(self.min_volume_ratio == 0 or self.smoothing_mode == "isochoric",
+             f"min_volume_ratio needs smoothing_mode isochoric, got {self.smoothing_mode!r}")
         need(self.control_clip >= 0, f"control_clip must be >= 0, got {self.control_clip}")
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl}")
         need(0 < self.cfl_warn_fraction <= 1.0,

@@ -99,7 +99,10 @@ def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig, press=None
     Fn = (torch.eye(3, dtype=x.dtype) + dt * nC) @ (F + dFc if cfg.control_in_F else F)
     nF = (1.0 - cfg.smoothing) * Fn + cfg.smoothing * F
     if cfg.smoothing_mode == "isochoric":
-        nF = (torch.linalg.det(Fn) / torch.linalg.det(nF))[:, None, None] ** (1.0 / 3.0) * nF
+        Jn = torch.linalg.det(Fn)
+        if cfg.min_volume_ratio > 0:
+            Jn = torch.clamp(Jn, min=cfg.min_volume_ratio)
+        nF = (Jn / torch.linalg.det(nF))[:, None, None] ** (1.0 / 3.0) * nF
     return nx, nv, nC, nF
 
 

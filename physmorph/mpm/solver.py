@@ -337,9 +337,13 @@ class MPMSolver:
 
     @ti.func
     def _volume_scale(self, Fn, Fs):
-        """r = (det F_new / det F_s)^(1/3) (smoothing_mode "isochoric"); 1 where the ratio is not
-        positive (an inverted F, which the blend cannot rescale)."""
-        q = Fn.determinant() / Fs.determinant()
+        """r = (max(det F_new, J_min) / det F_s)^(1/3) (smoothing_mode "isochoric"; J_min =
+        min_volume_ratio); 1 where the ratio is not positive (an inverted F, which the blend
+        cannot rescale)."""
+        Jn = Fn.determinant()
+        if ti.static(self.cfg.min_volume_ratio > 0):
+            Jn = ti.max(Jn, self.dtype(self.cfg.min_volume_ratio))
+        q = Jn / Fs.determinant()
         r = ti.cast(1.0, self.dtype)
         if q > 0:
             r = ti.pow(q, self.dtype(1.0 / 3.0))
@@ -369,15 +373,24 @@ class MPMSolver:
             Fbar = s * Fbar_n
             if ti.static(self.cfg.smoothing_mode == "isochoric"):
                 # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
-                # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs>
+                # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs> (0 where the floor
+                # J_min holds det F' instead of det Fn)
                 Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
                 Fs = (1.0 - s) * Fn + s * self.F[t, p]
                 r = self._volume_scale(Fn, Fs)
                 Fs_bar = r * Fbar_n
-                if (Fn.determinant() / Fs.determinant()) > 0:
+                Jn = Fn.determinant()
+                floored = False
+                if ti.static(self.cfg.min_volume_ratio > 0):
+                    if Jn < self.dtype(self.cfg.min_volume_ratio):
+                        Jn = self.dtype(self.cfg.min_volume_ratio)
+                        floored = True
+                if (Jn / Fs.determinant()) > 0:
                     k3 = r * (Fbar_n * Fs).sum() / 3.0
                     Fs_bar -= k3 * Fs.inverse().transpose()
-                    Fbar_new = k3 * Fn.inverse().transpose()
+                    Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
+                    if not floored:
+                        Fbar_new = k3 * Fn.inverse().transpose()
                 else:
                     Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
                 Fbar_new += (1.0 - s) * Fs_bar
