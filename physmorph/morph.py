@@ -10,7 +10,8 @@ C. plasticity (method full, k >= k0): Chamfer-guided update of Fp (physmorph.pla
    plasticity.continuous_stress the control is re-based so the update leaves Fe unchanged; with
    plasticity.absorb_control the control is first moved into Fp (the achieved shape becomes the
    rest state) and the re-based control keeps only its variation over the substeps.
-The state at the end of frame k is the initial state of frame k+1.
+The state at the end of frame k is the initial state of frame k+1; with morph.momentum_restart
+(the default) a frame whose mass loss ended above the previous frame's hands it on at rest.
 
 Methods: physics_only (A without injection), f_inject (A+B), full (A+B+C), position_inject.
 

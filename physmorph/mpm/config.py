@@ -86,12 +86,12 @@ class MPMConfig:
         to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
         iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
-        each substep's motion. "isochoric" (the default since session 13; not in the paper): that blend rescaled to the
-        determinant of F_new, F' = (det F_new / det F_s)^(1/3) F_s, so the volume ratio J = det F
-        follows the motion exactly (J' = det(I + dt C') J) and only the shape is smoothed. With
-        "full", a morph can pack its material at many times its density while det F stays near
-        0.9, since the elastic stress sees 4.5 % of the compression (docs/convergence.md, items 62
-        and 69-71).
+        each substep's motion. "isochoric" (the default since study session 13; not in the
+        paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
+        F_s, so the volume ratio J = det F follows the motion exactly (J' = det(I + dt C') J) and
+        only the shape is smoothed. With "full", a morph can pack its material at many times its
+        density while det F stays near 0.9, since the elastic stress sees 4.5 % of the
+        compression (docs/convergence.md, items 62, 69-71 and 74).
     volume_stiffness: K (Pa) of a pressure that resists packing, 0 = off (the paper has none).
         At each frame's start every particle's density rho_p = sum_I w_Ip m_I / dx^3 is measured
         from the P2G mass; where it exceeds volume_onset x density, the particle carries the
