@@ -3,7 +3,8 @@
 For each particle count N, grid resolution and CPU thread count it prints forward and
 forward+backward throughput in particle-steps/s (N * T / seconds per rollout), the first-call
 (compile + warm-up) time, and the bytes per particle per stored substep. T = 20, float32, the
-paper's material and drag/smoothing, per-substep control, squared mass loss.
+paper's material and drag, F smoothing s = 0.955 (`--smoothing-mode`, default the library's
+default, isochoric; `full` is the paper's blend), per-substep control, squared mass loss.
 
     .venv/bin/python benchmarks/bench_mpm.py                     # full table (minutes)
     .venv/bin/python benchmarks/bench_mpm.py --n 5000 --res 32 --threads 2 --reps 2
@@ -40,11 +41,11 @@ def lattice_ball(n: int, radius: float = BALL_RADIUS) -> np.ndarray:  # [n, 3]
     return X
 
 
-def run_case(n: int, res: int, T: int, reps: int, precision: str, control: str) -> dict:
+def run_case(n: int, res: int, T: int, reps: int, precision: str, control: str, smoothing_mode: str) -> dict:
     from physmorph.grid import Grid, splat_mass
     from physmorph.mpm import MPMConfig, MPMSolver, ParticleState
 
-    cfg = MPMConfig(grid_res=res, substeps=T, precision=precision, control=control)
+    cfg = MPMConfig(grid_res=res, substeps=T, precision=precision, control=control, smoothing_mode=smoothing_mode)
     x = lattice_ball(n)
     spacing = BALL_RADIUS * (4.0 * np.pi / (3.0 * n)) ** (1.0 / 3.0)
     st = ParticleState.at_rest(x, np.full(n, cfg.density * spacing ** 3), np.full(n, spacing ** 3))
@@ -84,13 +85,15 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--precision", default="float32", choices=["float32", "float64"])
     ap.add_argument("--control", default="per_substep", choices=["per_substep", "per_frame"])
+    ap.add_argument("--smoothing-mode", default="isochoric", choices=["isochoric", "full"])
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
 
     if args.worker:  # one process per thread count: print one JSON line per case
         for res in args.res:
             for n in args.n:
-                print(json.dumps(run_case(n, res, args.substeps, args.reps, args.precision, args.control)),
+                print(json.dumps(run_case(n, res, args.substeps, args.reps, args.precision, args.control,
+                                          args.smoothing_mode)),
                       flush=True)
         return
 
@@ -99,12 +102,13 @@ def main() -> None:
         env = dict(os.environ, PHYSMORPH_THREADS=str(th))
         cmd = [sys.executable, __file__, "--worker", "--n", *map(str, args.n), "--res", *map(str, args.res),
                "--substeps", str(args.substeps), "--reps", str(args.reps), "--precision", args.precision,
-               "--control", args.control]
+               "--control", args.control, "--smoothing-mode", args.smoothing_mode]
         out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True,
                              cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         rows += [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
 
     print(f"MPM benchmark: T={args.substeps}, {args.precision}, control={args.control}, "
+          f"smoothing={args.smoothing_mode}, "
           f"reps={args.reps}, cpu_count={os.cpu_count()}")
     hdr = (f"{'N':>7} {'grid':>5} {'thr':>3} {'PPC':>5} {'fwd p-steps/s':>14} {'fwd+bwd p-steps/s':>18} "
            f"{'warm-up s':>9} {'B/p/substep state':>17} {'+ctrl&Adam':>10}")

@@ -899,5 +899,3 @@ def test_volume_floor_holds_det_F_and_matches_reference_and_fd(state):
     _fd_check(s, state, gF=gF, n_checks=6, seed=12)
     states = _autograd_check(s, state, ctrl, gF)
     np.testing.assert_allclose(s.state_at(3).F, states[-1][3].detach().numpy(), rtol=1e-9, atol=1e-12)
-    with pytest.raises(ValueError, match="min_volume_ratio needs smoothing_mode isochoric"):
-        cfg64(min_volume_ratio=0.2)

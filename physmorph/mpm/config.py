@@ -104,8 +104,9 @@ class MPMConfig:
         holds it fixed too).
     volume_onset: the density ratio above which the pressure acts (the sampled source at rest
         reaches ~2x its density at the 99th percentile, on its surface shell).
-    min_volume_ratio: a floor J_min on det F (isochoric smoothing only; 0 = off, the paper has
-        none): the rescaled blend takes det F' = max(det F_new, J_min). The fixed-corotated stress
+    min_volume_ratio: a floor J_min on det F (0.25 since study session 13; 0 = off, the paper has
+        none; it acts under isochoric smoothing only, where the rescaled blend takes det F' =
+        max(det F_new, J_min); the paper's blend has no det F to hold). The fixed-corotated stress
         stays finite as det F -> 0, so under a strong control a particle can be crushed to a
         singular F, whose smoothed blend the rescale then blows up (docs/convergence.md item 76).
         The authors' code bounds det F in compression too (a trust region on C).
@@ -115,7 +116,7 @@ class MPMConfig:
 
     # Fields whose default changed after runs were made with the old one: always in a run's params
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode"})
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -130,7 +131,7 @@ class MPMConfig:
     smoothing_mode: Literal["full", "isochoric"] = "isochoric"
     control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
-    learning_rate: float = 0.002  # 0.001 until study session 7 (docs/convergence.md)
+    learning_rate: float = 0.004  # 0.001 until study session 7, 0.002 until 13 (docs/convergence.md)
     optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
     line_search_iters: int = 10
     step_clip: float = 3.0
@@ -144,7 +145,7 @@ class MPMConfig:
     warm_start: bool = True
     volume_stiffness: float = 0.0
     volume_onset: float = 2.0
-    min_volume_ratio: float = 0.0
+    min_volume_ratio: float = 0.25
     control_clip: float = 0.0
     cfl: float = 0.5
     cfl_warn_fraction: float = 0.8
@@ -201,8 +202,6 @@ class MPMConfig:
              f"volume_onset must be > 0, got {self.volume_onset}")
         need(math.isfinite(self.min_volume_ratio) and 0 <= self.min_volume_ratio < 1,
              f"min_volume_ratio must be in [0, 1) (0 = off), got {self.min_volume_ratio}")
-        need(self.min_volume_ratio == 0 or self.smoothing_mode == "isochoric",
-             f"min_volume_ratio needs smoothing_mode isochoric, got {self.smoothing_mode!r}")
         need(self.control_clip >= 0, f"control_clip must be >= 0, got {self.control_clip}")
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl}")
         need(0 < self.cfl_warn_fraction <= 1.0,
