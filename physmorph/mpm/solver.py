@@ -336,14 +336,18 @@ class MPMSolver:
             self.F[t + 1, p] = Fs
 
     @ti.func
-    def _volume_scale(self, Fn, Fs):
-        """r = (max(det F_new, J_min) / det F_s)^(1/3) (smoothing_mode "isochoric"; J_min =
-        min_volume_ratio); 1 where the ratio is not positive (an inverted F, which the blend
-        cannot rescale)."""
-        Jn = Fn.determinant()
+    def _volume_target(self, Fn):
+        """det F' under isochoric smoothing: max(det F_new, J_min), J_min = min_volume_ratio."""
+        J = Fn.determinant()
         if ti.static(self.cfg.min_volume_ratio > 0):
-            Jn = ti.max(Jn, self.dtype(self.cfg.min_volume_ratio))
-        q = Jn / Fs.determinant()
+            J = ti.max(J, self.dtype(self.cfg.min_volume_ratio))
+        return J
+
+    @ti.func
+    def _volume_scale(self, Fn, Fs):
+        """r = (max(det F_new, J_min) / det F_s)^(1/3) (smoothing_mode "isochoric"); 1 where the
+        ratio is not positive (an inverted F, which the blend cannot rescale)."""
+        q = self._volume_target(Fn) / Fs.determinant()
         r = ti.cast(1.0, self.dtype)
         if q > 0:
             r = ti.pow(q, self.dtype(1.0 / 3.0))
@@ -379,20 +383,13 @@ class MPMSolver:
                 Fs = (1.0 - s) * Fn + s * self.F[t, p]
                 r = self._volume_scale(Fn, Fs)
                 Fs_bar = r * Fbar_n
-                Jn = Fn.determinant()
-                floored = False
-                if ti.static(self.cfg.min_volume_ratio > 0):
-                    if Jn < self.dtype(self.cfg.min_volume_ratio):
-                        Jn = self.dtype(self.cfg.min_volume_ratio)
-                        floored = True
-                if (Jn / Fs.determinant()) > 0:
+                Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
+                Jt = self._volume_target(Fn)
+                if (Jt / Fs.determinant()) > 0:
                     k3 = r * (Fbar_n * Fs).sum() / 3.0
                     Fs_bar -= k3 * Fs.inverse().transpose()
-                    Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
-                    if not floored:
+                    if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor)
                         Fbar_new = k3 * Fn.inverse().transpose()
-                else:
-                    Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
                 Fbar_new += (1.0 - s) * Fs_bar
                 Fbar = s * Fs_bar
             Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
