@@ -153,16 +153,21 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         solver.load_state(st)
         try:
             recalibrate = np.isnan(scale) or cfg.injection_calibration == "every_frame"
+            calibration = None
             if want_grad and cfg.injection_calibration == "absolute":
                 scale = cfg.gamma if inject_F else cfg.gamma_x
             elif want_grad and recalibrate and (np.any(g_F) or np.any(g_x)):
-                scale = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,
-                                            g_F if inject_F else None, g_x if inject_x else None)
+                calibration = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,
+                                                  g_F if inject_F else None, g_x if inject_x else None)
+                scale = calibration.scale
                 if cfg.injection_calibration == "first_frame":
                     log(f"[{name}] injection scale calibrated at frame {k}: {scale:.4g}")
             c = 0.0 if np.isnan(scale) else scale
+            # the calibration's rollout is current and its two gradients sum to the first
+            # iteration's: the optimiser skips that forward and backward (a third of a frame)
             stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
-                                            grad_x_final=c * g_x if inject_x else None)
+                                            grad_x_final=c * g_x if inject_x else None,
+                                            first_gradient=None if calibration is None else calibration.objective_gradient(c))
             new = solver.state_at(cfg.mpm.substeps)
             check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:

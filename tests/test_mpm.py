@@ -767,6 +767,38 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     np.testing.assert_allclose(s.control(), -1e-4 * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.parametrize("optimizer", ["normalized_gd", "adam"])
+def test_first_gradient_from_the_injection_calibration_skips_nothing_it_should_not(state, optimizer):
+    """The morph loop hands the optimiser the calibration's two gradients, mass + c x injected
+    (physmorph.injection), instead of a forward and backward of its own: the controls and losses
+    after two iterations equal the plain path's, and a gradient for a stale rollout is refused."""
+    from physmorph.injection import calibrate_injection
+
+    cfg = cfg64(substeps=4, optimizer=optimizer, learning_rate=1e-3)
+    st = ball_state(perturb=False)
+    target = stretched_target(st, cfg, stretch=(1.06, 0.97, 0.97))
+    gF = np.random.default_rng(5).normal(size=(st.n, 3, 3))
+    runs = []
+    for use_first in (False, True):
+        s = make(cfg, st, reuse=True)
+        s.set_target_grid_mass(target)
+        s.reset_control()
+        s.load_state(st)
+        cal = calibrate_injection(s, 0.1, gF, None)
+        assert cal.scale > 0
+        stats = s.optimize_control(grad_F_final=cal.scale * gF, iters=2,
+                                   first_gradient=cal.objective_gradient(cal.scale) if use_first else None)
+        runs.append((s.control(), stats["losses"], stats["loss_final"]))
+    (c_plain, l_plain, f_plain), (c_first, l_first, f_first) = runs
+    assert np.abs(c_plain).max() > 0
+    np.testing.assert_allclose(c_first, c_plain, rtol=1e-9, atol=1e-12 * np.abs(c_plain).max())
+    np.testing.assert_allclose(l_first, l_plain, rtol=1e-10)
+    assert f_first == pytest.approx(f_plain, rel=1e-10)
+    with pytest.raises(RuntimeError, match="forward"):  # the control changed since the rollout
+        s.set_control(c_first)
+        s.optimize_control(iters=1, first_gradient=np.zeros_like(c_first))
+
+
 def test_optimizer_config_is_checked():
     with pytest.raises(MPMConfigError, match="step_clip"):
         cfg64(step_clip=-1.0)

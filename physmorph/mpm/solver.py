@@ -706,29 +706,51 @@ class MPMSolver:
 
     def optimize_control(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
                          grad_x_final: np.ndarray | None = None,  # [N, 3]
-                         iters: int | None = None) -> dict:
+                         iters: int | None = None,
+                         first_gradient: np.ndarray | None = None) -> dict:  # [Tc, N, 3, 3]
         """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> Adam on dFc,
-        then a last forward with the updated dFc (its loss is loss_final; rollout() returns it)."""
+        then a last forward with the updated dFc (its loss is loss_final; rollout() returns it).
+
+        first_gradient: the first iteration's dFc gradient (mass loss + injected terms) when the
+        caller already has it for the current rollout (the morph loop's injection calibration);
+        that iteration's forward and backward are then skipped. Needs a current forward."""
         if not self._has_target:
             raise RuntimeError("optimize_control needs set_target_grid_mass first")
         J = self.cfg.grad_iters if iters is None else int(iters)
         if J < 1:
             raise ValueError(f"iters must be >= 1, got {J}")
+        if first_gradient is not None:
+            if not self._forward_current:
+                raise RuntimeError("first_gradient needs a forward() of the current state and dFc")
+            first_gradient = np.asarray(first_gradient, dtype=np.float64)
+            shape = (self.cfg.n_control_slots, self.n, 3, 3)
+            if first_gradient.shape != shape or not np.isfinite(first_gradient).all():
+                raise ValueError(f"first_gradient must be finite with shape {shape}, got {first_gradient.shape}")
         if self.cfg.optimizer == "normalized_gd":
-            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J)
+            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J, first_gradient)
         losses = []
-        for _ in range(J):
-            losses.append(self.forward())
-            self.backward(grad_F_final, grad_x_final)
+        for j in range(J):
+            if j == 0 and first_gradient is not None:
+                losses.append(self._last_loss)
+                self._set_control_gradient(first_gradient)
+            else:
+                losses.append(self.forward())
+                self.backward(grad_F_final, grad_x_final)
             self.adam_step()
         loss_final = self.forward()
         return {"loss_initial": losses[0], "loss_final": loss_final, "losses": losses,
                 "grad_norm": self._grad_norm, "iters": J,
                 "delta_E_percent": 100.0 * (losses[0] - loss_final) / losses[0] if losses[0] > 0 else 0.0}
 
-    def _objective(self, grad_F_final, grad_x_final) -> float:
-        """Forward, then mass loss + <gF, F_T> + <gx, x_T> (what the backward differentiates)."""
-        J = self.forward()
+    def _set_control_gradient(self, g: np.ndarray) -> None:  # g [Tc, N, 3, 3]
+        """Take g as the last backward's dFc gradient (and its norm)."""
+        self.ctrl_grad.from_numpy(g.astype(self.np_dtype))
+        self._grad_norm = float(np.linalg.norm(g))
+
+    def _objective(self, grad_F_final, grad_x_final, run_forward: bool = True) -> float:
+        """Forward (unless the stored rollout is current and run_forward is False), then mass
+        loss + <gF, F_T> + <gx, x_T> (what the backward differentiates)."""
+        J = self.forward() if run_forward or not self._forward_current else self._last_loss
         if grad_F_final is not None or grad_x_final is not None:
             x, _, F, _ = self._export_raw(self.cfg.substeps)
             if grad_F_final is not None:
@@ -737,20 +759,25 @@ class MPMSolver:
                 J += float((np.asarray(grad_x_final) * x).sum())
         return J
 
-    def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int) -> dict:
+    def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
+                                first_gradient: np.ndarray | None = None) -> dict:
         """Normalised gradient descent with backtracking (DiffMPMLib3D's optimiser): per
         iteration dFc <- dFc - alpha g / rms(g), alpha starting at learning_rate and halved
         until the objective decreases (at most line_search_iters tries; else the step is undone
         and the frame's optimisation stops)."""
         losses = []
-        obj = self._objective(grad_F_final, grad_x_final)
+        obj = self._objective(grad_F_final, grad_x_final, run_forward=first_gradient is None)
         loss_initial = self._last_loss
         alpha = self.cfg.learning_rate
         accepted = 0
-        for _ in range(iters):
+        for j in range(iters):
             losses.append(self._last_loss)
-            self.backward(grad_F_final, grad_x_final)
-            g = self.control_gradient()
+            if j == 0 and first_gradient is not None:
+                self._set_control_gradient(first_gradient)
+                g = first_gradient
+            else:
+                self.backward(grad_F_final, grad_x_final)
+                g = self.control_gradient()
             rms = float(np.sqrt(np.mean(g * g)))
             if not rms > 0:
                 break
