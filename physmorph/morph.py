@@ -142,6 +142,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     scale = float(ck["injection_scale"]) if resumed_from is not None else float("nan")
     restart_on = {"mass_loss": "physics_loss", "alpha_mse": "alpha_mse"}.get(cfg.momentum_restart)
     previous = run.frame_metric(start - 1, restart_on) if restart_on else float("nan")
+    # the adaptive step (MorphConfig.step_backoff): this frame's step, and the mass loss it is judged against
+    step = cfg.mpm.learning_rate if resumed_from is None else float(ck.get("next_step", cfg.mpm.learning_rate))
+    loss_before = run.frame_metric(start - 1, "physics_loss")
     inject_F = cfg.method in ("f_inject", "full")
     inject_x = cfg.method == "position_inject"
     want_grad = inject_F or inject_x
@@ -151,6 +154,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t0 = time.time()
         # A. physics
         solver.load_state(st)
+        if cfg.control_decay < 1.0:
+            solver.set_control(cfg.control_decay * solver.control())
         try:
             recalibrate = np.isnan(scale) or cfg.injection_calibration == "every_frame"
             calibration = None
@@ -167,7 +172,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             # iteration's: the optimiser skips that forward and backward (a third of a frame)
             stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
                                             grad_x_final=c * g_x if inject_x else None,
-                                            first_gradient=None if calibration is None else calibration.objective_gradient(c))
+                                            first_gradient=None if calibration is None else calibration.objective_gradient(c),
+                                            learning_rate=step)
             new = solver.state_at(cfg.mpm.substeps)
             check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:
@@ -185,7 +191,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
-                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"]}
+                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": step}
         if want_grad:
             res = render_and_grad(st.x[mask], st.F[mask], parts.sigma0, cams, rtarget, cfg.render, want_grad_x=inject_x)
             g_F = np.zeros((N, 3, 3))
@@ -226,14 +232,20 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             if restart:
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
+                if cfg.restart_control_keep < 1.0:
+                    solver.set_control(cfg.restart_control_keep * solver.control())
             scal["momentum_restart"] = float(restart)
             previous = now
+        if np.isfinite(loss_before):  # the bold driver: back off after a rise, regrow after a fall
+            rose = scal["physics_loss"] > loss_before
+            step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.learning_rate)
+        loss_before = scal["physics_loss"]
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"])
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
                    {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
-                    **solver.optimizer_state(), **monitor.state()})
+                    "next_step": step, **solver.optimizer_state(), **monitor.state()})
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)

@@ -48,6 +48,19 @@ class MorphConfig:
     # Not in the paper; "off" is the paper's loop.
     momentum_restart: Literal["off", "mass_loss", "alpha_mse"] = "mass_loss"
     restart_keep: float = 0.0
+    # The step adapts to the run (the "bold driver" rule of Vogl et al. 1988): after a frame whose
+    # mass loss rose, the next frame's normalised step (mpm.learning_rate at most) is multiplied
+    # by step_backoff; after one whose loss fell it grows by step_growth, back up to
+    # mpm.learning_rate. A run that descends keeps mpm.learning_rate throughout. 1.0 and 1.0: a
+    # fixed step (the paper's). Not in the paper.
+    step_backoff: float = 1.0
+    step_growth: float = 1.0
+    # restart_control_keep: a restart also scales the carried control dFc by this (the control is
+    # a stress offset; under the F smoothing a constant one keeps the body flowing; 1 = carried
+    # whole). control_decay: every frame starts with dFc scaled by this (a leaky integrator; 1 =
+    # the control is carried whole, warm_start). Neither is in the paper.
+    restart_control_keep: float = 1.0
+    control_decay: float = 1.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -65,6 +78,14 @@ class MorphConfig:
             raise ValueError(f"momentum_restart must be off, mass_loss or alpha_mse, got {self.momentum_restart!r}")
         if not 0.0 <= self.restart_keep <= 1.0:
             raise ValueError(f"restart_keep must be in [0, 1], got {self.restart_keep}")
+        if not 0.0 < self.step_backoff <= 1.0:
+            raise ValueError(f"step_backoff must be in (0, 1], got {self.step_backoff}")
+        if not self.step_growth >= 1.0:
+            raise ValueError(f"step_growth must be >= 1, got {self.step_growth}")
+        if not 0.0 <= self.restart_control_keep <= 1.0:
+            raise ValueError(f"restart_control_keep must be in [0, 1], got {self.restart_control_keep}")
+        if not 0.0 <= self.control_decay <= 1.0:
+            raise ValueError(f"control_decay must be in [0, 1], got {self.control_decay}")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

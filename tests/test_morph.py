@@ -226,6 +226,69 @@ def test_momentum_restart_starts_the_next_frame_at_rest_when_the_mass_loss_rose(
     assert np.isnan(m_off["momentum_restart"]).all() and np.all(start_off[1:] > 0)
 
 
+def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configured_step(tiny, monkeypatch):
+    """morph.step_backoff / step_growth: frame 1 uses mpm.learning_rate; after a frame whose mass
+    loss rose the next step is step x backoff, after one whose loss fell step x growth capped at
+    mpm.learning_rate; the optimiser is handed exactly that step. The fixed-step default hands it
+    mpm.learning_rate at every frame."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert (base.step_backoff, base.step_growth) == (1.0, 1.0)
+    handed: list[float] = []
+    real = morph.MPMSolver.optimize_control
+
+    def spy(self, *a, **kw):
+        handed.append(kw.get("learning_rate"))
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    lr = 3 * base.mpm.learning_rate  # overshoots on the tiny run, so the mass loss rises
+    mpm = dataclasses.replace(base.mpm, learning_rate=lr)
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "backoff.h5", mpm=mpm, step_backoff=0.5, step_growth=1.5))
+    step, loss = m["step_size"][1:], m["physics_loss"][1:]  # frames 1..K
+    np.testing.assert_allclose(handed, step, rtol=0, atol=0)
+    expect = [lr, lr]  # frame 1 has no earlier loss to compare with, so frame 2 keeps the step
+    for j in range(2, len(loss)):  # frame j + 1's step follows frame j's loss against frame j - 1's
+        expect.append(expect[-1] * 0.5 if loss[j - 1] > loss[j - 2] else min(expect[-1] * 1.5, lr))
+    np.testing.assert_allclose(step, expect, rtol=1e-12)
+    assert (step < lr).any(), "the step never backed off: the test needs a run whose mass loss rises"
+    handed.clear()
+    m_fixed = read_metrics(_run(tiny, "iso_bunny_physics_only", "fixed.h5", mpm=mpm))
+    assert np.all(m_fixed["step_size"][1:] == lr) and handed == [lr] * (len(m_fixed["step_size"]) - 1)
+
+
+def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
+    """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
+    morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
+    (1, 1) carry it whole."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert (base.control_decay, base.restart_control_keep) == (1.0, 1.0)
+    entry, end = [], []
+    real = morph.MPMSolver.optimize_control
+
+    def spy(self, *a, **kw):
+        entry.append(self.control())
+        out = real(self, *a, **kw)
+        end.append(self.control())
+        return out
+
+    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)  # forces restarts
+    for decay, keep in ((0.9, 1.0), (1.0, 0.5), (1.0, 1.0)):
+        entry.clear()
+        end.clear()
+        m = read_metrics(_run(tiny, "iso_bunny_physics_only", f"decay_{decay}.h5", mpm=mpm,
+                              control_decay=decay, restart_control_keep=keep))
+        restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
+        if keep < 1.0:
+            assert restarted[:-1].any(), "no restart happened: the test needs a run whose mass loss rises"
+        assert np.abs(end[0]).max() > 0
+        for k in range(1, len(entry)):
+            factor = decay * (keep if restarted[k - 1] else 1.0)
+            np.testing.assert_allclose(entry[k], factor * end[k - 1], rtol=1e-6, atol=1e-12)
+
+
 # Measured on the tiny profile (12 frames, ~1.2K particles): see docs/convergence.md.
 TINY_CLOSED_FINAL = 0.5
 # Measured on the tiny run (2026-11-22): 4.5 % with the control absorbed, 101 % without plasticity.

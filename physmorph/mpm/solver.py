@@ -688,13 +688,15 @@ class MPMSolver:
         self._adam_step = int(state["adam_step"])
         self._forward_current = False
 
-    def adam_step(self) -> None:
-        """One Adam step on dFc with the gradient of the last backward."""
+    def adam_step(self, learning_rate: float | None = None) -> None:
+        """One Adam step on dFc with the gradient of the last backward (step cfg.learning_rate
+        unless given)."""
         self._adam_step += 1
         k = self._adam_step
         b1, b2 = self.cfg.adam_beta1, self.cfg.adam_beta2
+        lr = self.cfg.learning_rate if learning_rate is None else learning_rate
         # folded bias correction: lr_t = lr sqrt(1 - b2^k) / (1 - b1^k), eps_hat = eps sqrt(1 - b2^k)
-        lr_t = self.cfg.learning_rate * np.sqrt(1.0 - b2 ** k) / (1.0 - b1 ** k)
+        lr_t = lr * np.sqrt(1.0 - b2 ** k) / (1.0 - b1 ** k)
         self._adam(lr_t)
         self._forward_current = False
 
@@ -707,13 +709,16 @@ class MPMSolver:
     def optimize_control(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
                          grad_x_final: np.ndarray | None = None,  # [N, 3]
                          iters: int | None = None,
-                         first_gradient: np.ndarray | None = None) -> dict:  # [Tc, N, 3, 3]
+                         first_gradient: np.ndarray | None = None,  # [Tc, N, 3, 3]
+                         learning_rate: float | None = None) -> dict:
         """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> Adam on dFc,
         then a last forward with the updated dFc (its loss is loss_final; rollout() returns it).
 
         first_gradient: the first iteration's dFc gradient (mass loss + injected terms) when the
         caller already has it for the current rollout (the morph loop's injection calibration);
-        that iteration's forward and backward are then skipped. Needs a current forward."""
+        that iteration's forward and backward are then skipped. Needs a current forward.
+        learning_rate: this call's step (normalised GD: the initial alpha; Adam: lr) instead of
+        cfg.learning_rate (the morph loop's adaptive step, MorphConfig.step_backoff)."""
         if not self._has_target:
             raise RuntimeError("optimize_control needs set_target_grid_mass first")
         J = self.cfg.grad_iters if iters is None else int(iters)
@@ -726,8 +731,11 @@ class MPMSolver:
             shape = (self.cfg.n_control_slots, self.n, 3, 3)
             if first_gradient.shape != shape or not np.isfinite(first_gradient).all():
                 raise ValueError(f"first_gradient must be finite with shape {shape}, got {first_gradient.shape}")
+        lr = self.cfg.learning_rate if learning_rate is None else float(learning_rate)
+        if not (np.isfinite(lr) and lr > 0):
+            raise ValueError(f"learning_rate must be finite and > 0, got {learning_rate!r}")
         if self.cfg.optimizer == "normalized_gd":
-            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J, first_gradient)
+            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J, first_gradient, lr)
         losses = []
         for j in range(J):
             if j == 0 and first_gradient is not None:
@@ -736,7 +744,7 @@ class MPMSolver:
             else:
                 losses.append(self.forward())
                 self.backward(grad_F_final, grad_x_final)
-            self.adam_step()
+            self.adam_step(lr)
         loss_final = self.forward()
         return {"loss_initial": losses[0], "loss_final": loss_final, "losses": losses,
                 "grad_norm": self._grad_norm, "iters": J,
@@ -760,7 +768,7 @@ class MPMSolver:
         return J
 
     def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
-                                first_gradient: np.ndarray | None = None) -> dict:
+                                first_gradient: np.ndarray | None = None, learning_rate: float | None = None) -> dict:
         """Normalised gradient descent with backtracking (DiffMPMLib3D's optimiser): per
         iteration dFc <- dFc - alpha g / rms(g), alpha starting at learning_rate and halved
         until the objective decreases (at most line_search_iters tries; else the step is undone
@@ -768,7 +776,7 @@ class MPMSolver:
         losses = []
         obj = self._objective(grad_F_final, grad_x_final, run_forward=first_gradient is None)
         loss_initial = self._last_loss
-        alpha = self.cfg.learning_rate
+        alpha = self.cfg.learning_rate if learning_rate is None else learning_rate
         accepted = 0
         for j in range(iters):
             losses.append(self._last_loss)
