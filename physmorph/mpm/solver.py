@@ -768,7 +768,7 @@ class MPMSolver:
         return J
 
     def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
-                                first_gradient: np.ndarray | None = None, learning_rate: float | None = None) -> dict:
+                                first_gradient: np.ndarray | None, learning_rate: float) -> dict:
         """Normalised gradient descent with backtracking (DiffMPMLib3D's optimiser): per
         iteration dFc <- dFc - alpha g / rms(g), alpha starting at learning_rate and halved
         until the objective decreases (at most line_search_iters tries; else the step is undone
@@ -776,7 +776,7 @@ class MPMSolver:
         losses = []
         obj = self._objective(grad_F_final, grad_x_final, run_forward=first_gradient is None)
         loss_initial = self._last_loss
-        alpha = self.cfg.learning_rate if learning_rate is None else learning_rate
+        alpha = learning_rate  # optimize_control resolved it (cfg.learning_rate unless given)
         accepted = 0
         for j in range(iters):
             losses.append(self._last_loss)
