@@ -17,7 +17,8 @@ import torch
 
 from physmorph.grid import Grid, splat_mass
 from physmorph.mpm import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMSolver,
-                           MPMStateError, ParticleState, elastic_energy, solver_for, total_volume)
+                           MPMStateError, ParticleState, elastic_energy, fixed_corotated_energy_density, solver_for,
+                           total_volume)
 from physmorph.mpm import reference as ref
 from physmorph.mpm.solver import evaluate_stress
 
@@ -149,29 +150,71 @@ def _stress_inputs():
     return F, rng.normal(size=(12, 3, 3))
 
 
-def test_stress_matches_torch_reference():
+@pytest.mark.parametrize("law", ["fixed_corotated", "barrier"])
+def test_stress_matches_torch_reference(law):
     F, _ = _stress_inputs()
     mu, lam = 5.8e4, 3.9e4
-    P, _ = evaluate_stress(F, np.zeros_like(F), mu, lam)
-    P_ref = ref.stress_torch(torch.tensor(F), mu, lam).numpy()
+    P, _ = evaluate_stress(F, np.zeros_like(F), mu, lam, volume_law=law)
+    P_ref = ref.stress_torch(torch.tensor(F), mu, lam, law).numpy()
     np.testing.assert_allclose(P, P_ref, rtol=1e-8, atol=1e-8 * mu)
 
 
-def test_stress_differential_matches_central_fd():
+@pytest.mark.parametrize("law", ["fixed_corotated", "barrier"])
+def test_stress_differential_matches_central_fd(law):
     F, dF = _stress_inputs()
     mu, lam = 5.8e4, 3.9e4
-    _, dP = evaluate_stress(F, dF, mu, lam)
+    _, dP = evaluate_stress(F, dF, mu, lam, volume_law=law)
     h = 1e-6
-    Pp, _ = evaluate_stress(F + h * dF, dF, mu, lam)
-    Pm, _ = evaluate_stress(F - h * dF, dF, mu, lam)
+    Pp, _ = evaluate_stress(F + h * dF, dF, mu, lam, volume_law=law)
+    Pm, _ = evaluate_stress(F - h * dF, dF, mu, lam, volume_law=law)
     fd = (Pp - Pm) / (2 * h)
     scale = np.abs(dP).max(axis=(1, 2), keepdims=True)
     assert (np.abs(fd - dP) / scale).max() < 1e-6
     # self-adjointness <dP[a], b> = <a, dP[b]> (dP is a Hessian action), used by the reverse pass
     b = np.random.default_rng(8).normal(size=F.shape)
-    _, dPb = evaluate_stress(F, b, mu, lam)
+    _, dPb = evaluate_stress(F, b, mu, lam, volume_law=law)
     np.testing.assert_allclose((dP * b).sum(axis=(1, 2)), (dF * dPb).sum(axis=(1, 2)), rtol=1e-8,
                                atol=1e-10 * np.abs(dP).max())
+
+
+@pytest.mark.parametrize("law", ["fixed_corotated", "barrier"])
+def test_stress_is_the_gradient_of_the_energy_density(law):
+    """P(Fe) = dPsi/dFe by central differences of the energy density the diagnostics use, on
+    generic, compressed (J ~ 0.05, past the barrier's continuation point) and stretched Fe; the
+    barrier's pressure keeps growing under compression where the paper's falls."""
+    F, dF = _stress_inputs()
+    keep = np.linalg.det(F) > 0
+    F, dF = F[keep], dF[keep]
+    F = np.concatenate([F, np.diag([0.3, 0.3, 0.3])[None] * np.array([[[1.0]], [[0.9]]])])
+    dF = np.concatenate([dF, np.random.default_rng(9).normal(size=(2, 3, 3))])
+    mu, lam = 5.8e4, 3.9e4
+    P, _ = evaluate_stress(F, dF, mu, lam, volume_law=law)
+    h = 1e-6
+    fd = (fixed_corotated_energy_density(F + h * dF, mu, lam, law)
+          - fixed_corotated_energy_density(F - h * dF, mu, lam, law)) / (2 * h)
+    np.testing.assert_allclose((P * dF).sum(axis=(1, 2)), fd, rtol=1e-6, atol=1e-9 * lam)
+    J = np.array([0.2, 0.4, 0.6])
+    Fj = J[:, None, None] ** (1 / 3) * np.eye(3)
+    pressure = -(evaluate_stress(Fj, np.zeros_like(Fj), 0.0, lam, volume_law=law)[0] @ Fj.transpose(0, 2, 1))[:, 0, 0]
+    if law == "barrier":
+        np.testing.assert_allclose(pressure, lam * (1 - J), rtol=1e-10)
+    else:
+        np.testing.assert_allclose(pressure, lam * (1 - J) * J, rtol=1e-10)
+        assert pressure[0] < pressure[1]  # the paper's law: less resistance at J = 0.2 than 0.4
+    with pytest.raises(MPMConfigError, match="volume_law"):
+        cfg64(volume_law="neo")
+
+
+def test_barrier_volume_law_gradients_match_fd_and_autograd(state):
+    """volume_law = "barrier" in the solver: the control and initial-state gradients against
+    central finite differences and torch autograd through the reference rollout."""
+    cfg = cfg64(substeps=2, volume_law="barrier")
+    s = make(cfg, state)
+    ctrl = random_control(cfg, state.n)
+    s.set_control(ctrl)
+    _fd_check(s, state, n_checks=6, seed=13)
+    states = _autograd_check(s, state, ctrl)
+    np.testing.assert_allclose(s.state_at(cfg.substeps).x, states[-1][0].detach().numpy(), rtol=1e-9, atol=1e-9)
 
 
 def test_stress_differential_finite_at_degenerate_singular_values():
@@ -847,6 +890,40 @@ def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
                                ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
     ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(t), cfg, log_eps=eps).backward()
     np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+
+
+def test_overfill_term_matches_its_formula_reference_and_fd(state):
+    """overfill_weight > 0 adds w sum_I max(0, log(m_I + e) - log(c_I + e))^2, c_I = max(ratio x
+    density x dx^3, m*_I), to the log loss: the documented formula on the reference grid mass (the
+    test's ball has nodes on both sides of the cap), and the control gradient against central
+    finite differences and torch autograd."""
+    cfg = cfg64(substeps=2, mass_loss="log", overfill_weight=3.0, overfill_ratio=0.4)
+    s = make(cfg, state)
+    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
+    L = s.forward()
+    end = s.state_at(cfg.substeps)
+    m = splat_mass(end.x, end.mass, s.grid)
+    t = s.target_m.to_numpy()
+    eps = cfg.log_mass_eps * state.mass.mean()
+    cap = np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t)
+    over = np.maximum(np.log(m + eps) - np.log(cap + eps), 0.0)
+    assert (over > 0).sum() > 5 and ((m > 0) & (over == 0)).sum() > 5
+    want = ((np.log(m + eps) - np.log(t + eps)) ** 2).sum() + 3.0 * (over ** 2).sum()
+    assert L == pytest.approx(want, rel=1e-10)
+    ctrl = random_control(cfg, state.n)
+    s.set_control(ctrl)
+    _fd_check(s, state, n_checks=6, seed=11)
+    s.load_state(state)
+    s.set_control(ctrl)
+    s.forward()
+    s.backward()
+    c = ref.as_torch(ctrl, True)
+    states = ref.rollout_torch(ref.as_torch(state.x), ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
+                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
+    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(t), cfg, log_eps=eps).backward()
+    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+    with pytest.raises(MPMConfigError, match="overfill_weight"):
+        cfg64(overfill_weight=-1.0)
 
 
 # ----------------------------------------------------------------------------- packing pressure

@@ -38,6 +38,9 @@ CONTROL_MODES = ("per_substep", "per_frame")
 SMOOTHING_MODES = ("full", "isochoric")
 MASS_LOSSES = ("squared", "log", "sqrt", "log_bounded")
 OPTIMIZERS = ("adam", "normalized_gd")
+VOLUME_LAWS = ("fixed_corotated", "barrier")
+# Below this J the barrier law's g(J) = lam (1 - 1/J) is continued by its tangent (finite for J <= 0).
+BARRIER_J_LINEAR = 0.05
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
@@ -67,6 +70,15 @@ class MPMConfig:
         grid mass summed over blocks of 2^l x 2^l x 2^l nodes, each level the same loss form (log:
         eps x 8^l) with weight 1. Coarse levels see a missing feature (an ear) from farther away
         than the 27-node stencil does. 1 = the grid alone (the paper's loss).
+    overfill_weight: w of a packing term added to the mass loss, 0 = off (the paper has none):
+        w sum_I max(0, log(m_I + eps) - log(c_I + eps))^2 with the cap c_I = max(overfill_ratio x
+        density x dx^3, m*_I), the node mass of material at overfill_ratio times its density, or
+        the target's own where that is more. It is zero wherever a node holds no more than the
+        target or the cap, so it never pulls against the target; where the log loss's pull falls
+        as 1/m on a packed node, this adds a pull the optimiser sees within the frame
+        (docs/convergence.md, session 15).
+    overfill_ratio: the density ratio of that cap (the sampled shapes at rest reach ~2x their
+        density at the 99th percentile, on their surface shell).
     warm_start: True keeps dFc and the Adam moments across frames (load_state does not touch
         them; the particles are the same material points from frame to frame); False makes
         load_state call reset_control.
@@ -104,6 +116,12 @@ class MPMConfig:
         holds it fixed too).
     volume_onset: the density ratio above which the pressure acts (the sampled source at rest
         reaches ~2x its density at the 99th percentile, on its surface shell).
+    volume_law: the volume term of the elastic energy (physmorph.mpm.stress). "fixed_corotated"
+        (the paper's): lam/2 (J - 1)^2, whose Kirchhoff pressure lam (J - 1) J peaks at J = 1/2 and
+        vanishes as J -> 0, so material compressed past half its volume resists less the more it
+        is compressed. "barrier" (not the paper's): lam (J - 1 - ln J), equal to second order at
+        J = 1, pressure lam (J - 1) growing with the compression, energy unbounded as J -> 0
+        (docs/convergence.md, session 15).
     min_volume_ratio: a floor J_min on det F (0.25 since study session 13; 0 = off, the paper has
         none; it acts under isochoric smoothing only, where the rescaled blend takes det F' =
         max(det F_new, J_min); the paper's blend has no det F to hold). The fixed-corotated stress
@@ -142,6 +160,9 @@ class MPMConfig:
     mass_loss: Literal["squared", "log", "sqrt", "log_bounded"] = "log"
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
+    overfill_weight: float = 0.0
+    volume_law: Literal["fixed_corotated", "barrier"] = "fixed_corotated"
+    overfill_ratio: float = 2.0
     warm_start: bool = True
     volume_stiffness: float = 0.0
     volume_onset: float = 2.0
@@ -191,6 +212,11 @@ class MPMConfig:
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
         need(isinstance(self.line_search_iters, int) and self.line_search_iters >= 1,
              f"line_search_iters must be an int >= 1, got {self.line_search_iters!r}")
+        need(self.volume_law in VOLUME_LAWS, f"volume_law must be one of {VOLUME_LAWS}, got {self.volume_law!r}")
+        need(math.isfinite(self.overfill_weight) and self.overfill_weight >= 0,
+             f"overfill_weight must be finite and >= 0 (0 = off), got {self.overfill_weight}")
+        need(math.isfinite(self.overfill_ratio) and self.overfill_ratio > 0,
+             f"overfill_ratio must be > 0, got {self.overfill_ratio}")
         need(self.log_mass_eps > 0, f"log_mass_eps must be > 0, got {self.log_mass_eps}")
         need(isinstance(self.mass_loss_levels, int) and self.mass_loss_levels >= 1
              and self.grid_res % (1 << (self.mass_loss_levels - 1)) == 0,

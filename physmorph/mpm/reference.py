@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..grid import BOUNDARY_CELLS
-from .config import MPMConfig
+from .config import BARRIER_J_LINEAR, MPMConfig
 
 _OFFSETS = torch.tensor([[i, j, k] for i in range(3) for j in range(3) for k in range(3)],
                         dtype=torch.int64)  # [27, 3]
@@ -33,10 +33,21 @@ def cofactor_torch(F: torch.Tensor) -> torch.Tensor:  # [N, 3, 3]
                         torch.cross(f0, f1, dim=1)], dim=2)
 
 
-def stress_torch(Fe: torch.Tensor, mu: float, lam: float) -> torch.Tensor:  # [N, 3, 3]
-    """Fixed corotated first Piola-Kirchhoff stress P = 2 mu (Fe - R) + lam (J - 1) J Fe^-T."""
+def volume_term_torch(J: torch.Tensor, lam: float, volume_law: str = "fixed_corotated") -> torch.Tensor:  # [N]
+    """g(J) = dPsi_vol/dJ: lam (J - 1) (fixed_corotated), lam (1 - 1/J) (barrier; its tangent
+    below J = BARRIER_J_LINEAR)."""
+    if volume_law == "fixed_corotated":
+        return lam * (J - 1.0)
+    jl = BARRIER_J_LINEAR
+    linear = lam * (1.0 - 1.0 / jl) + lam / jl ** 2 * (J - jl)
+    return torch.where(J >= jl, lam * (1.0 - 1.0 / torch.clamp(J, min=jl)), linear)
+
+
+def stress_torch(Fe: torch.Tensor, mu: float, lam: float,  # [N, 3, 3]
+                 volume_law: str = "fixed_corotated") -> torch.Tensor:
+    """Fixed corotated first Piola-Kirchhoff stress P = 2 mu (Fe - R) + g(J) J Fe^-T, g of volume_law."""
     J = torch.linalg.det(Fe)
-    return 2.0 * mu * (Fe - rotation_torch(Fe)) + lam * (J - 1.0)[:, None, None] * cofactor_torch(Fe)
+    return 2.0 * mu * (Fe - rotation_torch(Fe)) + volume_term_torch(J, lam, volume_law)[:, None, None] * cofactor_torch(Fe)
 
 
 def _stencil(x: torch.Tensor, cfg: MPMConfig):
@@ -75,7 +86,7 @@ def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig, press=None
     kq = 4.0 / cfg.dx ** 2
     W, flat, dpos, nodes = _stencil(x, cfg)
     Fe = (F + dFc) @ Fp_inv
-    tau = stress_torch(Fe, cfg.mu, cfg.lam) @ Fe.transpose(1, 2)
+    tau = stress_torch(Fe, cfg.mu, cfg.lam, cfg.volume_law) @ Fe.transpose(1, 2)
     A = -dt * kq * vol[:, None, None] * tau + mass[:, None, None] * C
     if press is not None:
         A = A + (dt * kq * vol * press)[:, None, None] * torch.eye(3, dtype=x.dtype)
@@ -123,7 +134,8 @@ def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> to
     """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2; sqrt: sum (sqrt(m + e) -
     sqrt(m* + e))^2; log_bounded: log where m <= m*, 4 (sqrt(m + e) - sqrt(m* + e))^2 / (m* + e) above
     (see MPMConfig), summed
-    over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l."""
+    over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l; plus, where
+    overfill_weight > 0, w sum_I max(0, log(m_I + e) - log(max(c density dx^3, m*_I) + e))^2."""
     R = cfg.grid_res
     m = grid_mass_torch(x, mass, cfg).reshape(R, R, R)
     t = target.reshape(R, R, R)
@@ -145,6 +157,10 @@ def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> to
         else:
             e = log_eps * 8.0 ** level
             total = total + ((torch.log(ml + e) - torch.log(tl + e)) ** 2).sum()
+    if cfg.overfill_weight > 0:  # the packing term, on the grid itself (level 0)
+        cap = torch.clamp(t, min=cfg.overfill_ratio * cfg.density * cfg.dx ** 3)
+        r = torch.clamp(torch.log(m + log_eps) - torch.log(cap + log_eps), min=0.0)
+        total = total + cfg.overfill_weight * (r ** 2).sum()
     return total
 
 

@@ -101,7 +101,7 @@ class MPMSolver:
         self.R_s = mat.field(shape=N)
         self.S_s = mat.field(shape=N)
         self.gap_s = ti.field(f, shape=N)
-        self._stress_model = make_stress_funcs(f, cfg.mu, cfg.lam)
+        self._stress_model = make_stress_funcs(f, cfg.mu, cfg.lam, cfg.volume_law)
         # compile-time constants of the kernels
         self._dx = cfg.dx
         self._inv_dx = 1.0 / cfg.dx
@@ -424,12 +424,26 @@ class MPMSolver:
     def _mass_loss(self, log_eps: ti.f64):
         """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2;
         sqrt: (sqrt(m+e) - sqrt(m*+e))^2; log_bounded: log below m*, 4 (sqrt(m+e) - sqrt(m*+e))^2 / (m*+e)
-        above it."""
+        above it; plus the packing term _overfill_term where overfill_weight > 0."""
         self.loss_acc[None] = 0.0
         for I in ti.grouped(self.grid_m):
             r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
+            if ti.static(self.cfg.overfill_weight > 0):
+                o2, oadj = self._overfill_term(self.grid_m[I], self.target_m[I], log_eps)
+                r2 += o2
+                adj += oadj
             self.loss_acc[None] += r2
             self.grid_m_adj[I] = adj
+
+    @ti.func
+    def _overfill_term(self, m, mt, log_eps: ti.f64):
+        """The packing term of MPMConfig.overfill_weight: w max(0, r)^2 with r = log(m + e) -
+        log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e)."""
+        e = ti.cast(log_eps, self.dtype)
+        w = self.dtype(self.cfg.overfill_weight)
+        cap = ti.max(self.dtype(self.cfg.overfill_ratio * self.cfg.density * self.cfg.dx ** 3), mt)
+        r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
+        return ti.cast(w * r * r, ti.f64), 2.0 * w * r / (m + e)
 
     @ti.func
     def _node_loss(self, m, mt, log_eps: ti.f64):

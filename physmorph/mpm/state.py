@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from .config import MPMConfig, MPMStateError
+from .config import BARRIER_J_LINEAR, MPMConfig, MPMStateError
 
 _SHAPES = {"x": (3,), "v": (3,), "F": (3, 3), "C": (3, 3), "Fp": (3, 3), "mass": (), "volume": ()}
 
@@ -74,17 +74,27 @@ def polar_rotation(F: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3, 3]
     return U @ Vt
 
 
-def fixed_corotated_energy_density(Fe: np.ndarray, mu: float, lam: float) -> np.ndarray:  # [N]
-    """Psi(Fe) = mu ||Fe - R||_F^2 + lam/2 (J - 1)^2 (Stomakhin et al. 2012)."""
+def fixed_corotated_energy_density(Fe: np.ndarray, mu: float, lam: float,  # [N, 3, 3]
+                                   volume_law: str = "fixed_corotated") -> np.ndarray:  # [N]
+    """Psi(Fe) = mu ||Fe - R||_F^2 + Psi_vol(J) (Stomakhin et al. 2012): Psi_vol = lam/2 (J - 1)^2
+    (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued quadratically below BARRIER_J_LINEAR)."""
     R = polar_rotation(Fe)
     J = np.linalg.det(Fe)
-    return mu * ((Fe - R) ** 2).sum(axis=(1, 2)) + 0.5 * lam * (J - 1.0) ** 2
+    shear = mu * ((Fe - R) ** 2).sum(axis=(1, 2))
+    if volume_law == "fixed_corotated":
+        return shear + 0.5 * lam * (J - 1.0) ** 2
+    jl = BARRIER_J_LINEAR
+    Jc = np.maximum(J, jl)
+    vol = lam * (Jc - 1.0 - np.log(Jc))
+    d = np.minimum(J - jl, 0.0)  # the tangent continuation's integral below jl
+    vol += lam * (1.0 - 1.0 / jl) * d + 0.5 * lam / jl ** 2 * d ** 2
+    return shear + vol
 
 
 def elastic_energy(state: ParticleState, cfg: MPMConfig) -> float:
     """Total elastic energy sum_p V0_p Psi(F_p Fp_p^-1) (no control field), in J."""
     Fe = np.asarray(state.F) @ np.linalg.inv(np.asarray(state.Fp))
-    return float((np.asarray(state.volume) * fixed_corotated_energy_density(Fe, cfg.mu, cfg.lam)).sum())
+    return float((np.asarray(state.volume) * fixed_corotated_energy_density(Fe, cfg.mu, cfg.lam, cfg.volume_law)).sum())
 
 
 def total_volume(state: ParticleState) -> float:

@@ -1,5 +1,5 @@
 """The constitutive model of the MPM solver (paper section 4): fixed corotated elasticity
-(Stomakhin et al. 2012) as Taichi functions, P(Fe) = 2 mu (Fe - R) + lam (J - 1) cof(Fe), its
+(Stomakhin et al. 2012) as Taichi functions, P(Fe) = 2 mu (Fe - R) + g(J) cof(Fe), its
 polar factors and its differential dP(Fe)[dFe] (the Hessian of Psi applied to dFe), plus
 evaluate_stress, which runs them on arrays (tests and diagnostics compare it with
 physmorph.mpm.reference and finite differences).
@@ -7,6 +7,15 @@ physmorph.mpm.reference and finite differences).
 The derivative of the rotation R (which Taichi's autodiff cannot do for ti.svd) is hand-written:
 dR = R omega^, (tr S - S) omega = axial(R^T dFe - dFe^T R), S = R^T Fe, with the pair sums
 s_i + s_j (eigenvalues of tr S - S) floored for the singular/inverted cases.
+
+The volume term g(J) = dPsi_vol/dJ (MPMConfig.volume_law):
+- "fixed_corotated" (the paper's): Psi_vol = lam/2 (J - 1)^2, g = lam (J - 1). Its Kirchhoff
+  pressure g J = lam (J - 1) J is largest at J = 1/2 and falls to 0 as J -> 0: past half its volume
+  the material resists compression less the more it is compressed.
+- "barrier" (not the paper's): Psi_vol = lam (J - 1 - ln J), g = lam (1 - 1/J), the same to second
+  order at J = 1; its Kirchhoff pressure lam (J - 1) grows monotonically with the compression and
+  its energy is unbounded as J -> 0. Below J = BARRIER_J_LINEAR g is continued linearly (C^1), so
+  an inverted Fe keeps a finite stress.
 """
 
 from types import SimpleNamespace
@@ -15,6 +24,7 @@ import numpy as np
 import taichi as ti
 
 from ..taichi_runtime import init_taichi
+from .config import BARRIER_J_LINEAR, VOLUME_LAWS
 
 # Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
 # dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
@@ -48,13 +58,31 @@ def _cofactor_diff(F, dF):
     return ti.Matrix.cols([c0, c1, c2])
 
 
-def make_stress_funcs(dtype, mu: float, lam: float):
-    """Fixed-corotated P(Fe), its polar factors and the differential dP(Fe)[dFe], for one float
-    type. Returns a namespace of Taichi functions: stress(Fe), polar(Fe) -> (R, S, gap),
-    stress_from_polar(Fe, R), stress_and_diff(Fe, dFe), stress_and_diff_polar(Fe, R, S, gap, dFe)."""
+def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_corotated"):
+    """Fixed-corotated P(Fe) (with the volume term of volume_law), its polar factors and the
+    differential dP(Fe)[dFe], for one float type. Returns a namespace of Taichi functions:
+    stress(Fe), polar(Fe) -> (R, S, gap), stress_from_polar(Fe, R), stress_and_diff(Fe, dFe),
+    stress_and_diff_polar(Fe, R, S, gap, dFe)."""
+    if volume_law not in VOLUME_LAWS:
+        raise ValueError(f"volume_law must be one of {VOLUME_LAWS}, got {volume_law!r}")
     newton_steps = 2 if dtype == ti.f64 else 0
     # Python float constants would enter kernels as f32; typed constants keep float64 exact
     two_mu = 2.0 * mu
+    jl = BARRIER_J_LINEAR
+
+    @ti.func
+    def volume_term(J):
+        """(g(J), g'(J)) of the module docstring's volume law."""
+        g = dtype(lam) * (J - 1.0)
+        dg = dtype(lam)
+        if ti.static(volume_law == "barrier"):
+            if J >= dtype(jl):
+                g = dtype(lam) * (1.0 - 1.0 / J)
+                dg = dtype(lam) / (J * J)
+            else:
+                dg = dtype(lam / (jl * jl))
+                g = dtype(lam * (1.0 - 1.0 / jl)) + dg * (J - dtype(jl))
+        return g, dg
 
     @ti.func
     def skew_solve(S, gap, rhs):
@@ -99,10 +127,11 @@ def make_stress_funcs(dtype, mu: float, lam: float):
 
     @ti.func
     def stress_from_polar(Fe, R):
-        """P = 2 mu (Fe - R) + lam (J - 1) cof(Fe)  (Stomakhin et al. 2012), R the rotation of Fe."""
+        """P = 2 mu (Fe - R) + g(J) cof(Fe)  (Stomakhin et al. 2012: g = lam (J - 1)), R the rotation of Fe."""
         cof = _cofactor(Fe)
         J = (cof * Fe).sum() / 3.0  # det Fe = Fe : cof(Fe) / 3
-        return dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
+        g, _ = volume_term(J)
+        return dtype(two_mu) * (Fe - R) + g * cof
 
     @ti.func
     def stress(Fe):
@@ -117,11 +146,12 @@ def make_stress_funcs(dtype, mu: float, lam: float):
         reverse-mode product  Fe_bar = dP[P_bar]."""
         cof = _cofactor(Fe)  # shared by P and dP
         J = (cof * Fe).sum() / 3.0
-        P = dtype(two_mu) * (Fe - R) + dtype(lam) * (J - 1.0) * cof
+        g, dg = volume_term(J)
+        P = dtype(two_mu) * (Fe - R) + g * cof
         om = skew_solve(S, gap, axial(R.transpose() @ dFe))
         dR = R @ hat(om)
         dJ = (cof * dFe).sum()
-        dP = dtype(two_mu) * (dFe - dR) + dtype(lam) * (dJ * cof + (J - 1.0) * _cofactor_diff(Fe, dFe))
+        dP = dtype(two_mu) * (dFe - dR) + dg * dJ * cof + g * _cofactor_diff(Fe, dFe)
         return P, dP
 
     @ti.func
@@ -138,16 +168,17 @@ _stress_kernels: dict = {}
 
 def evaluate_stress(Fe: np.ndarray,  # [N, 3, 3]
                     dFe: np.ndarray,  # [N, 3, 3]
-                    mu: float, lam: float, precision: str = "float64") -> tuple[np.ndarray, np.ndarray]:
+                    mu: float, lam: float, precision: str = "float64",
+                    volume_law: str = "fixed_corotated") -> tuple[np.ndarray, np.ndarray]:
     """Run the solver's Taichi stress P(Fe) and differential dP(Fe)[dFe] on arrays (for tests
     and diagnostics). Returns (P [N, 3, 3], dP [N, 3, 3]) as float64."""
     if not _runtime_ready():
         init_taichi("cpu")
     dtype = ti.f64 if precision == "float64" else ti.f32
     npd = np.float64 if precision == "float64" else np.float32
-    key = (precision, float(mu), float(lam))
+    key = (precision, float(mu), float(lam), volume_law)
     if key not in _stress_kernels:
-        stress_and_diff = make_stress_funcs(dtype, float(mu), float(lam)).stress_and_diff
+        stress_and_diff = make_stress_funcs(dtype, float(mu), float(lam), volume_law).stress_and_diff
         mat = ti.types.matrix(3, 3, dtype)
 
         @ti.kernel
