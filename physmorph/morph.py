@@ -49,6 +49,7 @@ from physmorph.stability import MorphDivergenceError, StabilityMonitor, anisotro
 from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
 from physmorph.surface import update_surface_mask
 from physmorph.targets import load_target
+from physmorph.transport import destinations_in_grid_mass
 
 def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
               name: str = "", config_record: dict | None = None, log=None) -> dict:
@@ -109,6 +110,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 "chamfer": float(d.mean()),
                 **volume_metrics(st.x, parts.mass, target.grid_mass, target.grid)}, per_view
 
+    destination = None  # correspondence="transport": computed at the first update (a function of the inputs alone)
     monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
     checkpoint = run.resume(log=lambda msg: log(f"[{name}] {msg}"))
     resumed_from = None if checkpoint is None else checkpoint.frame
@@ -210,7 +212,10 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             F_stress = st.F + solver.control().mean(axis=0) if cfg.plasticity.update == "target_rest" else None
             absorbing = cfg.plasticity.absorbs_at(k, cfg.frames)
             Fp_from = absorbed_rest(st.F, solver.control(), st.Fp, cfg.plasticity) if absorbing else st.Fp
-            pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress)
+            if cfg.plasticity.correspondence == "transport" and destination is None:
+                destination = destinations_in_grid_mass(parts.x, parts.mass, target.grid_mass, target.grid)
+            pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress,
+                                         destination=destination)
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
             try:  # before the re-base: a bad Fp is named as such, not as a bad control

@@ -1,7 +1,10 @@
 """Chamfer-guided plasticity (paper section 3.4, eq. 4): migrate the rest state toward the target.
 
 Per frame k >= k0:
-1. d_i = NN_T(x_i) - x_i, the nearest target-surface point per particle (KD tree);
+1. d_i = NN_T(x_i) - x_i, the nearest target-surface point per particle (KD tree); with
+   ``correspondence="transport"`` (not the paper's) d_i = T_i - x_i instead, T_i the particle's
+   optimal-transport destination in the target's mass (physmorph.transport), fixed per material
+   point;
 2. smooth d by iterative KNN averaging (k neighbours, ``smooth_iters`` passes);
 3. displacement Jacobian J_i from the particle's k neighbours and its symmetric part
    dFp_i = (J_i + J_i^T) / 2;
@@ -58,6 +61,10 @@ class PlasticityConfig:
     max_anisotropy: float = 4.0
     jacobian: Literal["paper", "least_squares"] = "paper"
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
+    # where each particle is pulled: "nearest", the nearest target surface point (the paper's);
+    # "transport", its destination in an entropic optimal-transport plan from the source at rest to
+    # the target's grid mass (physmorph.transport; computed once per run, blur = one grid cell)
+    correspondence: Literal["nearest", "transport"] = "nearest"
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
     # move the control (or the shape, absorb_target) into Fp at the updates absorb_start_frame
     # picks; the default, the shape at the last update only, commits the final shape to the rest
@@ -89,6 +96,8 @@ class PlasticityConfig:
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
             raise ValueError(f"plasticity.update must be one of {UPDATES}, got {self.update!r}")
+        if self.correspondence not in ("nearest", "transport"):
+            raise ValueError(f"plasticity.correspondence must be nearest or transport, got {self.correspondence!r}")
         if self.jacobian not in ("least_squares", "paper"):
             raise ValueError(f"plasticity.jacobian must be least_squares or paper, got {self.jacobian!r}")
         lo, hi = self.det_bounds
@@ -274,10 +283,15 @@ def chamfer_plasticity_step(
     cfg: PlasticityConfig,
     target_tree: cKDTree | None = None,
     F: np.ndarray | None = None,  # [N, 3, 3] the deformation the stress sees (F + dFc), for update="target_rest"
+    destination: np.ndarray | None = None,  # [N, 3] per-particle destinations (correspondence="transport")
 ) -> PlasticityResult:
-    """One Chamfer-guided plasticity update (steps 1-6 of the module docstring)."""
-    tree = target_tree if target_tree is not None else cKDTree(target_points)
-    d_raw = nearest_target_displacement(x, tree, target_points)
+    """One Chamfer-guided plasticity update (steps 1-6 of the module docstring); with
+    ``destination`` step 1 is d_i = destination_i - x_i."""
+    if destination is not None:
+        d_raw = np.asarray(destination, dtype=np.float64) - x
+    else:
+        tree = target_tree if target_tree is not None else cKDTree(target_points)
+        d_raw = nearest_target_displacement(x, tree, target_points)
     k = min(cfg.k_neighbors, len(x))
     _, neighbors = cKDTree(x).query(x, k=k)
     neighbors = np.asarray(neighbors).reshape(len(x), k)

@@ -1,0 +1,95 @@
+"""Optimal-transport correspondences between a source's particles and a target's mass (not in the
+paper; plasticity.correspondence = "transport", docs/convergence.md session 15).
+
+The paper's plasticity (section 3.4) moves each particle's rest state toward its nearest target
+surface point. From a far source that map is many-to-one: a cow's legs and head all project onto
+the bunny's nearest surface, none onto its ears, and the projection of a volume onto a surface is
+a compression. An entropic optimal transport plan between the source's mass (the particles at
+rest) and the target's (its grid mass) gives every material point a destination instead, with each
+destination region receiving its own mass:
+
+    P = argmin_P <P, C> - eps H(P),  P 1 = a,  P^T 1 = b,  C_ij = |x_i - y_j|^2 / 2,
+
+a_i the particle masses and b_j the target node masses (both normalised to 1), solved by
+log-domain Sinkhorn iterations with eps decreasing geometrically from the squared diameter to
+blur^2 (eps scaling); each particle's destination is the barycentric projection
+T_i = sum_j P_ij y_j / a_i.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+def sinkhorn_potentials(C: torch.Tensor,  # [N, M] cost
+                        log_a: torch.Tensor,  # [N]
+                        log_b: torch.Tensor,  # [M]
+                        eps_schedule: list[float]) -> tuple[torch.Tensor, torch.Tensor]:  # [N], [M]
+    """Log-domain Sinkhorn: for each eps of the schedule one pair of updates
+    f_i = -eps logsumexp_j(log b_j + (g_j - C_ij) / eps), g_j = -eps logsumexp_i(log a_i + (f_i - C_ij) / eps)."""
+    f = torch.zeros_like(log_a)
+    g = torch.zeros_like(log_b)
+    for eps in eps_schedule:
+        f = -eps * torch.logsumexp(log_b[None, :] + (g[None, :] - C) / eps, dim=1)
+        g = -eps * torch.logsumexp(log_a[:, None] + (f[:, None] - C) / eps, dim=0)
+    return f, g
+
+
+def transport_plan(C: torch.Tensor, log_a: torch.Tensor, log_b: torch.Tensor,  # [N, M], [N], [M]
+                   f: torch.Tensor, g: torch.Tensor, eps: float) -> torch.Tensor:  # [N, M]
+    """P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps)."""
+    return torch.exp(log_a[:, None] + log_b[None, :] + (f[:, None] + g[None, :] - C) / eps)
+
+
+def transport_destinations(x: np.ndarray,  # [N, 3] source particles
+                           a: np.ndarray,  # [N] their masses (> 0)
+                           y: np.ndarray,  # [M, 3] target samples (e.g. grid nodes)
+                           b: np.ndarray,  # [M] their masses (>= 0; zero entries are dropped)
+                           blur: float,
+                           iters: int = 60,
+                           extra_iters: int = 20) -> np.ndarray:  # [N, 3]
+    """T_i = sum_j P_ij y_j / a_i for the entropic plan of the module docstring, eps going from the
+    squared diameter of the two clouds to blur^2 over ``iters`` Sinkhorn steps, then ``extra_iters``
+    more at blur^2. float64 on the CPU; N x M doubles of memory."""
+    x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+    y = np.asarray(y, dtype=np.float64).reshape(-1, 3)
+    a = np.asarray(a, dtype=np.float64).reshape(-1)
+    b = np.asarray(b, dtype=np.float64).reshape(-1)
+    if len(a) != len(x) or len(b) != len(y):
+        raise ValueError(f"transport_destinations: {len(x)} points with {len(a)} masses, {len(y)} targets with {len(b)} masses")
+    if not (a > 0).all() or not (b >= 0).all() or not b.sum() > 0 or not blur > 0:
+        raise ValueError("transport_destinations needs positive source masses, non-negative target masses "
+                         f"with a positive sum, and blur > 0 (got blur={blur})")
+    keep = b > 0
+    y, b = y[keep], b[keep]
+    X, Y = torch.from_numpy(x), torch.from_numpy(y)
+    C = 0.5 * torch.cdist(X, Y) ** 2
+    log_a = torch.log(torch.from_numpy(a / a.sum()))
+    log_b = torch.log(torch.from_numpy(b / b.sum()))
+    lo = np.minimum(x.min(0), y.min(0))
+    hi = np.maximum(x.max(0), y.max(0))
+    eps0 = max(float(((hi - lo) ** 2).sum()), blur ** 2)
+    eps1 = blur ** 2
+    schedule = [math.exp(math.log(eps0) + (math.log(eps1) - math.log(eps0)) * k / max(iters - 1, 1)) for k in range(iters)]
+    schedule += [eps1] * extra_iters
+    f, g = sinkhorn_potentials(C, log_a, log_b, schedule)
+    P = transport_plan(C, log_a, log_b, f, g, eps1)
+    T = (P @ Y) / P.sum(dim=1, keepdim=True)
+    return T.numpy()
+
+
+def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
+                              mass: np.ndarray,  # [N]
+                              grid_mass: np.ndarray,  # [R, R, R] the target's grid mass
+                              grid) -> np.ndarray:  # [N, 3]
+    """Each particle's destination in the target's grid mass (transport_destinations with the
+    non-empty nodes as target samples and blur = one grid cell)."""
+    R = grid.res
+    if grid_mass.shape != (R, R, R):
+        raise ValueError(f"target grid mass has shape {grid_mass.shape}, expected {(R, R, R)}")
+    idx = np.argwhere(grid_mass > 0)
+    nodes = grid.lo + grid.dx * idx
+    return transport_destinations(x, mass, nodes, grid_mass[grid_mass > 0], blur=grid.dx)

@@ -1,0 +1,76 @@
+"""Tests of the optimal-transport correspondences (physmorph.transport) and their use by the
+plasticity step (plasticity.correspondence = "transport")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from physmorph.grid import Grid, splat_mass
+from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step
+from physmorph.transport import destinations_in_grid_mass, transport_destinations
+
+
+def test_destinations_of_a_translated_cloud_are_the_translation():
+    """For the squared cost the optimal map between a cloud and its translate is the translation
+    (whatever order the target samples come in): the barycentric projection recovers it."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(60, 3))
+    shift = np.array([2.0, -1.0, 0.5])
+    y = (x + shift)[rng.permutation(60)]
+    T = transport_destinations(x, np.ones(60), y, np.ones(60), blur=0.05)
+    np.testing.assert_allclose(T, x + shift, atol=1e-3)
+
+
+def test_destinations_share_the_source_mass_as_the_target_holds_it():
+    """Two target clusters holding 3/4 and 1/4 of the mass, a source blob nearer the small one:
+    the nearest-point map sends everything to the near cluster; transport sends 3/4 of the mass
+    to the far one, and the mass-weighted mean of the destinations is the target's mean."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(scale=0.5, size=(200, 3))
+    a = rng.uniform(0.5, 1.5, size=200)
+    y = np.array([[6.0, 0.0, 0.0], [-3.0, 0.0, 0.0]])
+    b = np.array([3.0, 1.0])
+    T = transport_destinations(x, a, y, b, blur=0.2)
+    far = np.linalg.norm(T - y[0], axis=1) < 1.0
+    near = np.linalg.norm(T - y[1], axis=1) < 1.0
+    assert (far | near).mean() > 0.95
+    assert a[far].sum() / a.sum() == pytest.approx(0.75, abs=0.02)
+    # the share's tolerance, 0.02 of the mass moved 9 units, bounds the mean's error
+    np.testing.assert_allclose((a[:, None] * T).sum(0) / a.sum(), (b[:, None] * y).sum(0) / b.sum(), atol=0.2)
+
+
+def test_destinations_in_grid_mass_fill_the_target_and_refuse_bad_input():
+    grid = Grid(16)  # dx = 2
+    rng = np.random.default_rng(2)
+    src = rng.uniform(-3, 3, size=(300, 3)) + [-4.0, 0.0, 0.0]
+    tgt = rng.uniform(-2, 2, size=(300, 3)) * [2.0, 1.0, 1.0] + [5.0, 0.0, 0.0]
+    gm = splat_mass(tgt, np.ones(300), grid)
+    T = destinations_in_grid_mass(src, np.ones(300), gm, grid)
+    # every destination lies inside the target's hull of non-empty nodes, and their spread
+    # follows the target's (twice as long along x)
+    nodes = grid.lo + grid.dx * np.argwhere(gm > 0)
+    assert (T >= nodes.min(0) - 1e-9).all() and (T <= nodes.max(0) + 1e-9).all()
+    assert T[:, 0].std() > 1.5 * T[:, 1].std()
+    with pytest.raises(ValueError, match="grid mass has shape"):
+        destinations_in_grid_mass(src, np.ones(300), gm[:8], grid)
+    with pytest.raises(ValueError, match="positive source masses"):
+        transport_destinations(src, np.zeros(300), nodes, np.ones(len(nodes)), blur=1.0)
+
+
+def test_plasticity_step_uses_the_destinations_given():
+    """With destinations x + A x the step's displacement is that affine field (before smoothing,
+    which keeps an affine field), so least_squares recovers A in every particle's update; the
+    nearest-surface displacement would not be affine."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-3, 3, size=(400, 3))
+    A = np.array([[0.2, 0.05, 0.0], [0.05, -0.1, 0.0], [0.0, 0.0, 0.1]])
+    cfg = PlasticityConfig(eta=0.5, k_neighbors=16, smooth_iters=0, damping=0.0, jacobian="least_squares",
+                           det_bounds=(0.1, 10.0), max_anisotropy=100.0, correspondence="transport")
+    Fp = np.tile(np.eye(3), (len(x), 1, 1))
+    res = chamfer_plasticity_step(x, Fp, np.zeros((1, 3)), cfg, destination=x + x @ A.T)
+    np.testing.assert_allclose(res.displacement, x @ A.T, atol=1e-12)
+    want = np.eye(3) + res.eta[:, None, None] * A
+    np.testing.assert_allclose(res.Fp, want, atol=1e-9)
+    with pytest.raises(ValueError, match="correspondence"):
+        PlasticityConfig(correspondence="closest")
