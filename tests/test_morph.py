@@ -86,25 +86,31 @@ class _Killed(Exception):
     pass
 
 
-def test_resume_equals_uninterrupted_run(tiny, monkeypatch):
-    frames = dict(frames=5, plasticity=dataclasses.replace(morph_config(tiny[0], "iso_bunny_full").plasticity, start_frame=2))
-    full = _run(tiny, "iso_bunny_full", "uninterrupted.h5", **frames)
+@pytest.mark.parametrize("correspondence", ["nearest", "transport"])
+def test_resume_equals_uninterrupted_run(tiny, monkeypatch, correspondence):
+    """Killed in frame 4, a run resumes to the uninterrupted one, with the transport plan's
+    destinations (computed at the first update, not checkpointed) recomputed on resume."""
+    plasticity = dataclasses.replace(morph_config(tiny[0], "iso_bunny_full").plasticity, start_frame=2,
+                                     correspondence=correspondence)
+    frames = dict(frames=5, plasticity=plasticity)
+    full = _run(tiny, "iso_bunny_full", f"uninterrupted_{correspondence}.h5", **frames)
     real = morph.chamfer_plasticity_step
     calls = {"n": 0}
 
     def dies_at_frame_4(*args, **kwargs):  # killed in the middle of frame 4's plasticity stage
         calls["n"] += 1
+        assert (kwargs.get("destination") is not None) == (correspondence == "transport")
         if calls["n"] == 3:
             raise _Killed()
         return real(*args, **kwargs)
 
     monkeypatch.setattr(morph, "chamfer_plasticity_step", dies_at_frame_4)
     with pytest.raises(_Killed):
-        _run(tiny, "iso_bunny_full", "resumed.h5", **frames)
-    partial = tiny[1] / "resumed.h5.partial"
+        _run(tiny, "iso_bunny_full", f"resumed_{correspondence}.h5", **frames)
+    partial = tiny[1] / f"resumed_{correspondence}.h5.partial"
     assert read_metrics(partial)["attrs"]["frames_completed"] == 3
     monkeypatch.setattr(morph, "chamfer_plasticity_step", real)
-    resumed = _run(tiny, "iso_bunny_full", "resumed.h5", **frames)
+    resumed = _run(tiny, "iso_bunny_full", f"resumed_{correspondence}.h5", **frames)
     assert not partial.exists()
     a, b = read_metrics(full), read_metrics(resumed)
     # Same result: bit-identical with one thread; float32 atomics in a different order with more.
