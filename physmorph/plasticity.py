@@ -51,8 +51,11 @@ UPDATES = ("incremental", "target_rest")
 class PlasticityConfig:
     # defaults changed since runs were first made (physmorph.config.without_defaults): always in a
     # run's params, so runs made with the old default rerun
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame"})
-    eta: float = 0.02  # base rate (the paper: 0.2; config/paper.yaml uses it, see config/config.yaml)
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
+                                                             "eta", "correspondence"})
+    # base rate (the paper: 0.2; config/paper.yaml uses it; 0.02 until session 15, with the
+    # nearest-point correspondence; see config/config.yaml)
+    eta: float = 0.1
     k_neighbors: int = 64
     smooth_iters: int = 3
     damping: float = 0.05  # d_p
@@ -62,9 +65,10 @@ class PlasticityConfig:
     jacobian: Literal["paper", "least_squares"] = "paper"
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
     # where each particle is pulled: "nearest", the nearest target surface point (the paper's);
-    # "transport", its destination in an entropic optimal-transport plan from the source at rest to
-    # the target's grid mass (physmorph.transport; computed once per run, blur = one grid cell)
-    correspondence: Literal["nearest", "transport"] = "nearest"
+    # "transport" (the default since session 15), its destination in an entropic optimal-transport
+    # plan from the source at rest to the target's grid mass (physmorph.transport; computed once
+    # per run, blur = one grid cell)
+    correspondence: Literal["nearest", "transport"] = "transport"
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
     # move the control (or the shape, absorb_target) into Fp at the updates absorb_start_frame
     # picks; the default, the shape at the last update only, commits the final shape to the rest
