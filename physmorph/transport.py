@@ -26,24 +26,50 @@ import torch
 from physmorph.grid import Grid, bspline_weights, splat_mass
 
 
-def sinkhorn_potentials(C: torch.Tensor,  # [N, M] cost
+# Rows of the cost matrix handled at once, and the matrix size up to which its blocks are kept
+# between iterations (float32: 2^25 entries = 128 MB) rather than recomputed: the plan never holds
+# an N x M array, so a 64^3 grid (~25K x 25K nodes) needs ~100 MB, not 2.5 GB.
+BLOCK_ENTRIES = 1 << 22
+CACHE_ENTRIES = 1 << 25
+
+
+def _cost_blocks(X: torch.Tensor, Y: torch.Tensor):  # X [N, 3], Y [M, 3] -> iterator of (rows, C [n, M])
+    """C_ij = |x_i - y_j|^2 / 2 by blocks of rows (cached when the whole matrix is small)."""
+    rows = max(1, BLOCK_ENTRIES // max(len(Y), 1))
+    spans = [slice(k, min(k + rows, len(X))) for k in range(0, len(X), rows)]
+    cache = [None] * len(spans) if len(X) * len(Y) <= CACHE_ENTRIES else None
+
+    def blocks():
+        for b, sl in enumerate(spans):
+            C = cache[b] if cache is not None else None
+            if C is None:
+                C = 0.5 * torch.cdist(X[sl], Y) ** 2
+                if cache is not None:
+                    cache[b] = C
+            yield sl, C
+    return blocks
+
+
+def sinkhorn_potentials(X: torch.Tensor,  # [N, 3]
+                        Y: torch.Tensor,  # [M, 3]
                         log_a: torch.Tensor,  # [N]
                         log_b: torch.Tensor,  # [M]
-                        eps_schedule: list[float]) -> tuple[torch.Tensor, torch.Tensor]:  # [N], [M]
+                        eps_schedule: list[float]) -> tuple[torch.Tensor, torch.Tensor, object]:
     """Log-domain Sinkhorn: for each eps of the schedule one pair of updates
-    f_i = -eps logsumexp_j(log b_j + (g_j - C_ij) / eps), g_j = -eps logsumexp_i(log a_i + (f_i - C_ij) / eps)."""
+    f_i = -eps logsumexp_j(log b_j + (g_j - C_ij) / eps), g_j = -eps logsumexp_i(log a_i + (f_i - C_ij) / eps),
+    the cost taken by blocks of rows (the column sums merged with logaddexp). Returns f, g and the
+    cost's block iterator."""
+    blocks = _cost_blocks(X, Y)
     f = torch.zeros_like(log_a)
     g = torch.zeros_like(log_b)
     for eps in eps_schedule:
-        f = -eps * torch.logsumexp(log_b[None, :] + (g[None, :] - C) / eps, dim=1)
-        g = -eps * torch.logsumexp(log_a[:, None] + (f[:, None] - C) / eps, dim=0)
-    return f, g
-
-
-def transport_plan(C: torch.Tensor, log_a: torch.Tensor, log_b: torch.Tensor,  # [N, M], [N], [M]
-                   f: torch.Tensor, g: torch.Tensor, eps: float) -> torch.Tensor:  # [N, M]
-    """P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps)."""
-    return torch.exp(log_a[:, None] + log_b[None, :] + (f[:, None] + g[None, :] - C) / eps)
+        for sl, C in blocks():
+            f[sl] = -eps * torch.logsumexp(log_b[None, :] + (g[None, :] - C) / eps, dim=1)
+        acc = torch.full_like(log_b, -float("inf"))
+        for sl, C in blocks():
+            acc = torch.logaddexp(acc, torch.logsumexp(log_a[sl, None] + (f[sl, None] - C) / eps, dim=0))
+        g = -eps * acc
+    return f, g, blocks
 
 
 def transport_destinations(x: np.ndarray,  # [N, 3] source particles
@@ -57,7 +83,7 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
     """T_i = sum_j P_ij y_j / a_i for the entropic plan of the module docstring, eps going from the
     squared diameter of the two clouds to blur^2 over ``iters`` Sinkhorn steps, then ``extra_iters``
     more at blur^2. On the CPU in ``dtype`` (float32: the log-domain potentials need ~1e-4 of
-    relative precision); N x M entries of memory."""
+    relative precision); the cost matrix is handled by blocks of rows (BLOCK_ENTRIES)."""
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     y = np.asarray(y, dtype=np.float64).reshape(-1, 3)
     a = np.asarray(a, dtype=np.float64).reshape(-1)
@@ -70,7 +96,6 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
     keep = b > 0
     y, b = y[keep], b[keep]
     X, Y = torch.from_numpy(x).to(dtype), torch.from_numpy(y).to(dtype)
-    C = 0.5 * torch.cdist(X, Y) ** 2
     log_a = torch.log(torch.from_numpy(a / a.sum())).to(dtype)
     log_b = torch.log(torch.from_numpy(b / b.sum())).to(dtype)
     lo = np.minimum(x.min(0), y.min(0))
@@ -79,9 +104,11 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
     eps1 = blur ** 2
     schedule = [math.exp(math.log(eps0) + (math.log(eps1) - math.log(eps0)) * k / max(iters - 1, 1)) for k in range(iters)]
     schedule += [eps1] * extra_iters
-    f, g = sinkhorn_potentials(C, log_a, log_b, schedule)
-    P = transport_plan(C, log_a, log_b, f, g, eps1)
-    T = (P @ Y) / P.sum(dim=1, keepdim=True)
+    f, g, blocks = sinkhorn_potentials(X, Y, log_a, log_b, schedule)
+    T = torch.empty_like(X)
+    for sl, C in blocks():  # P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps), row by row
+        P = torch.exp(log_a[sl, None] + log_b[None, :] + (f[sl, None] + g[None, :] - C) / eps1)
+        T[sl] = (P @ Y) / P.sum(dim=1, keepdim=True)
     return T.numpy().astype(np.float64)
 
 
