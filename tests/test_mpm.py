@@ -859,6 +859,20 @@ def _node_losses(m, t, eps, kind):  # the documented per-node formulas, in NumPy
     return np.where(m <= t, below, above)
 
 
+def _loss_control_gradient_matches_autograd(s: MPMSolver, state: ParticleState, ctrl, target, eps: float) -> None:
+    """The solver's dFc gradient of its mass loss (with log eps) against torch autograd through the
+    reference rollout and reference loss."""
+    s.load_state(state)
+    s.set_control(ctrl)
+    s.forward()
+    s.backward()
+    c = ref.as_torch(ctrl, True)
+    states = ref.rollout_torch(ref.as_torch(state.x), ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
+                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), s.cfg)
+    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(target), s.cfg, log_eps=eps).backward()
+    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+
+
 @pytest.mark.parametrize("kind", ["sqrt", "log_bounded"])
 def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
     """mass_loss = "sqrt" / "log_bounded" (with a two-level pyramid): the documented formula on the
@@ -881,15 +895,7 @@ def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
     ctrl = random_control(cfg, state.n)
     s.set_control(ctrl)
     _fd_check(s, state, n_checks=6, seed=7)
-    s.load_state(state)
-    s.set_control(ctrl)
-    s.forward()
-    s.backward()
-    c = ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(ref.as_torch(state.x), ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
-    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(t), cfg, log_eps=eps).backward()
-    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+    _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
 
 
 def test_overfill_term_matches_its_formula_reference_and_fd(state):
@@ -913,15 +919,7 @@ def test_overfill_term_matches_its_formula_reference_and_fd(state):
     ctrl = random_control(cfg, state.n)
     s.set_control(ctrl)
     _fd_check(s, state, n_checks=6, seed=11)
-    s.load_state(state)
-    s.set_control(ctrl)
-    s.forward()
-    s.backward()
-    c = ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(ref.as_torch(state.x), ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
-    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(t), cfg, log_eps=eps).backward()
-    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
+    _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
     with pytest.raises(MPMConfigError, match="overfill_weight"):
         cfg64(overfill_weight=-1.0)
 
