@@ -60,7 +60,7 @@ class PlasticityConfig:
     smooth_iters: int = 3
     damping: float = 0.05  # d_p
     # k0 (the paper: 20 of 90 frames; 10 until session 15, 5 in it): transport destinations need
-    # no warm-up, and starting early keeps thin features from being torn off (docs/convergence.md 104-106)
+    # no warm-up, and starting early halves the particles torn off thin features (docs/convergence.md 104-106)
     start_frame: int = 2
     det_bounds: tuple[float, float] = (0.5, 2.0)
     max_anisotropy: float = 4.0
