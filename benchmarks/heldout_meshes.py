@@ -1,5 +1,5 @@
-"""Held-out target meshes: shapes the defaults were never tuned on (issue 9: "the default
-parameters will also be tried, untouched, on meshes from outside the repository").
+"""Held-out target meshes: shapes the defaults were never tuned on (the default parameters are
+tried, untouched, on meshes from outside the repository's benchmark set).
 
     python benchmarks/heldout_meshes.py            # writes resources/heldout/*.obj
     snakemake --cores 2 tables --configfile config/heldout.yaml

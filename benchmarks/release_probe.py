@@ -5,7 +5,7 @@ and simulates K more frames with no optimisation and no plasticity, rendering th
 against the run's target after each. The release rebound is the share of the run's gain that is
 lost: 100 (a_release - a_final) / (a_0 - a_final) (0 %: the rest state holds the morphed shape;
 100 %: back to where the run started). Measures what the paper's Chamfer plasticity is for
-(migrating the rest state so achieved deformation persists, section 3.4); docs/convergence.md.
+(migrating the rest state so achieved deformation persists, section 3.4); docs/study/log.md.
 
     python benchmarks/release_probe.py iso_bunny_full iso_bunny_f_inject --frames 40
     python benchmarks/release_probe.py iso_bunny_full --runs /tmp/physmorph_study/cs_eta02

@@ -1,5 +1,5 @@
 """Convergence study driver: run one experiment of the default profile with config overrides and
-append its reachable-gap numbers to docs/convergence/runs.csv (the study's raw record).
+append its reachable-gap numbers to docs/study/runs.csv (the study's raw record).
 
     python benchmarks/study_convergence.py iso_bunny_full --tag baseline
     python benchmarks/study_convergence.py iso_bunny_full --tag lr003 --set mpm.learning_rate=0.003
@@ -31,7 +31,7 @@ from physmorph.quality import gap_closed
 from physmorph.runfile import partial_dir
 
 REPO = Path(__file__).resolve().parent.parent
-CSV = REPO / "docs" / "convergence" / "runs.csv"
+CSV = REPO / "docs" / "study" / "runs.csv"
 COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_frame", "a_final", "ceiling",
            "closed_best", "closed_final", "iou0", "iou_best", "iou_final", "ceiling_iou", "chamfer0",
            "chamfer_final", "fp_det_min", "status", "wall_s", "volume_iou0", "volume_iou_final", "overfilled_final"]

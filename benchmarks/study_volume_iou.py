@@ -1,5 +1,5 @@
 """The 3D checks (physmorph.quality.volume_metrics: volume IoU, overfilled mass) at the saved frames of run files, for runs written
-before the metric was recorded per frame (docs/convergence.md, session 11).
+before the metric was recorded per frame (docs/study/log.md, part 11).
 
     python benchmarks/study_volume_iou.py --particles results/default/particles/iso_32x2x1.h5 \\
         --target results/default/targets/cow_32x2x1.h5 results/default/runs/iso_cow_*.h5

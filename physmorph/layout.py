@@ -2,7 +2,7 @@
 
 The layout lives in a YAML file (config/paper_results.yaml in the repository), typed here once with
 the config's own validator (physmorph.config.build): an error names the file and the key. The
-tables and figures stages read experiments by these names (SPEC.md section 5).
+tables and figures stages read experiments by these names (docs/outputs.md: what each compares).
 """
 
 from __future__ import annotations

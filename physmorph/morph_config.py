@@ -29,7 +29,7 @@ class MorphConfig:
     # "every_frame": measured again each frame, so the injection stays gamma of the mass
     # gradient as the mass loss converges (one more backward pass per frame);
     # "absolute": no calibration, c = gamma (gamma_x): the paper's eq. 3 as printed, in this
-    # project's loss units (the F-vs-position comparison at equal gain, docs/convergence.md)
+    # project's loss units (the F-vs-position comparison at equal gain, docs/study/log.md)
     injection_calibration: Literal["first_frame", "every_frame", "absolute"] = "every_frame"
     cameras: int | None = None  # render-loss views, evenly spaced on the ring (None: all)
     save_every: int = 5  # store x, F, Fp every this many frames (and the first and last)
@@ -44,7 +44,7 @@ class MorphConfig:
     # end; alpha_mse: the rendered alpha MSE), keep only restart_keep of every particle's velocity
     # (v and the APIC C): the function-value restart of momentum methods (O'Donoghue & Candes
     # 2015). The physics carries momentum across frames, but each frame's control only sees its
-    # own frame, so a shape that reaches its target at speed rings (docs/convergence.md, item 73).
+    # own frame, so a shape that reaches its target at speed rings (docs/study/log.md, finding 73).
     # Not in the paper; "off" is the paper's loop.
     momentum_restart: Literal["off", "mass_loss", "alpha_mse"] = "mass_loss"
     restart_keep: float = 0.0

@@ -1,4 +1,4 @@
-"""How far a morph got, judged against what is reachable (SPEC section 5, issue "convergence").
+"""How far a morph got, judged against what is reachable (docs/outputs.md: "share of the reachable gap").
 
 Raw alpha MSE depends on image size, particle count and sigma0, so it cannot be compared across
 profiles. The *ceiling* is the alpha MSE (and silhouette IoU) of the target's own particle

@@ -1,4 +1,4 @@
-"""Divergence checks and stability warnings of the morph loop (docs/convergence.md: what a run
+"""Divergence checks and stability warnings of the morph loop (docs/study/log.md: what a run
 that leaves the stable region looks like)."""
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ not run in this profile shows as empty cells, so a partial profile still produce
 The convergence table has one row per run and reports, besides raw alpha MSE (which depends on
 image size, particle count and sigma0), the share of the reachable gap closed: how far each run
 got from its start towards the ceiling, its target's own particles rendered at rest
-(physmorph.quality; SPEC.md section 5).
+(physmorph.quality; docs/outputs.md explains every table and column).
 """
 
 from __future__ import annotations

@@ -63,7 +63,7 @@ def test_yaml_restates_the_settings_defaults():
             f"{key}: YAML {value!r}, default {obj!r}"
         checked += 1
     assert checked > 30
-    # the values the issue found disagreeing
+    # values that once disagreed between the YAML and the dataclasses
     assert defaults.target.distance == 36.0 and defaults.mpm.learning_rate == 0.004
     assert defaults.plasticity.jacobian == "paper" and defaults.mpm.mass_loss == "log"
     assert defaults.morph.injection_calibration == "every_frame"
@@ -206,7 +206,7 @@ def test_params_leave_out_defaults_so_a_new_option_reruns_nothing():
     assert "mass_loss_levels" not in d["mpm"] and "absorb_rate" not in d.get("plasticity", {})
     assert d["method"] == "full" and "drag" not in d["mpm"] and d["release_frames"] == 40  # the YAML sets 40
     assert without_defaults(SamplingConfig()) == {} and without_defaults(SamplingConfig(grid_res=64)) == {"grid_res": 64}
-    # a default that changed (mpm.learning_rate, 0.001 -> 0.002 -> 0.004 in sessions 7, 13) is always there, so
+    # a default that changed (mpm.learning_rate, 0.001 -> 0.002 -> 0.004, docs/study/CHANGELOG.md) is always there, so
     # runs made with the old default, whose params left it out, rerun
     assert json.loads(FIRST_DEFAULTS_PATH.read_text())["MPMConfig.learning_rate"] == 0.001
     assert d["mpm"]["learning_rate"] == 0.004 and "learning_rate" in MPMConfig.ALWAYS_IN_PARAMS

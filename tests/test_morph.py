@@ -59,7 +59,7 @@ def test_tiny_morph_lowers_alpha_mse(tiny_runs):
 
 def test_full_method_runs_every_component_on_the_tiny_setup(tiny_runs):
     """Render injection and plasticity act in the full run and not in physics-only. (Whether full
-    beats physics-only is a research result, measured in docs/convergence.md and the tables: with
+    beats physics-only is a research result, measured in docs/study/log.md and the tables: with
     the log mass loss and normalised GD it does not at this profile, so no test asserts it.)"""
     # Plasticity (from frame 4) actually moved Fp; physics-only never touches it.
     assert tiny_runs["full"]["fp_det_max"][-1] > 1.0 + 1e-6
@@ -295,7 +295,7 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
             np.testing.assert_allclose(entry[k], factor * end[k - 1], rtol=1e-6, atol=1e-12)
 
 
-# Measured on the tiny profile (12 frames, ~1.2K particles): see docs/convergence.md.
+# Measured on the tiny profile (12 frames, ~1.2K particles): see docs/study/log.md.
 TINY_CLOSED_FINAL = 0.5
 # Measured on the tiny run (2026-11-22): 4.5 % with the control absorbed, 101 % without plasticity.
 RELEASE_REBOUND_ABSORB, RELEASE_REBOUND_GAP = 20.0, 50.0
@@ -358,13 +358,13 @@ def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
     base = morph_config(cfg, "iso_bunny_full")
     pl = dataclasses.replace(base.plasticity, absorb_control=True, absorb_target="control", absorb_start_frame=None,
                              correspondence="nearest", eta=0.02)
-    # At the step size where absorb_control was measured (0.001, study session 3). At the default
-    # since session 7 (0.002) the tiny run closes 81 % but loses 107 % of it released: not by
+    # At the step size where absorb_control was measured (0.001, docs/study/log.md part 3). At the default
+    # since part 7 (0.002) the tiny run closes 81 % but loses 107 % of it released: not by
     # springing back (f_inject does), but because the absorbed control is a driving stress that
-    # keeps stretching the body past the target (docs/convergence.md item 42).
+    # keeps stretching the body past the target (docs/study/log.md finding 42).
     # Measured with the paper's loop (its F smoothing, no momentum restart; the tiny run closes 39 %
     # of its gap at this step with the default's isochoric smoothing) and the paper's plasticity
-    # (the nearest-point map at the rate of session 3).
+    # (the nearest-point map at the rate of docs/study/log.md part 3).
     paper = _paper_loop(base)
     paper["mpm"] = dataclasses.replace(paper["mpm"], learning_rate=0.001)
     runs = {"absorb": read_metrics(_run(tiny, "iso_bunny_full", "absorb_release.h5", plasticity=pl, release_frames=12,
@@ -408,7 +408,7 @@ def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny
             for k, pl in variants.items()}
     runs["none"] = read_metrics(_run(tiny, "iso_bunny_f_inject", "none_release.h5", release_frames=12))
     # equal up to float32 atomics in another order (more than one thread), as in the resume test;
-    # absorbing during the run changes it (docs/convergence.md session 9)
+    # absorbing during the run changes it (docs/study/log.md part 9)
     for a, b in (("shape", "off"), ("nearest_shape", "nearest_off")):
         np.testing.assert_allclose(runs[a]["alpha_mse"], runs[b]["alpha_mse"], rtol=1e-4)
     rebound = {k: release_rebound_percent(m["alpha_mse"], json.loads(m["attrs"]["release_alpha_mse"]))
