@@ -26,6 +26,11 @@ rule figures:
         figure_outputs(),
 
 
+rule results_page:
+    input:
+        f"{R}/results.md",
+
+
 rule tradeoff:
     input:
         f"{R}/tradeoff/tradeoff.md",
@@ -40,3 +45,4 @@ include: "workflow/rules/morph.smk"
 include: "workflow/rules/tables.smk"
 include: "workflow/rules/figures.smk"
 include: "workflow/rules/tradeoff.smk"
+include: "workflow/rules/results_doc.smk"

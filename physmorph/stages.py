@@ -163,6 +163,16 @@ def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets:
                              t, Path(out_dir), load_layout(layout))
 
 
+def results_doc_stage(tables_dir: str, figures_dir: str, output: str, profile: str, log=None):
+    """The profile's results page (physmorph.userdocs.write_results_doc): its tables' numbers and its
+    figures, linked in place."""
+    from physmorph.userdocs import write_results_doc
+
+    with stage_log(log):
+        return write_results_doc(tables_dir, output, profile, figures_dir,
+                                 command=f"snakemake --cores 2 results_page (profile {profile})")
+
+
 def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, log=None):
     """``points``: {name: TradeoffPoint fields} (or its JSON), as the workflow's params hold them."""
     from physmorph.tradeoff import TradeoffPoint, build_tradeoff

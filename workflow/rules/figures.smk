@@ -5,7 +5,8 @@ rule make_figures:
         targets=[target_path(s) for s in S.tables.shapes],
         layout="config/paper_results.yaml",  # which runs each figure shows
     output:
-        [report(f"{R}/figures/{f}.png", caption="../report/figure.rst", category="Figures", labels={"figure": f})
+        [report(f"{R}/figures/{f}.png", caption=f"../report/captions/{f}.rst", category="Figures",
+                labels={"figure": f})
          for f in FIGURES],
     params:
         names=list(S.tables.experiments),

@@ -4,7 +4,8 @@ rule make_tables:
         runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=S.tables.experiments),
         layout="config/paper_results.yaml",  # which runs each table compares, the paper's numbers
     output:
-        csv=[report(f"{R}/tables/{t}.csv", caption="../report/table.rst", category="Tables", labels={"table": t})
+        csv=[report(f"{R}/tables/{t}.csv", caption=f"../report/captions/{t}.rst", category="Tables",
+                    labels={"table": t})
              for t in TABLES],
         md=expand(f"{R}/tables/{{table}}.md", table=TABLES),
         tex=expand(f"{R}/tables/{{table}}.tex", table=TABLES),

@@ -1,0 +1,366 @@
+"""The user documentation that is generated, so it cannot go stale.
+
+* ``results_markdown`` / ``write_results_doc``: a profile's numbers (docs/results.md for the default
+  profile) from ``results/{profile}/tables/`` and its figures.
+* ``config_reference``: config/README.md, every key of the config schema with its meaning, unit and
+  range (physmorph.config_docs), type and default (physmorph.config.json_schema).
+* ``output_captions`` / ``write_captions``: the HTML report's caption of each table and figure, taken
+  from docs/outputs.md (the paragraph after each ``### `name` `` heading), so the two say the same.
+
+Command line: ``python -m physmorph.userdocs results default`` (writes docs/results.md and copies the
+figures to docs/images/), ``python -m physmorph.userdocs config`` (config/README.md),
+``python -m physmorph.userdocs captions`` (workflow/report/captions/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+OUTPUTS_MD = REPO_ROOT / "docs" / "outputs.md"
+CAPTIONS_DIR = REPO_ROOT / "workflow" / "report" / "captions"
+CONFIG_README = REPO_ROOT / "config" / "README.md"
+RESULTS_MD = REPO_ROOT / "docs" / "results.md"
+
+FIGURE_TITLES = {
+    "sequences_main": "iso -> bunny, cow, duck (full method), frames 0 to the last and the target",
+    "sequences_cross_shape": "cross-shape morphs (full method) and their targets",
+    "sequences_letters": "letters (full method) and their targets",
+    "drag_ablation": "drag ablation, iso -> bunny: alpha MSE per frame",
+    "trajectory_divergence": "physics-only vs full, iso -> duck: mass loss and alpha MSE per frame",
+    "trajectory_frames": "physics-only vs full, iso -> duck, frames 10, 15 and 19",
+    "plasticity_effect": "with (full) and without (f_inject) plasticity, iso -> bunny",
+    "optimization_traces": "iso -> bunny (full): alpha MSE, gradient norm and losses per frame",
+    "gradient_coverage": "which particles the render gradient reaches with 1, 4 and 8 cameras",
+}
+
+
+# --------------------------------------------------------------------------------------------
+# docs/results.md
+# --------------------------------------------------------------------------------------------
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None or isinstance(v, float) and not np.isfinite(v):
+        return ""
+    if isinstance(v, (float, np.floating)):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _pct(v) -> str:
+    return "" if v is None or not np.isfinite(float(v)) else f"{float(v):.1f} %"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _read(tables_dir: Path, name: str) -> pd.DataFrame:
+    path = tables_dir / f"{name}.csv"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: missing; build the tables first (snakemake --cores 2 tables)")
+    try:
+        return pd.read_csv(path)
+    except pd.errors.EmptyDataError:
+        return pd.DataFrame()
+
+
+def _wall_time_s(results_dir: Path) -> float:
+    """Sum of the jobs' wall times recorded in results_dir/benchmarks/ (NaN when there are none)."""
+    total, found = 0.0, False
+    for tsv in sorted((results_dir / "benchmarks").rglob("*.tsv")):
+        try:
+            df = pd.read_csv(tsv, sep="\t")
+        except (pd.errors.EmptyDataError, pd.errors.ParserError):
+            continue
+        if "s" in df and len(df):
+            total += float(df["s"].iloc[-1])
+            found = True
+    return total if found else float("nan")
+
+
+def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
+                     date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md") -> str:
+    """A profile's results as Markdown, from the CSV tables in ``tables_dir`` (physmorph.tables).
+    ``figures``: figure name -> link to its image (relative to the page); ``date``: when the tables
+    were made (default: the convergence table's modification date)."""
+    tables_dir = Path(tables_dir)
+    conv = _read(tables_dir, "convergence")
+    direc = _read(tables_dir, "directions")
+    source = _read(tables_dir, "source_invariance")
+    plast = _read(tables_dir, "plasticity")
+    timing = _read(tables_dir, "timing")
+    main = _read(tables_dir, "main")
+    if date is None:
+        date = _dt.date.fromtimestamp((tables_dir / "convergence.csv").stat().st_mtime).isoformat()
+    command = command or f"python -m physmorph.userdocs results {profile}"
+    out = [f"# Results of the `{profile}` profile\n",
+           f"Generated on {date} by `{command}` from `results/{profile}/tables/` (do not edit by hand: "
+           "rebuild the tables, then run the command again). What each table and column means: "
+           f"[docs/outputs.md]({outputs_link}).\n"]
+    if len(timing):
+        particles = sorted({int(p) for p in timing["particles"] if np.isfinite(p) and p > 0})
+        frames = sorted({int(f) for f in timing["frames"]})
+        wall = _wall_time_s(tables_dir.parent)
+        span = (f"{particles[0]:,}" if particles[0] == particles[-1] else f"{particles[0]:,}-{particles[-1]:,}"
+                ) if particles else "?"
+        out.append(f"{len(timing)} runs of {span} particles and {'/'.join(map(str, frames))} frames")
+        if np.isfinite(wall):
+            out[-1] += f"; the jobs' wall times add up to {wall / 60:.1f} min (results/{profile}/benchmarks/)"
+        out[-1] += ".\n"
+
+    out.append("## How far each run got\n")
+    out.append("Share of the reachable gap closed at the best and the last frame (100 % = the target's own "
+               "particles rendered at rest), the volume IoU at the first and last frame (1 = the target's own "
+               "sampling) and the share of the mass packed above twice the target's density at the end.\n")
+    rows = []
+    for _, r in conv.iterrows():
+        rows.append([str(r["experiment"]), str(r["method"]), f"{_pct(r['closed_best_%'])} (frame {int(r['best_frame'])})",
+                     _pct(r["closed_final_%"]), f"{_fmt(r['volume_iou_0'], 2)} -> {_fmt(r['volume_iou_final'], 2)}",
+                     _pct(100 * r["overfilled_mass_final"]) if np.isfinite(r["overfilled_mass_final"]) else ""])
+    out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "volume IoU", "overfilled"],
+                      rows))
+
+    out.append("## The paper's three directions\n")
+    out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, `holds` is yes "
+               "when ours is lower.\n")
+    rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
+             _pct(r["ours_vs_baseline_%"]), _fmt(r["holds"]) if isinstance(r["holds"], str) else "",
+             _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
+    out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain", "holds", "paper"], rows))
+
+    if len(main):
+        out.append("## Main table: full vs physics-only at the matched frame\n")
+        rows = [[str(r["target"]), _fmt(r.get("frame"), 3), _fmt(r.get("physics_only")), _fmt(r.get("ours")),
+                 _pct(r.get("improvement_%", np.nan)), f"{r['paper_improvement_%']:+g} %"]
+                for _, r in main.iterrows()]
+        out.append(_table(["target", "matched frame", "physics-only", "full", "improvement", "paper"], rows))
+
+    if len(source):
+        out.append("## Source invariance\n")
+        rows = [[str(r["experiment"]), _fmt(r["best"]), _fmt(r["paper_best"]), _pct(r["closed_best_%"])]
+                for _, r in source.iterrows() if r["experiment"] not in ("mean", "std")]
+        out.append(_table(["source -> bunny", "best alpha MSE", "paper", "closed, best"], rows))
+
+    if len(plast):
+        out.append("## Does the morph persist?\n")
+        rows = []
+        for _, r in plast.iterrows():
+            rows.append([str(r["experiment"]), str(r["variant"]), _pct(r.get("rebound_%", np.nan)),
+                         _pct(r.get("release_rebound_%", np.nan)),
+                         _fmt(r.get("release_frames", np.nan), 3)])
+        out.append(_table(["experiment", "variant", "rebound in the run", "rebound released", "release frames"],
+                          rows))
+
+    if len(timing):
+        out.append("## Time per frame (seconds, median over runs, each run's mean after frame 0)\n")
+        cols = ["physics_s", "render_s", "plasticity_s", "mask_s", "frame_s"]
+        full = timing[[c for c in cols if c in timing]]
+        out.append(_table([c[:-2] for c in full.columns] + ["peak RSS (MB)"],
+                          [[_fmt(float(np.nanmedian(full[c])), 3) for c in full.columns]
+                           + [_fmt(float(np.nanmax(timing["peak_rss_mb"])), 4)]]))
+
+    if figures:
+        out.append("## Figures\n")
+        for name in FIGURE_NAMES:
+            if name in figures:
+                out.append(f"**{name}**: {FIGURE_TITLES.get(name, name)}.\n\n![{name}]({figures[name]})\n")
+    return "\n".join(out)
+
+
+def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, figures_dir: str | Path | None = None,
+                      images_dir: str | Path | None = None, command: str | None = None) -> Path:
+    """Write ``results_markdown`` to ``out_md``. Figures from ``figures_dir`` are linked; with
+    ``images_dir`` they are first copied there (docs/images/ for docs/results.md)."""
+    out_md = Path(out_md)
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    figures = {}
+    if figures_dir is not None:
+        for name in FIGURE_NAMES:
+            src = Path(figures_dir) / f"{name}.png"
+            if not src.exists():
+                continue
+            if images_dir is not None:
+                Path(images_dir).mkdir(parents=True, exist_ok=True)
+                dst = Path(images_dir) / src.name
+                shutil.copyfile(src, dst)
+                src = dst
+            figures[name] = Path(_relpath(src, out_md.parent)).as_posix()
+    outputs = Path(_relpath(REPO_ROOT / "docs" / "outputs.md", out_md.parent)).as_posix()
+    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs)
+    tmp = out_md.with_suffix(".partial")
+    tmp.write_text(text)
+    tmp.replace(out_md)
+    return out_md
+
+
+def _relpath(path: Path, start: Path) -> str:
+    import os
+
+    return os.path.relpath(Path(path).resolve(), Path(start).resolve())
+
+
+# --------------------------------------------------------------------------------------------
+# config/README.md
+# --------------------------------------------------------------------------------------------
+
+def schema_keys() -> list[tuple[str, dict]]:
+    """(dotted key, its schema) of every key of the config schema, mapping entries as ``<name>``."""
+    from physmorph.config import json_schema
+
+    out: list[tuple[str, dict]] = []
+
+    def walk(node: dict, prefix: str) -> None:
+        for k, v in (node.get("properties") or {}).items():
+            key = f"{prefix}.{k}" if prefix else k
+            out.append((key, v))
+            walk(v, key)
+        extra = node.get("additionalProperties")
+        if isinstance(extra, dict):
+            walk(extra, f"{prefix}.<name>")
+        for option in node.get("anyOf", []):
+            walk(option, prefix)
+
+    walk(json_schema(), "")
+    return out
+
+
+def _type_text(sub: dict) -> str:
+    if "enum" in sub:
+        return " \\| ".join(f"`{e}`" for e in sub["enum"])
+    if "anyOf" in sub:
+        return " or ".join(_type_text(o) for o in sub["anyOf"])
+    t = sub.get("type")
+    if isinstance(t, list):
+        t = t[0]
+    if t == "array":
+        return "list"
+    if t == "object":
+        return "mapping"
+    return t or "any"
+
+
+def _default_text(sub: dict) -> str:
+    if "default" not in sub:
+        return ""
+    d = sub["default"]
+    if d is None:
+        return "`null`"
+    if isinstance(d, bool):
+        return f"`{str(d).lower()}`"
+    if isinstance(d, float):
+        return f"`{d:.6g}`"
+    return f"`{d}`"
+
+
+def config_reference() -> str:
+    """config/README.md: every schema key with meaning, unit, range, type and default."""
+    from physmorph.config_docs import FIELD_DOCS, SECTIONS
+
+    keys = schema_keys()
+    missing = [k for k, sub in keys if k not in FIELD_DOCS and k not in SECTIONS]
+    if missing:
+        raise KeyError(f"config keys without a description in physmorph.config_docs.FIELD_DOCS: {missing}")
+    out = ["# Configuration reference\n",
+           "Generated from the typed settings (`physmorph.config.Settings`, whose schema is "
+           "`workflow/schemas/config.schema.yaml`) and their descriptions (`physmorph/config_docs.py`) by "
+           "`python -m physmorph.userdocs config`; do not edit by hand.\n",
+           "A profile is a YAML file merged onto `config/config.yaml` key by key (`--configfile`); single keys "
+           "can be set with `--config 'plasticity={eta: 0.05}'`. Every key is checked before any job runs: an unknown "
+           "key, a wrong type or a value out of range stops Snakemake with the dotted key. The defaults below "
+           "are the dataclasses'; `config/config.yaml` restates them (a test checks they agree). Why each "
+           "default was chosen: [docs/method.md](../docs/method.md); the evidence: "
+           "[docs/study/](../docs/study/README.md).\n",
+           "Changing a key reruns exactly the jobs that read it (see them with `snakemake -n`).\n"]
+    groups: dict[str, list[tuple[str, dict]]] = {}
+    for key, sub in keys:
+        top = key.split(".")[0]
+        section = top if "." in key or top in SECTIONS and top != "" else ""
+        if key in SECTIONS:
+            continue
+        groups.setdefault(section, []).append((key, sub))
+    for section in [s for s in SECTIONS if s in groups]:
+        out.append(f"## {section or 'Top level'}\n")
+        out.append(SECTIONS[section] + "\n")
+        rows = []
+        for key, sub in groups[section]:
+            meaning, unit, rng = FIELD_DOCS[key]
+            rows.append(f"| `{key}` | {meaning} | {unit} | {rng} | {_type_text(sub)} | {_default_text(sub)} |")
+        out.append("| key | meaning | unit | range | type | default |\n|---|---|---|---|---|---|\n"
+                   + "\n".join(rows) + "\n")
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------------------------
+# Report captions from docs/outputs.md
+# --------------------------------------------------------------------------------------------
+
+def output_captions(outputs_md: str | Path = OUTPUTS_MD) -> dict[str, str]:
+    """name -> caption: the first paragraph after each ``### `name` `` heading of docs/outputs.md."""
+    text = Path(outputs_md).read_text()
+    out = {}
+    for m in re.finditer(r"^### `([A-Za-z0-9_]+)`[^\n]*\n+(.+?)(?:\n\s*\n|\Z)", text, flags=re.M | re.S):
+        out[m[1]] = " ".join(line.strip() for line in m[2].splitlines())
+    return out
+
+
+def caption_rst(caption: str) -> str:
+    """A caption as reStructuredText (Markdown code spans and links made plain)."""
+    text = re.sub(r"\[([^\]]+)\]\([^)]+\)", r"\1", caption)
+    text = re.sub(r"(?<!`)`([^`]+)`(?!`)", r"``\1``", text)
+    return text.replace("*", "") + "\n"
+
+
+def write_captions(outputs_md: str | Path = OUTPUTS_MD, out_dir: str | Path = CAPTIONS_DIR) -> list[Path]:
+    """One caption file per table and figure (workflow/report/captions/{name}.rst)."""
+    captions = output_captions(outputs_md)
+    missing = [n for n in (*TABLE_NAMES, *FIGURE_NAMES) if n not in captions]
+    if missing:
+        raise KeyError(f"{outputs_md}: no '### `name`' section for {missing}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name in (*TABLE_NAMES, *FIGURE_NAMES):
+        path = out / f"{name}.rst"
+        path.write_text(caption_rst(captions[name]))
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a maintenance command
+    parser = argparse.ArgumentParser(prog="python -m physmorph.userdocs", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="what", required=True)
+    res = sub.add_parser("results", help="docs/results.md from results/{profile}/tables/")
+    res.add_argument("profile", nargs="?", default="default")
+    res.add_argument("--out", default=str(RESULTS_MD))
+    res.add_argument("--images", default=str(REPO_ROOT / "docs" / "images"),
+                     help="copy the profile's figures here and link them ('' links them in place)")
+    sub.add_parser("config", help="config/README.md from the settings")
+    sub.add_parser("captions", help="workflow/report/captions/ from docs/outputs.md")
+    args = parser.parse_args(argv)
+    if args.what == "results":
+        tree = REPO_ROOT / "results" / args.profile
+        path = write_results_doc(tree / "tables", args.out, args.profile, tree / "figures", args.images or None,
+                                 command=f"python -m physmorph.userdocs results {args.profile}")
+    elif args.what == "config":
+        CONFIG_README.write_text(config_reference())
+        path = CONFIG_README
+    else:
+        path = CAPTIONS_DIR
+        write_captions()
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,87 @@
+"""The generated user documentation (physmorph.userdocs): the results page from a profile's tables,
+the config reference against the schema, and the report captions against docs/outputs.md."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from physmorph.config_docs import FIELD_DOCS, SECTIONS
+from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
+from physmorph.userdocs import (CAPTIONS_DIR, CONFIG_README, OUTPUTS_MD, caption_rst, config_reference,
+                                output_captions, results_markdown, schema_keys, write_results_doc)
+
+
+def _fake_tables(d):
+    d.mkdir(parents=True)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "method": "full", "frames": 40, "alpha_mse_0": 0.06,
+                   "alpha_mse_best": 0.011, "best_frame": 37, "alpha_mse_final": 0.0112, "ceiling": 0.0101,
+                   "closed_best_%": 98.04, "closed_final_%": 97.6, "iou_0": 0.6, "iou_best": 0.9, "iou_final": 0.9,
+                   "ceiling_iou": 0.91, "volume_iou_0": 0.53, "volume_iou_final": 0.95,
+                   "overfilled_mass_final": 0.012, "paper_alpha_mse": 0.0546, "paper_which": "best"}]
+                 ).to_csv(d / "convergence.csv", index=False)
+    pd.DataFrame([{"direction": "full beats physics-only at matched convergence", "case": "bunny",
+                   "measure": "alpha MSE at the matched frame (frame 9)", "ours": 0.01306, "baseline": 0.01569,
+                   "ours_vs_baseline_%": 16.76, "holds": "yes", "paper": "+25.8 %"}]
+                 ).to_csv(d / "directions.csv", index=False)
+    pd.DataFrame([{"target": "bunny", "paper_physics_only": 0.0799, "paper_ours": 0.0593,
+                   "paper_improvement_%": 25.8, "frame": 9, "physics_only": 0.01569, "ours": 0.01306,
+                   "improvement_%": 16.76}]).to_csv(d / "main.csv", index=False)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "paper_best": 0.0546, "best": 0.0106, "closed_best_%": 98.0,
+                   "closed_final_%": 97.6},
+                  {"experiment": "sigma/mu %", "paper_best": 10.25, "best": 8.4, "closed_best_%": 1.5,
+                   "closed_final_%": 2.0}]).to_csv(d / "source_invariance.csv", index=False)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "variant": "with plasticity", "paper_rebound_%": "< 8",
+                   "best": 0.011, "final": 0.0112, "rebound_%": 0.0, "release_frames": 40, "release_final": 0.0115,
+                   "release_rebound_%": 1.2}]).to_csv(d / "plasticity.csv", index=False)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "frames": 40, "status": "complete", "physics_s": 0.64,
+                   "render_s": 0.08, "plasticity_s": 0.2, "mask_s": 0.03, "frame_s": 1.02, "peak_rss_mb": 707.0,
+                   "particles": 6736}]).to_csv(d / "timing.csv", index=False)
+
+
+def test_results_page_carries_the_tables_numbers(tmp_path):
+    tables = tmp_path / "results" / "default" / "tables"
+    _fake_tables(tables)
+    text = results_markdown(tables, "default", date="2026-11-24")
+    assert "Generated on 2026-11-24" in text and "results/default/tables/" in text
+    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.53 -> 0.95 | 1.2 % |" in text
+    assert "| 0.01306 | 0.01569 | 16.8 % | yes | +25.8 % |" in text      # a direction and whether it holds
+    assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text  # the main table beside the paper
+    assert "| sigma/mu % | 8.4 | 10.25 | 1.5 % |" in text                   # source invariance
+    assert "| 0.0 % | 1.2 % | 40 |" in text                                 # released rebound
+    assert "6,736 particles" in text
+
+
+def test_results_page_links_and_copies_figures(tmp_path):
+    tables = tmp_path / "tree" / "tables"
+    _fake_tables(tables)
+    figures = tmp_path / "tree" / "figures"
+    figures.mkdir()
+    (figures / "sequences_main.png").write_bytes(b"png")
+    out = write_results_doc(tables, tmp_path / "docs" / "results.md", "default", figures,
+                            images_dir=tmp_path / "docs" / "images")
+    text = out.read_text()
+    assert "![sequences_main](images/sequences_main.png)" in text
+    assert (tmp_path / "docs" / "images" / "sequences_main.png").read_bytes() == b"png"
+    assert "drag_ablation" not in text  # a figure not made is not linked
+
+
+def test_config_reference_documents_every_schema_key():
+    keys = [k for k, _ in schema_keys()]
+    undocumented = [k for k in keys if k not in FIELD_DOCS and k not in SECTIONS]
+    assert not undocumented, f"add these keys to physmorph/config_docs.py: {undocumented}"
+    stale = sorted(set(FIELD_DOCS) - set(keys))
+    assert not stale, f"physmorph/config_docs.py documents keys the schema no longer has: {stale}"
+    text = CONFIG_README.read_text()
+    for k in keys:
+        if k not in SECTIONS:
+            assert f"`{k}`" in text, k
+    assert text == config_reference(), "config/README.md is stale: python -m physmorph.userdocs config"
+
+
+def test_report_captions_come_from_outputs_md():
+    captions = output_captions(OUTPUTS_MD)
+    for name in (*TABLE_NAMES, *FIGURE_NAMES):
+        assert name in captions, f"docs/outputs.md has no section ### `{name}`"
+        path = CAPTIONS_DIR / f"{name}.rst"
+        assert path.read_text() == caption_rst(captions[name]), \
+            f"{path} is stale: python -m physmorph.userdocs captions"

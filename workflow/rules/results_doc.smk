@@ -1,0 +1,22 @@
+# Stage 8: the profile's results page, results/{profile}/results.md, from its tables and figures
+# (physmorph.userdocs; docs/results.md is the default profile's, `python -m physmorph.userdocs results`).
+rule results_doc:
+    input:
+        tables=expand(f"{R}/tables/{{table}}.csv", table=TABLES),
+        figures=figure_outputs(),
+    output:
+        f"{R}/results.md",
+    params:
+        tables_dir=f"{R}/tables",
+        figures_dir=f"{R}/figures",
+        profile=S.profile,
+    log:
+        f"{R}/logs/results_doc.log",
+    benchmark:
+        f"{R}/benchmarks/results_doc.tsv"
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    script:
+        "../scripts/results_doc.py"
