@@ -16,7 +16,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
-# Published SHA-256 of the raw benchmark meshes (../shared/meshes/SOURCES.md).
+# Published SHA-256 of the raw benchmark meshes (as pinned in config/config.yaml raw_meshes).
 RAW_MESH_SHA256 = {
     "stanford-bunny.obj": "1eb35d1e21ce99e5ce911353b6be278990713448dd9e8f5c9387f9de39b32205",
     "spot.obj": "0738b5e8608fed74e5e8c7aa8dd0af97b4b74f9f6cbf7aac84cd7e40b2e44a75",
