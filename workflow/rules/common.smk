@@ -72,3 +72,107 @@ def point_target(point):
 
 def point_settings(point):
     return S.point_config(POINTS[point])
+
+
+# ---- SLURM (workflow/profiles/slurm; docs/cluster.md). Under the SLURM executor a rule's threads
+# are capped at the CPUs of the largest node of its partition, and before anything is submitted
+# every job is checked against its partition (CPUs, memory, GPUs, time limit) and the cluster's
+# accounting: a job no node can hold stops the run with an error naming the setting, instead of
+# pending for ever. Other executors are untouched.
+from physmorph.cluster import ClusterError, JobRequest, cap_threads, check_account, check_accounting, check_job
+from physmorph.cluster import job_threads_here, read_cluster
+from snakemake.exceptions import WorkflowError
+from snakemake.logging import logger
+
+_SLURM = {}
+
+
+def _executor():
+    plugin = workflow.executor_plugin
+    return None if plugin is None else plugin.name
+
+
+def _cli_resource(rname, name):
+    """A resource given on the command line or in the profile (--set-resources, else --default-resources)."""
+    rs = workflow.resource_settings
+    for mapping in (rs.overwrite_resources.get(rname), rs.default_resources):
+        value = mapping.get(name) if mapping is not None else None
+        value = getattr(value, "value", value)
+        if value not in (None, ""):
+            return value
+    return None
+
+
+def slurm_cluster():
+    if "cluster" not in _SLURM:
+        try:
+            _SLURM["cluster"] = read_cluster()
+        except ClusterError as exc:
+            raise WorkflowError(f"the SLURM executor cannot read this cluster: {exc}")
+    return _SLURM["cluster"]
+
+
+def cluster_threads(rname, threads):
+    """The rule's threads (a callable for `threads:`): `threads` as given; with the SLURM executor at
+    most the CPUs of the largest node of the rule's partition; inside a SLURM job at most its CPUs."""
+    def rule_threads(wildcards):
+        executor = _executor()
+        if executor == "slurm":
+            try:
+                return cap_threads(threads, slurm_cluster().partition(_cli_resource(rname, "slurm_partition")))
+            except ClusterError:
+                return threads  # an unknown partition is reported by check_slurm_jobs, naming it
+        if executor == "slurm-jobstep":
+            return job_threads_here(threads)
+        return threads
+    return rule_threads
+
+
+def _source(rname, name, default):
+    if rname in workflow.resource_settings.overwrite_resources and \
+            workflow.resource_settings.overwrite_resources[rname].get(name) is not None:
+        return f"--set-resources {rname}:{name}"
+    return default
+
+
+def _known(value):
+    """A resource's number, or None where it is not known before the job's inputs exist."""
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def check_slurm_jobs():
+    """Every job to run fits a node of its partition, and the executor can see jobs end."""
+    if _executor() != "slurm":
+        return
+    cluster = slurm_cluster()
+    problems, account = [], None
+    for job in workflow.dag.needrun_jobs():
+        if job.is_local or job.is_norun:  # run by snakemake itself, not submitted
+            continue
+        rname, res = job.rule.name, job.resources
+        label = f"{rname} ({', '.join(f'{v}' for v in job.wildcards_dict.values())})" if job.wildcards_dict else rname
+        threads_from = (f"--set-threads {rname}={job.threads}" if rname in workflow.resource_settings.overwrite_threads
+                        else f"--set-resources {rname}:cpus_per_task" if res.get("cpus_per_task") else f"the {rname} rule's threads")
+        estimate = "its memory estimate (from sampling.*, target.*: a smaller profile)"
+        problems += check_job(JobRequest(
+            label=label, rule=rname, threads=int(res.get("cpus_per_task") or job.threads),
+            mem_mb=_known(res.get("mem_mb")), gpus=_known(res.get("gpu")) or 0,
+            runtime_min=_known(res.get("runtime")), partition=res.get("slurm_partition"),
+            threads_from=threads_from,
+            mem_from=_source(rname, "mem_mb", estimate if rname in ("morph", "tradeoff_point") else f"the {rname} rule's mem_mb"),
+            gpus_from=_source(rname, "gpu", "config key 'morph_gpus'"),
+            runtime_from=_source(rname, "runtime", f"the {rname} rule's runtime estimate")), cluster)
+        account = account or res.get("slurm_account")
+    accounting = check_accounting(cluster, getattr(workflow.executor_settings, "status_command", None))
+    if accounting:
+        problems.append(accounting)
+    if problems:
+        raise WorkflowError("these jobs could never start on this SLURM cluster (nothing was submitted):\n  - "
+                            + "\n  - ".join(problems))
+    note = check_account(cluster, account)
+    if note:
+        logger.warning(note)
+
+
+onstart:
+    check_slurm_jobs()

@@ -15,7 +15,7 @@ rule morph:
         f"{R}/logs/morph/{{experiment}}.log",
     benchmark:
         f"{R}/benchmarks/morph/{{experiment}}.tsv"
-    threads: S.threads
+    threads: cluster_threads("morph", S.threads)
     resources:
         mem_mb=lambda wc: mb(morph_memory(experiment_source(wc.experiment), S.sampling, S.target, S.mpm, S.domain, "")),
         runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(wc.experiment), S.sampling, S.domain),

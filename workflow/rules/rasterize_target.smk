@@ -15,7 +15,7 @@ rule rasterize_target:
         f"{R}/logs/rasterize_target/{{shape}}_{{res}}.log",
     benchmark:
         f"{R}/benchmarks/rasterize_target/{{shape}}_{{res}}.tsv"
-    threads: S.threads
+    threads: cluster_threads("rasterize_target", S.threads)
     resources:
         mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
         runtime=30,

@@ -18,7 +18,7 @@ rule rasterize_target_image:
         f"{R}/logs/rasterize_target/{{shape}}_{{res}}_{{img}}.log",
     benchmark:
         f"{R}/benchmarks/rasterize_target/{{shape}}_{{res}}_{{img}}.tsv"
-    threads: S.threads
+    threads: cluster_threads("rasterize_target_image", S.threads)
     resources:
         mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
         runtime=30,
@@ -42,7 +42,7 @@ rule tradeoff_point:
         f"{R}/logs/tradeoff/{{point}}.log",
     benchmark:
         f"{R}/benchmarks/tradeoff/{{point}}.tsv"
-    threads: S.threads
+    threads: cluster_threads("tradeoff_point", S.threads)
     resources:
         mem_mb=lambda wc: mb(morph_memory(experiment_source(S.tradeoff.experiment), point_settings(wc.point)[0],
                                           point_settings(wc.point)[1], S.mpm, S.domain, "")),
