@@ -10,7 +10,7 @@ WHEEL_DIR ?= /opt/wheels
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 WHEELS := $(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX))
 
-.PHONY: venv tables figures tradeoff report test dag recover clean-venv
+.PHONY: venv tables figures tradeoff report test gpu-check slurm-check dag recover clean-venv
 
 $(STAMP): environment.lock pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,16 @@ report: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
+
+# The solver and renderer on CUDA against the CPU (tests/test_gpu.py); skips, saying why, without
+# a usable CUDA device (and a CUDA build of torch).
+gpu-check: $(STAMP)
+	$(VENV)/bin/python -m pytest -m gpu -n 0 -rs tests/test_gpu.py
+
+# The SLURM profile on a one-node SLURM cluster brought up on this machine (root, Debian; docs/cluster.md).
+slurm-check: $(STAMP)
+	bash tests/cluster/slurm-up.sh
+	$(VENV)/bin/python -m pytest -m slurm -n 0 -rs tests/test_slurm.py
 
 dag: $(STAMP)
 	$(VENV)/bin/snakemake -n --cores $(CORES) tables

@@ -251,14 +251,32 @@ def check_job(job: JobRequest, cluster: Cluster) -> list[str]:
     return problems
 
 
-def check_accounting(cluster: Cluster, status_command: str | None) -> str | None:
-    """Why the executor could not see jobs end (None when it can)."""
-    if status_command == "squeue" or "none" not in cluster.accounting:
-        return None
-    return (f"SLURM job accounting is off here (AccountingStorageType={cluster.accounting}): the executor asks sacct "
-            "whether a job has ended and, without accounting, would wait for ever after the jobs finish. Turn "
-            "accounting on (slurmdbd; see docs/cluster.md), or run with --slurm-status-command squeue "
-            f"(which sees a job only for MinJobAge={cluster.min_job_age_s} s after it ends)")
+# the executor waits up to this long between two looks at the jobs' states
+STATUS_CHECK_MAX_S = 180
+
+
+def check_status(cluster: Cluster, status_command: str | None) -> str | None:
+    """Why the executor could not see every job end (None when it can).
+
+    With ``squeue`` (the profile's choice) a job is seen for MinJobAge seconds after it ends, which
+    must outlast the executor's longest wait between two looks. With ``sacct`` job accounting must
+    be on; and the executor does not recognise sacct's state of a cancelled job ('CANCELLED by
+    <uid>'), so a job cancelled with scancel (by a user or an admin) is never seen to end."""
+    accounting = "none" not in cluster.accounting
+    age = cluster.min_job_age_s
+    if status_command == "squeue":
+        if age is not None and age > STATUS_CHECK_MAX_S:
+            return None
+        return (f"SLURM keeps a finished job in squeue for MinJobAge={age} s, shorter than the executor's longest wait "
+                f"between two looks at the jobs ({STATUS_CHECK_MAX_S} s): a job that ends may vanish unseen and the run "
+                "wait for ever. Ask the site for MinJobAge >= 300 (SLURM's default)"
+                + (", or run with --slurm-status-command sacct (job accounting is on here; a job cancelled with "
+                   "scancel is then not seen to end)" if accounting else ""))
+    if not accounting:
+        return (f"SLURM job accounting is off here (AccountingStorageType={cluster.accounting}) and the executor "
+                "reads job states with sacct: it would wait for ever after the jobs finish. Run with "
+                "--slurm-status-command squeue (workflow/profiles/slurm does) or turn accounting on (slurmdbd)")
+    return None
 
 
 def check_account(cluster: Cluster, account: str | None) -> str | None:

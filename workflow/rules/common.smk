@@ -76,10 +76,10 @@ def point_settings(point):
 
 # ---- SLURM (workflow/profiles/slurm; docs/cluster.md). Under the SLURM executor a rule's threads
 # are capped at the CPUs of the largest node of its partition, and before anything is submitted
-# every job is checked against its partition (CPUs, memory, GPUs, time limit) and the cluster's
-# accounting: a job no node can hold stops the run with an error naming the setting, instead of
+# every job is checked against its partition (CPUs, memory, GPUs, time limit), and the way the
+# executor reads job states against the cluster's settings: a job no node can hold stops the run with an error naming the setting, instead of
 # pending for ever. Other executors are untouched.
-from physmorph.cluster import ClusterError, JobRequest, cap_threads, check_account, check_accounting, check_job
+from physmorph.cluster import ClusterError, JobRequest, cap_threads, check_account, check_job, check_status
 from physmorph.cluster import job_threads_here, read_cluster
 from snakemake.exceptions import WorkflowError
 from snakemake.logging import logger
@@ -97,9 +97,9 @@ def _cli_resource(rname, name):
     rs = workflow.resource_settings
     for mapping in (rs.overwrite_resources.get(rname), rs.default_resources):
         value = mapping.get(name) if mapping is not None else None
-        value = getattr(value, "value", value)
-        if value not in (None, ""):
-            return value
+        value = getattr(value, "raw", value)  # a snakemake Resource: its value as given
+        if isinstance(value, str) and value.strip("'\""):
+            return value.strip("'\"")
     return None
 
 
@@ -163,9 +163,9 @@ def check_slurm_jobs():
             gpus_from=_source(rname, "gpu", "config key 'morph_gpus'"),
             runtime_from=_source(rname, "runtime", f"the {rname} rule's runtime estimate")), cluster)
         account = account or res.get("slurm_account")
-    accounting = check_accounting(cluster, getattr(workflow.executor_settings, "status_command", None))
-    if accounting:
-        problems.append(accounting)
+    status = check_status(cluster, getattr(workflow.executor_settings, "status_command", None))
+    if status:
+        problems.append(status)
     if problems:
         raise WorkflowError("these jobs could never start on this SLURM cluster (nothing was submitted):\n  - "
                             + "\n  - ".join(problems))
