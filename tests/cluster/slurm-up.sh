@@ -45,7 +45,7 @@ if [ "${1:-up}" = down ]; then
     if pid_alive "$STATE/mysql/mariadb.pid"; then
         mysqladmin --socket="$STATE/mysql/mysqld.sock" shutdown 2>/dev/null || stop_pidfile "$STATE/mysql/mariadb.pid"
     fi
-    stop_pidfile "$STATE/munged.pid"
+    stop_pidfile "$STATE/munge/munged.pid"
     echo "slurm-up: daemons stopped (start them again with: bash tests/cluster/slurm-up.sh)"
     exit 0
 fi
@@ -80,8 +80,8 @@ if [ ! -s /etc/munge/munge.key ]; then
         || dd if=/dev/urandom of=/etc/munge/munge.key bs=1 count=128 status=none
 fi
 chown munge:munge /etc/munge/munge.key && chmod 400 /etc/munge/munge.key
-if ! pid_alive "$STATE/munged.pid"; then
-    runuser -u munge -- munged --pid-file="$STATE/munged.pid" --log-file="$STATE/munge/munged.log" \
+if ! pid_alive "$STATE/munge/munged.pid"; then
+    runuser -u munge -- munged --pid-file="$STATE/munge/munged.pid" --log-file="$STATE/munge/munged.log" \
         --seed-file="$STATE/munge/munged.seed" --socket=/run/munge/munge.socket.2 --force \
         || fail "munged did not start (see $STATE/munge/munged.log)"
 fi
