@@ -36,10 +36,10 @@ def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None,
     """
     solver.forward()
     solver.backward(None, None)
-    g_mass = solver.control_gradient()
+    # in the solver's precision (the norms are the solver's, accumulated in float64)
+    g_mass, n_mass = solver.control_gradient(native=True), solver.grad_norm
     # The injected part alone (a difference of the two would drown in float32 round-off).
     solver.backward(g_F, g_x, include_mass_loss=False)
-    g_inj = solver.control_gradient()
-    n_mass, n_inj = float(np.linalg.norm(g_mass)), float(np.linalg.norm(g_inj))
+    g_inj, n_inj = solver.control_gradient(native=True), solver.grad_norm
     ok = n_inj > 0 and np.isfinite(n_inj) and np.isfinite(n_mass)
     return InjectionCalibration(gamma * n_mass / n_inj if ok else 0.0, g_mass, g_inj)

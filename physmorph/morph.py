@@ -94,13 +94,18 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     # The mask is only built where something uses it (a switched-off component costs nothing).
     need_mask = cfg.method != "physics_only" or not cfg.metric_all_particles
 
-    def metrics_for(st: ParticleState, mask: np.ndarray) -> tuple[dict, np.ndarray]:
+    # The loss render of a frame is the metric's render when it draws the same particles (the
+    # mask) from every view: plasticity and the momentum restart change neither x nor F.
+    loss_render_is_metric = not cfg.metric_all_particles and len(views) == V
+
+    def metrics_for(st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
         sel = slice(None) if cfg.metric_all_particles else mask
-        alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
+        if alpha is None:
+            alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
         iou = silhouette_iou(alpha, target.alpha)
         det = np.linalg.det(st.Fp)
-        d, _ = tree.query(st.x, k=1)
+        d, _ = tree.query(st.x, k=1, workers=-1)
         return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
                 "fp_anisotropy_max": float(anisotropy(st.Fp).max()),
                 "elastic_energy": float(elastic_energy(st, cfg.mpm)), "kinetic_energy": kinetic_energy(st),
@@ -226,7 +231,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             if rebase_to is not None:
                 solver.set_control(rebase_control(st.F, solver.control(), Fp_old, rebase_to))
         t4 = time.time()
-        m, per_view = metrics_for(st, mask)
+        m, per_view = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
         if restart_on:

@@ -122,7 +122,7 @@ class PlasticityConfig:
 
 def nearest_target_displacement(x: np.ndarray, target_tree: cKDTree, target_points: np.ndarray) -> np.ndarray:
     """d_i = NN_T(x_i) - x_i.   x: [N, 3] -> [N, 3]"""
-    _, idx = target_tree.query(x, k=1)
+    _, idx = target_tree.query(x, k=1, workers=-1)
     return target_points[idx] - x
 
 
@@ -299,7 +299,7 @@ def chamfer_plasticity_step(
         tree = target_tree if target_tree is not None else cKDTree(target_points)
         d_raw = nearest_target_displacement(x, tree, target_points)
     k = min(cfg.k_neighbors, len(x))
-    _, neighbors = cKDTree(x).query(x, k=k)
+    _, neighbors = cKDTree(x).query(x, k=k, workers=-1)
     neighbors = np.asarray(neighbors).reshape(len(x), k)
     d = knn_smooth(d_raw, neighbors, cfg.smooth_iters)
     J = displacement_jacobian(x, d, neighbors, cfg.jacobian)

@@ -57,7 +57,8 @@ def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConf
         return np.ones(len(x), bool)
     verts, _, _, _ = measure.marching_cubes(rho, level=level)
     verts = lo + (verts + 0.5) * h  # voxel index -> domain position of the voxel centre
-    dist, _ = cKDTree(verts).query(x, k=1)
+    # only "within the band" matters: the bounded query prunes the far particles (inf distance)
+    dist, _ = cKDTree(verts).query(x, k=1, distance_upper_bound=cfg.band * h * (1.0 + 1e-9), workers=-1)
     return dist <= cfg.band * h
 
 
@@ -74,7 +75,7 @@ def update_surface_mask(
     if not cfg.enabled:
         return np.ones(len(x), bool)
     mask = density_surface_mask(x, volume, cfg, lo, hi)
-    dist, _ = target_tree.query(x, k=1)
+    dist, _ = target_tree.query(x, k=1, distance_upper_bound=cfg.target_band * (1.0 + 1e-9), workers=-1)
     mask |= dist <= cfg.target_band
     if previous is not None:
         mask |= previous
