@@ -1,12 +1,13 @@
 """Seconds per frame by stage (physics, render, plasticity, mask) of the morph loop.
 
     python benchmarks/bench_morph.py                     # default profile, iso -> bunny, full
-    python benchmarks/bench_morph.py --profile paper --frames 2
+    python benchmarks/bench_morph.py --profile mid --frames 4
+    python benchmarks/bench_morph.py --profile paper --frames 4
     python benchmarks/bench_morph.py --workdir /tmp/bench_morph --experiment iso_bunny_full
 
 Prepares the source particles and the target in --workdir (reused on later calls), then runs the
 experiment for --frames frames with plasticity active from the first frame (so every stage is
-timed) and prints the mean seconds per stage over the frames after the first (which includes
+timed, no release frames) and prints the mean seconds per stage over the frames after the first (which includes
 Taichi compilation) and the peak RSS.
 """
 
@@ -31,7 +32,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--profile", default="default", choices=["default", "paper", "test"])
+    ap.add_argument("--profile", default="default", choices=["default", "mid", "paper", "test"])
     ap.add_argument("--experiment", default="iso_bunny_full")
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--workdir", default="/tmp/physmorph_bench_morph")
@@ -56,7 +57,7 @@ def main() -> None:
             rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg.target, 0)
     prep = time.time() - t_prep
     mc = morph_config(cfg, args.experiment)
-    mc = dataclasses.replace(mc, frames=args.frames, save_every=args.frames,
+    mc = dataclasses.replace(mc, frames=args.frames, save_every=args.frames, release_frames=0,
                              plasticity=dataclasses.replace(mc.plasticity, start_frame=1))
     out = wd / "run.h5"
     out.unlink(missing_ok=True)

@@ -557,7 +557,7 @@ class Settings:
         mpm_hints = get_type_hints(MPMConfig)
         s.check_memory(types.SimpleNamespace(**{
             k: coerce(raw_mpm[k], mpm_hints[k], f"mpm.{k}") if k in raw_mpm else getattr(MPMConfig, k)
-            for k in ("substeps", "precision", "control")}))
+            for k in ("substeps", "precision", "control", "optimizer")}))
         mpm = build(MPMConfig, cfg.get("mpm"), "mpm", derived=_section_derived("mpm", s.sampling, s.device, s.domain))
         render = build(RenderConfig, cfg.get("render"), "render", derived=_section_derived("render", s.sampling, s.device, s.domain))
         plasticity = build(PlasticityConfig, cfg.get("plasticity"), "plasticity")
@@ -812,9 +812,12 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
     n = particle_estimate(source, sampling, domain)
     scale = 2 if mpm.precision == "float64" else 1
     slots = mpm.substeps if mpm.control == "per_substep" else 1
-    per_particle = mpm.substeps * 96 * scale + slots * 144 * scale + MORPH_BYTES_PER_PARTICLE
+    # stored per substep: x, v, C, F and the polar rotation and pair sum (136 B in float32); per
+    # control slot dFc and its gradient (72 B), and Adam's two moments when Adam runs (72 B)
+    moments = 72 if mpm.optimizer == "adam" else 0
+    per_particle = mpm.substeps * 136 * scale + slots * (72 + moments) * scale + MORPH_BYTES_PER_PARTICLE
     pixels = target.cameras * target.width * target.height
-    grid = sampling.grid_res ** 3 * 64 * scale
+    grid = sampling.grid_res ** 3 * (64 + 16 * mpm.substeps) * scale  # and the P2G grid kept per substep
     mb = BASE_PROCESS_MB + (n * per_particle + grid + pixels * 64) / 2**20
     return MemoryEstimate(stage, mb, f"~{n:,} particles x {per_particle:,.0f} B + grid {sampling.grid_res}^3 x "
                                      f"{64 * scale} B + {target.cameras} x {target.width}x{target.height} images x 64 B")

@@ -22,8 +22,8 @@ actuation); F itself is advected by the grid velocity. The end-layer mass loss c
 grid mass of x_T (same quadratic B-spline as physmorph.grid.splat_mass) with the target.
 
 Backward: the adjoint of each substep is written by hand (reverse of G2P, grid update, P2G);
-the per-substep particle state (x, v, C, F) is stored in the forward and the grid is recomputed
-in the backward (P2G again, keeping A, Fe and its polar factors). The stress model and its
+the per-substep particle state (x, v, C, F), the rotation of Fe with its smallest pair sum, and
+the P2G grid are stored in the forward; the backward restores A and Fe from them (no second SVD). The stress model and its
 hand-written differential, the rotation derivative included, are in physmorph.mpm.stress.
 """
 
@@ -103,6 +103,13 @@ class MPMSolver:
         self.R_s = mat.field(shape=N)
         self.S_s = mat.field(shape=N)
         self.gap_s = ti.field(f, shape=N)
+        # the forward's rotation of Fe and smallest pair sum per substep, and its P2G grid: the
+        # backward restores them instead of running P2G (and its SVD) again, which was 55 % of a
+        # backward (kernel profiler, 471K particles); 40 B per particle per substep in float32
+        self.R_t = mat.field(shape=(T, N))
+        self.gap_t = ti.field(f, shape=(T, N))
+        self.grid_m_t = ti.field(f, shape=(T, R, R, R))
+        self.grid_mv_t = vec.field(shape=(T, R, R, R))
         self._stress_model = make_stress_funcs(f, cfg.mu, cfg.lam, cfg.volume_law)
         # compile-time constants of the kernels
         self._dx = cfg.dx
@@ -183,11 +190,11 @@ class MPMSolver:
             self.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
 
     @ti.kernel
-    def _p2g(self, t: ti.i32, save: ti.template()):
+    def _p2g(self, t: ti.i32):
         """Fe = (F + dFc_t) Fp^-1, A = -dt V0 (4/dx^2) P(Fe) Fe^T + m C;
         mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p.
-        With save (the backward's recompute) A, Fe and the polar factors of Fe go to the scratch
-        fields, so _p2g_backward needs no second SVD."""
+        The rotation of Fe and its pair sum are kept per substep (R_t, gap_t), so the backward
+        (_restore_p2g) needs no second SVD."""
         slot = t if ti.static(self.cfg.control == "per_substep") else 0
         kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         for p in range(self.n):
@@ -195,22 +202,48 @@ class MPMSolver:
             base, fx, w, dw = self._stencil(xp)
             Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
             R, S, gap = self._stress_model.polar(Fe)
+            self.R_t[t, p] = R
+            self.gap_t[t, p] = gap
             P = self._stress_model.stress_from_polar(Fe, R)
             A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
             if ti.static(self._pressure_on):  # Kirchhoff stress -p I; constant in the frame, so the
-                # backward's x adjoint (through A, saved below) is all it needs
+                # backward's x adjoint (through A, restored by _restore_p2g) is all it needs
                 A += (self.dtype(self.cfg.dt) * self.vol[p] * kq * self.press[p]) * ti.Matrix.identity(self.dtype, 3)
-            if ti.static(save):
-                self.A_s[p] = A
-                self.Fe_s[p] = Fe
-                self.R_s[p] = R
-                self.S_s[p] = S
-                self.gap_s[p] = gap
             mom = self.mass[p] * (1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)) * self.v[t, p]
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 self.grid_mv[base + off] += wt * (mom + A @ dpos)
                 self.grid_m[base + off] += wt * self.mass[p]
+
+    @ti.kernel
+    def _store_grid(self, t: ti.i32):
+        """Keep substep t's P2G grid (m_I, mv_I) for the backward."""
+        for I in ti.grouped(self.grid_m):
+            self.grid_m_t[t, I] = self.grid_m[I]
+            self.grid_mv_t[t, I] = self.grid_mv[I]
+
+    @ti.kernel
+    def _restore_p2g(self, t: ti.i32):
+        """The backward's scratch (A, Fe, its polar factors) and substep t's grid, from the forward's stored polar factors and grid:
+        Fe = (F + dFc_t) Fp^-1, R and gap as stored, S = sym(R^T Fe), A as in _p2g."""
+        slot = t if ti.static(self.cfg.control == "per_substep") else 0
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
+        for I in ti.grouped(self.grid_m):
+            self.grid_m[I] = self.grid_m_t[t, I]
+            self.grid_mv[I] = self.grid_mv_t[t, I]
+        for p in range(self.n):
+            Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
+            R = self.R_t[t, p]
+            S0 = R.transpose() @ Fe
+            P = self._stress_model.stress_from_polar(Fe, R)
+            A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
+            if ti.static(self._pressure_on):
+                A += (self.dtype(self.cfg.dt) * self.vol[p] * kq * self.press[p]) * ti.Matrix.identity(self.dtype, 3)
+            self.A_s[p] = A
+            self.Fe_s[p] = Fe
+            self.R_s[p] = R
+            self.S_s[p] = 0.5 * (S0 + S0.transpose())
+            self.gap_s[p] = self.gap_t[t, p]
 
     @ti.kernel
     def _p2g_backward(self, t: ti.i32):
@@ -635,7 +668,8 @@ class MPMSolver:
         self._require_loaded()
         for t in range(self.cfg.substeps):
             self._clear_grid()
-            self._p2g(t, False)
+            self._p2g(t)
+            self._store_grid(t)
             self._grid_update()
             self._g2p(t)
         self._forward_current = False
@@ -674,8 +708,7 @@ class MPMSolver:
             self._loss_with_adjoint()
             self._loss_backward()
         for t in reversed(range(self.cfg.substeps)):
-            self._clear_grid()
-            self._p2g(t, True)
+            self._restore_p2g(t)
             self._grid_update()
             self._clear_grid_adj()
             self._g2p_backward(t)
@@ -926,8 +959,9 @@ class MPMSolver:
         return self._grad_norm
 
     def bytes_per_particle_substep(self) -> int:
-        """Stored state per particle per substep: x, v (3 each), C, F (9 each) floats."""
-        return 24 * np.dtype(self.np_dtype).itemsize
+        """Stored per particle per substep: x, v (3 each), C, F (9 each) and the forward's polar
+        rotation (9) and pair sum (1): 34 floats."""
+        return 34 * np.dtype(self.np_dtype).itemsize
 
     # ------------------------------------------------------------------ helpers
     def _require_loaded(self) -> None:
