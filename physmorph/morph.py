@@ -1,7 +1,7 @@
 """The morph loop (paper Algorithm 1) as a resumable experiment writing one run HDF5.
 
 Per frame k = 1..K, from the state promoted from frame k-1:
-A. physics: J Adam iterations on the control field dFc against the end-layer mass loss, with the
+A. physics: J optimiser iterations (normalised GD with line search by default) on the control field dFc against the end-layer mass loss, with the
    previous frame's render gradient injected on the final F (gamma * dL/dF; methods f_inject and
    full) or on the final x (gamma_x * dL/dx; the position_inject negative control);
 B. render: the surface-masked particles as Gaussians Sigma = sigma0^2 F F^T from V ring cameras;
@@ -274,7 +274,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
 def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, log, name: str) -> list[float]:
     """Alpha MSE of ``st`` and of ``frames`` frames simulated from it with the control off (dFc = 0,
     no optimisation, no plasticity): what the rest state Fp keeps of the morph once nothing holds it
-    (the paper's rebound, section 3.4, without the control that hides it here; docs/convergence.md).
+    (the paper's rebound, section 3.4, without the control that hides it here; docs/study/log.md).
     A divergence ends the curve (the remaining frames are NaN)."""
     curve = [alpha_mse(st)]
     solver.reset_control()

@@ -27,7 +27,7 @@ right-multiplies by M_i^{-1} so an affine field is recovered exactly;
 Update rule. The printed update integrates the Chamfer field: while the physics has not yet
 closed a gap, every frame adds eta dFp again, so Fp keeps growing after the shape has arrived and
 the stress from Fe = F Fp^-1 then pushes it past the target (an integrator's wind-up; with
-eta = 0.2 the default profile overshoots and pins det Fp at its bound, docs/convergence.md).
+eta = 0.2 the default profile overshoots and pins det Fp at its bound, docs/study/log.md).
 ``target_rest`` has a fixed point set by the current state instead of by the history: with the
 particle on the target (dFp = 0) Fp relaxes to F, so Fe -> I and the arrived shape is the rest
 shape (no restoring force, no rebound); away from it Fe -> (I + dFp)^-1, an elastic pull toward
@@ -53,40 +53,40 @@ class PlasticityConfig:
     # run's params, so runs made with the old default rerun
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
                                                              "eta", "correspondence", "start_frame"})
-    # base rate (the paper: 0.2; config/paper.yaml uses it; 0.02 until session 15, with the
+    # base rate (the paper: 0.2; config/paper.yaml uses it; 0.02 until 2026-11-24, with the
     # nearest-point correspondence; see config/config.yaml)
     eta: float = 0.1
     k_neighbors: int = 64
     smooth_iters: int = 3
     damping: float = 0.05  # d_p
-    # k0 (the paper: 20 of 90 frames; 10 until session 15, 5 in it): transport destinations need
-    # no warm-up, and starting early halves the particles torn off thin features (docs/convergence.md 104-106)
+    # k0 (the paper: 20 of 90 frames; 10, then 5, until 2026-11-24): transport destinations need
+    # no warm-up, and starting early halves the particles torn off thin features (docs/study/log.md findings 104-106)
     start_frame: int = 2
     det_bounds: tuple[float, float] = (0.5, 2.0)
     max_anisotropy: float = 4.0
     jacobian: Literal["paper", "least_squares"] = "paper"
     update: Literal["incremental", "target_rest"] = "incremental"  # module docstring
     # where each particle is pulled: "nearest", the nearest target surface point (the paper's);
-    # "transport" (the default since session 15), its destination in an entropic optimal-transport
+    # "transport" (the default since 2026-11-24), its destination in an entropic optimal-transport
     # plan from the source at rest to the target's grid mass (physmorph.transport; computed once
     # per run, blur = one grid cell)
     correspondence: Literal["nearest", "transport"] = "transport"
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
     # move the control (or the shape, absorb_target) into Fp at the updates absorb_start_frame
     # picks; the default, the shape at the last update only, commits the final shape to the rest
-    # state without changing the run, so it persists with the control off (docs/convergence.md 49)
+    # state without changing the run, so it persists with the control off (docs/study/log.md finding 49)
     absorb_control: bool = True
     absorb_rate: float = 1.0  # share of the control moved into Fp per update (absorb_control)
     # what absorb_control moves into Fp: "control", the elastic deformation the control produced
     # (absorb_control(); a driving stress, which a released body keeps following; the whole update
     # is then re-based), or "shape", the stretch of F (absorb_shape(): the achieved shape becomes
     # stress-free; only that is re-based, the Chamfer step stays a stress unless continuous_stress;
-    # docs/convergence.md items 46-47)
+    # docs/study/log.md findings 46-47)
     absorb_target: Literal["control", "shape"] = "shape"
     # first frame that absorbs: None, every update (from start_frame); n >= 0, from frame n; -n, the
     # last n frames (-1: only the last, which commits the achieved shape to the rest state without
     # changing the run). Before it the update is the plain one (re-based only with
-    # continuous_stress). docs/convergence.md, session 9.
+    # continuous_stress). docs/study/log.md part 9.
     absorb_start_frame: int | None = -1
 
     def absorbs_at(self, frame: int, frames: int) -> bool:
@@ -206,7 +206,7 @@ def absorb_control(
 
     Why: the persistent control enters the stress and so holds the achieved shape by itself; the
     rest state never learns it, and with the control switched off the body springs back
-    (docs/convergence.md, the release probe). Moving the control into Fp (then re-basing the
+    (docs/study/log.md, the release probe). Moving the control into Fp (then re-basing the
     control with rebase_control, which leaves it with zero mean) turns the achieved deformation
     into the material's rest state, the role section 3.4 gives plasticity. Particles whose
     F + mean dFc is near-singular keep their Fp.
@@ -228,8 +228,8 @@ def absorb_shape(
     corotated stress vanishes and the achieved shape is the rest shape (plastic flow to it).
 
     Why: absorb_control keeps the elastic deformation the *control* produced, which is the stress
-    that drives the body; released, the body goes on along it, past the target (docs/convergence.md
-    item 42). This variant keeps the shape instead: with the control re-based afterwards
+    that drives the body; released, the body goes on along it, past the target (docs/study/log.md
+    finding 42). This variant keeps the shape instead: with the control re-based afterwards
     (rebase_control) the running morph sees the same stress, and a released one has none.
     Particles with det F <= 1e-3 (near-inverted) keep their Fp.
     """
@@ -263,9 +263,8 @@ def rebase_reference(
     """The Fp to re-base the control onto (rebase_control), so Fe is continuous across that much of
     the update; None: no re-base, the update is a stress step (the default).
 
-    The whole update with continuous_stress, and while the control is absorbed (as measured in
-    session 3); only the absorption while the shape is absorbed, so the Chamfer step's pull toward
-    the target remains a stress, as in the default (docs/convergence.md item 47).
+    The whole update with continuous_stress, and while the control is absorbed (as measured in docs/study/log.md part 3); only the absorption while the
+    shape is absorbed, so the Chamfer step's pull toward the target remains a stress, as in the default (docs/study/log.md finding 47).
     """
     if cfg.continuous_stress or (absorbing and cfg.absorb_target == "control"):
         return Fp_new

@@ -1,5 +1,5 @@
 """Optimal-transport correspondences between a source's particles and a target's mass (not in the
-paper; plasticity.correspondence = "transport", docs/convergence.md session 15).
+paper; plasticity.correspondence = "transport", docs/study/log.md part 15).
 
 The paper's plasticity (section 3.4) moves each particle's rest state toward its nearest target
 surface point. From a far source that map is many-to-one: a cow's legs and head all project onto

@@ -1,4 +1,4 @@
-"""Differentiable MPM solver (paper section 4, "Physics rollout"; SPEC section 4A).
+"""Differentiable MPM solver (paper section 4, "Physics rollout").
 
 Design decisions (documented here and in the docstrings they refer to):
 
@@ -9,7 +9,7 @@ Design decisions (documented here and in the docstrings they refer to):
   F <- (I + dt C) F, then smoothed F <- (1 - s) F + s F_prev. Drag scales the P2G momentum by
   (1 - dt d). No gravity.
 * Control: ``MPMConfig.control`` = "per_substep" (default, the paper code: one dFc per particle
-  per substep, Adam on each) or "per_frame" (one dFc per particle shared by the T substeps).
+  per substep, each stepped by the optimiser) or "per_frame" (one dFc per particle shared by the T substeps).
 * Warm start: dFc and the Adam moments persist across frames by default
   (``MPMConfig.warm_start=True``); the morph loop need not call reset_control. With
   warm_start=False, load_state resets them every frame.

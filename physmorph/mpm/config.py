@@ -61,7 +61,7 @@ class MPMConfig:
         but its pull on a node falls as 1/m, so mass packed into a few nodes is cheap.
         "sqrt": L = sum_I (sqrt(m_I + eps) - sqrt(m*_I + eps))^2 (a squared Hellinger distance),
         between the two: a node's pull, (1 - sqrt((m* + eps) / (m + eps))), stays bounded as m grows
-        and as it falls to zero (docs/convergence.md, session 11).
+        and as it falls to zero (docs/study/log.md part 11).
         "log_bounded": the log loss where m_I <= m*_I (empty and thin nodes), and above it
         (4 / (m*_I + eps)) (sqrt(m_I + eps) - sqrt(m*_I + eps))^2, the sqrt loss scaled to the log
         loss's curvature at m = m* (C^2 there): an overfilled node pulls with up to 4 / (m* + eps)
@@ -76,7 +76,7 @@ class MPMConfig:
         the target's own where that is more. It is zero wherever a node holds no more than the
         target or the cap, so it never pulls against the target; where the log loss's pull falls
         as 1/m on a packed node, this adds a pull the optimiser sees within the frame
-        (docs/convergence.md, session 15).
+        (docs/study/log.md part 15).
     overfill_ratio: the density ratio of that cap (the sampled shapes at rest reach ~2x their
         density at the 99th percentile, on their surface shell).
     warm_start: True keeps dFc and the Adam moments across frames (load_state does not touch
@@ -98,19 +98,19 @@ class MPMConfig:
         to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
         iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
-        each substep's motion. "isochoric" (the default since study session 13; not in the
+        each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
         F_s, so the volume ratio J = det F follows the motion exactly (J' = det(I + dt C') J) and
         only the shape is smoothed. With "full", a morph can pack its material at many times its
         density while det F stays near 0.9, since the elastic stress sees 4.5 % of the
-        compression (docs/convergence.md, items 62, 69-71 and 74).
+        compression (docs/study/log.md findings 62, 69-71 and 74).
     volume_stiffness: K (Pa) of a pressure that resists packing, 0 = off (the paper has none).
         At each frame's start every particle's density rho_p = sum_I w_Ip m_I / dx^3 is measured
         from the P2G mass; where it exceeds volume_onset x density, the particle carries the
         pressure p = K ln(rho_p / (volume_onset density)) through the frame's substeps (Kirchhoff
         stress -p I in the P2G affine term). The F smoothing lets F follow ~4.5 % of the motion, so
         the elastic stress barely sees compression and a morph can pack its material at many
-        times its density (docs/convergence.md, items 62 and 67); this term measures the packing
+        times its density (docs/study/log.md findings 62 and 67); this term measures the packing
         from the particles' positions instead. Held fixed within the frame, it is a known force
         to that frame's control, so the control gradient is exact (the initial-state gradient
         holds it fixed too).
@@ -121,12 +121,12 @@ class MPMConfig:
         vanishes as J -> 0, so material compressed past half its volume resists less the more it
         is compressed. "barrier" (not the paper's): lam (J - 1 - ln J), equal to second order at
         J = 1, pressure lam (J - 1) growing with the compression, energy unbounded as J -> 0
-        (docs/convergence.md, session 15).
-    min_volume_ratio: a floor J_min on det F (0.25 since study session 13; 0 = off, the paper has
+        (docs/study/log.md part 15).
+    min_volume_ratio: a floor J_min on det F (0.25 since 2026-11-24; 0 = off, the paper has
         none; it acts under isochoric smoothing only, where the rescaled blend takes det F' =
         max(det F_new, J_min); the paper's blend has no det F to hold). The fixed-corotated stress
         stays finite as det F -> 0, so under a strong control a particle can be crushed to a
-        singular F, whose smoothed blend the rescale then blows up (docs/convergence.md item 76).
+        singular F, whose smoothed blend the rescale then blows up (docs/study/log.md finding 76).
         The authors' code bounds det F in compression too (a trust region on C).
     control_clip: if > 0, dFc entries are clamped to [-control_clip, control_clip] after each
         Adam step (0 = off, the paper's behaviour).
@@ -149,7 +149,7 @@ class MPMConfig:
     smoothing_mode: Literal["full", "isochoric"] = "isochoric"
     control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
-    learning_rate: float = 0.004  # 0.001 until study session 7, 0.002 until 13 (docs/convergence.md)
+    learning_rate: float = 0.004  # history: docs/study/CHANGELOG.md
     optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
     line_search_iters: int = 10
     step_clip: float = 3.0

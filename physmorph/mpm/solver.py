@@ -1,5 +1,5 @@
 """Differentiable MLS-MPM solver with hand-written reverse kernels (paper section 4, "Physics
-rollout"; SPEC section 4A).
+rollout").
 
 One substep t (state s_t = (x, v, C, F), control dFc_t, constants Fp, m, V0):
 
@@ -43,7 +43,7 @@ _BLOWUP = 1e8
 
 @ti.data_oriented
 class MPMSolver:
-    """Differentiable MPM over one frame of T substeps, with the control field dFc and Adam.
+    """Differentiable MPM over one frame of T substeps, with the control field dFc and its optimisers (normalised GD, Adam).
 
     Built once per (config, particle count); ``load_state`` each frame. See the module docstring
     for the equations and physmorph/mpm/__init__.py for the design decisions.
@@ -781,7 +781,7 @@ class MPMSolver:
                          iters: int | None = None,
                          first_gradient: np.ndarray | None = None,  # [Tc, N, 3, 3]
                          learning_rate: float | None = None) -> dict:
-        """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> Adam on dFc,
+        """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> a step on dFc (cfg.optimizer),
         then a last forward with the updated dFc (its loss is loss_final; rollout() returns it).
 
         first_gradient: the first iteration's dFc gradient (mass loss + injected terms) when the
