@@ -98,14 +98,15 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     # mask) from every view: plasticity and the momentum restart change neither x nor F.
     loss_render_is_metric = not cfg.metric_all_particles and len(views) == V
 
-    def metrics_for(st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
+    def metrics_for(st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
+                    target_distance: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
         sel = slice(None) if cfg.metric_all_particles else mask
         if alpha is None:
             alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
         iou = silhouette_iou(alpha, target.alpha)
         det = np.linalg.det(st.Fp)
-        d, _ = tree.query(st.x, k=1, workers=-1)
+        d = tree.query(st.x, k=1, workers=-1)[0] if target_distance is None else target_distance
         return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
                 "fp_anisotropy_max": float(anisotropy(st.Fp).max()),
                 "elastic_energy": float(elastic_energy(st, cfg.mpm)), "kinetic_energy": kinetic_energy(st),
@@ -192,9 +193,13 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
         t1 = time.time()
+        # each particle's nearest target surface point, shared by the mask, the plasticity's
+        # nearest-point map and the Chamfer metric (x is the same for all: plasticity changes only Fp)
+        nearest_d, nearest_i = tree.query(st.x, k=1, workers=-1)
         # Surface mask on the new state.
         if need_mask:
-            mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask)
+            mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask,
+                                       target_distance=nearest_d)
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
@@ -220,7 +225,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             if cfg.plasticity.correspondence == "transport" and destination is None:
                 destination = destinations_in_grid_mass(parts.x, parts.mass, target.grid_mass, target.grid)
             pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress,
-                                         destination=destination)
+                                         destination=destination, nearest_index=nearest_i)
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
             try:  # before the re-base: a bad Fp is named as such, not as a bad control
@@ -231,7 +236,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             if rebase_to is not None:
                 solver.set_control(rebase_control(st.F, solver.control(), Fp_old, rebase_to))
         t4 = time.time()
-        m, per_view = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None)
+        m, per_view = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None,
+                                  target_distance=nearest_d)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
         if restart_on:

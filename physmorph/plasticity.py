@@ -345,6 +345,7 @@ def chamfer_plasticity_step(
     target_tree: cKDTree | None = None,
     F: np.ndarray | None = None,  # [N, 3, 3] the deformation the stress sees (F + dFc), for update="target_rest"
     destination: np.ndarray | None = None,  # [N, 3] per-particle destinations (correspondence="transport")
+    nearest_index: np.ndarray | None = None,  # [N] index of each x's nearest target point, when the caller has it
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring); with
     ``destination`` step 1 is d_i = destination_i - x_i."""
@@ -352,7 +353,8 @@ def chamfer_plasticity_step(
         d_raw = np.asarray(destination, dtype=np.float64) - x
     else:
         tree = target_tree if target_tree is not None else cKDTree(target_points)
-        d_raw = nearest_target_displacement(x, tree, target_points)
+        d_raw = (nearest_target_displacement(x, tree, target_points) if nearest_index is None
+                 else target_points[nearest_index] - x)
     k = min(cfg.k_neighbors, len(x))
     dist, neighbors = cKDTree(x).query(x, k=k, workers=-1)
     neighbors = np.asarray(neighbors).reshape(len(x), k)

@@ -70,12 +70,15 @@ def update_surface_mask(
     lo: float,
     hi: float,
     previous: np.ndarray | None = None,  # [N] bool
+    target_distance: np.ndarray | None = None,  # [N] distance of x to the target surface, when known
 ) -> np.ndarray:
     """Density mask ∪ near-target particles ∪ previous mask (never shrinks). Returns [N] bool."""
     if not cfg.enabled:
         return np.ones(len(x), bool)
     mask = density_surface_mask(x, volume, cfg, lo, hi)
-    dist, _ = target_tree.query(x, k=1, distance_upper_bound=cfg.target_band * (1.0 + 1e-9), workers=-1)
+    dist = target_distance
+    if dist is None:
+        dist, _ = target_tree.query(x, k=1, distance_upper_bound=cfg.target_band * (1.0 + 1e-9), workers=-1)
     mask |= dist <= cfg.target_band
     if previous is not None:
         mask |= previous
