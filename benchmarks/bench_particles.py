@@ -1,6 +1,6 @@
 """Benchmark the mesh and particle stages: prepared vs raw volume, particle counts and wall time.
 
-    python benchmarks/bench_particles.py [--mesh-dir ../shared/meshes] [--configs 32:2:1 64:5:1]
+    python benchmarks/bench_particles.py [--mesh-dir DIR] [--configs 32:2:1 64:5:1]
 
 Prints one Markdown table row per shape and sampling setting. Times are wall-clock seconds of
 prepare_mesh and of sample_particles (sampling + nearest-neighbour d_nn + HDF5 write).
