@@ -4,6 +4,7 @@
     python benchmarks/bench_morph.py --profile mid --frames 4
     python benchmarks/bench_morph.py --profile paper --frames 4
     python benchmarks/bench_morph.py --workdir /tmp/bench_morph --experiment iso_bunny_full
+    python benchmarks/bench_morph.py --profile paper --device cuda   # solver and renderer on a GPU
 
 Prepares the source particles and the target in --workdir (reused on later calls), then runs the
 experiment for --frames frames with plasticity active from the first frame (so every stage is
@@ -35,11 +36,12 @@ def main() -> None:
     ap.add_argument("--profile", default="default", choices=["default", "mid", "paper", "test"])
     ap.add_argument("--experiment", default="iso_bunny_full")
     ap.add_argument("--frames", type=int, default=4)
+    ap.add_argument("--device", default=None, choices=["cpu", "cuda"], help="the config's `device` (default: the profile's)")
     ap.add_argument("--workdir", default="/tmp/physmorph_bench_morph")
     ap.add_argument("--mesh-dir", default=os.environ.get("PHYSMORPH_MESH_DIR", str(REPO.parent / "shared" / "meshes")))
     args = ap.parse_args()
     files = [REPO / "config/config.yaml"] + ([REPO / f"config/{args.profile}.yaml"] if args.profile != "default" else [])
-    cfg = load_settings(*files)
+    cfg = load_settings(*files, overrides={"device": args.device} if args.device else None)
     s = cfg.sampling
     exp = cfg.experiment(args.experiment)
     wd = Path(args.workdir) / f"{args.profile}_{s.tag}"
@@ -65,7 +67,7 @@ def main() -> None:
     run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=args.experiment)
     m = read_metrics(out)
     sel = slice(2, None) if args.frames > 1 else slice(1, None)
-    print(f"\nprofile {args.profile} ({s.tag}, {cfg.target.width}x{cfg.target.height} x {cfg.target.cameras} views), "
+    print(f"\nprofile {args.profile} on {cfg.device} ({s.tag}, {cfg.target.width}x{cfg.target.height} x {cfg.target.cameras} views), "
           f"{args.experiment}, {int(m['attrs']['n_particles'])} particles, data preparation {prep:.1f} s")
     print("| stage | seconds per frame |\n|---|---|")
     for key in ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame"):

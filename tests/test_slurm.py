@@ -154,13 +154,19 @@ def _frames_committed(partial: Path) -> int:
 
 
 def test_cancelled_morph_resumes_on_the_retry_and_equals_the_uninterrupted_run(runs):
+    """On one thread a resumed run is bit-identical to the uninterrupted one (with more threads,
+    float32 atomics add in another order and the runs drift apart by round-off over the frames)."""
     wd = runs["slurm"]
     out = wd / "results/test/runs/iso_bunny_full.h5"
     uninterrupted = wd / "uninterrupted_iso_bunny_full.h5"
+    one_thread = (*_slurm(wd, str(out.relative_to(wd)), "--config", f"mesh_dir={runs['mesh_dir']}", "threads=8"),
+                  "--set-threads", "morph=1")
+    out.unlink()
+    done = subprocess.run(one_thread, cwd=wd, env=_env(), capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-6000:]
     shutil.move(out, uninterrupted)
     before = {j["id"] for j in _sacct(wd)}
-    proc = subprocess.Popen(_slurm(wd, str(out.relative_to(wd)), "--config", f"mesh_dir={runs['mesh_dir']}", "threads=8"),
-                            cwd=wd, env=_env(), text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(one_thread, cwd=wd, env=_env(), text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     partial = out.with_name(out.name + ".partial")
     try:
         # wait until the morph job has committed a few of its 12 frames, then cancel it
@@ -195,12 +201,12 @@ def test_cancelled_morph_resumes_on_the_retry_and_equals_the_uninterrupted_run(r
     a, b = read_metrics(uninterrupted), read_metrics(out)
     assert len(json.loads(b["attrs"]["wall_time_segments_s"])) == 2  # two attempts, one run
     for key in ("alpha_mse", "iou", "physics_loss", "fp_det_max", "total_volume", "chamfer"):
-        np.testing.assert_allclose(b[key], a[key], rtol=1e-4, err_msg=key)
+        np.testing.assert_array_equal(b[key], a[key], err_msg=key)
     with h5py.File(uninterrupted) as fa, h5py.File(out) as fb:
         assert sorted(fb["states"]) == sorted(fa["states"])
-        last = sorted(fa["states"])[-1]
-        for k in ("x", "F", "Fp"):
-            np.testing.assert_allclose(fb["states"][last][k][()], fa["states"][last][k][()], rtol=1e-3, atol=1e-4)
+        for frame in sorted(fa["states"]):
+            for k in ("x", "F", "Fp"):
+                np.testing.assert_array_equal(fb["states"][frame][k][()], fa["states"][frame][k][()], err_msg=f"{frame}/{k}")
 
 
 @pytest.mark.parametrize("args, names", [
