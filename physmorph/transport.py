@@ -14,6 +14,12 @@ a_i the particle masses and b_j the target node masses (both normalised to 1), s
 log-domain Sinkhorn iterations with eps decreasing geometrically from the squared diameter to
 blur^2 (eps scaling); each particle's destination is the barycentric projection
 T_i = sum_j P_ij y_j / a_i.
+
+The iterations run coarse to fine (multiscale Sinkhorn): while the blur sqrt(eps) is several times
+a cell of side 2^L blur, both clouds are replaced by their mass-weighted cell centroids, which
+changes the plan by far less than its blur and makes an iteration ~64^L times cheaper; at each
+switch to a finer level the dual potential g is carried over by one half-update against the
+coarser measure. The last iterations, at eps = blur^2, run on the clouds themselves.
 """
 
 from __future__ import annotations
@@ -26,50 +32,119 @@ import torch
 from physmorph.grid import Grid, bspline_weights, splat_mass
 
 
-# Rows of the cost matrix handled at once, and the matrix size up to which its blocks are kept
-# between iterations (float32: 2^25 entries = 128 MB) rather than recomputed: the plan never holds
-# an N x M array, so a 64^3 grid (~25K x 25K nodes) needs ~100 MB, not 2.5 GB.
+# Rows handled at once: each block of the kernel is a [rows, M] float32 matrix (2^22 entries,
+# 16 MB); the plan never holds an N x M array.
 BLOCK_ENTRIES = 1 << 22
-CACHE_ENTRIES = 1 << 25
+# Coarse levels: an iteration runs on cells of side 2^L blur while its blur sqrt(eps) is at least
+# COARSE_SWITCH cells; no level with fewer than COARSE_MIN_POINTS cells in either cloud.
+COARSE_SWITCH = 2.0
+COARSE_MIN_POINTS = 64
 
 
-def _cost_blocks(X: torch.Tensor, Y: torch.Tensor):  # X [N, 3], Y [M, 3] -> iterator of (rows, C [n, M])
-    """C_ij = |x_i - y_j|^2 / 2 by blocks of rows (cached when the whole matrix is small)."""
-    rows = max(1, BLOCK_ENTRIES // max(len(Y), 1))
-    spans = [slice(k, min(k + rows, len(X))) for k in range(0, len(X), rows)]
-    cache = [None] * len(spans) if len(X) * len(Y) <= CACHE_ENTRIES else None
-
-    def blocks():
-        for b, sl in enumerate(spans):
-            C = cache[b] if cache is not None else None
-            if C is None:
-                C = 0.5 * torch.cdist(X[sl], Y) ** 2
-                if cache is not None:
-                    cache[b] = C
-            yield sl, C
-    return blocks
+def _softmin(P: torch.Tensor,  # [K, 3] the points summed over
+             log_w: torch.Tensor,  # [K] their log masses
+             potential: torch.Tensor,  # [K] their dual potential
+             Q: torch.Tensor,  # [L, 3] the points the result is wanted at
+             eps: float) -> torch.Tensor:  # [L]
+    """-eps logsumexp_k(log w_k + (potential_k - |p_k - q_l|^2 / 2) / eps) for every q_l: one Sinkhorn
+    half-update. With |p - q|^2 / 2 = |p|^2 / 2 + |q|^2 / 2 - p.q it is
+    |q_l|^2 / 2 - eps logsumexp_k(h_k + p_k.q_l / eps), h_k = log w_k + (potential_k - |p_k|^2 / 2) / eps,
+    one matrix product per block of Q's rows (the coordinates are centred by the caller, which
+    keeps the float32 cancellation far below the plan's blur)."""
+    h = log_w + (potential - 0.5 * (P * P).sum(1)) / eps
+    Pt = P.T / eps
+    rows = max(1, BLOCK_ENTRIES // max(len(P), 1))
+    out = torch.empty(len(Q), dtype=Q.dtype)
+    for k in range(0, len(Q), rows):
+        q = Q[k:k + rows]
+        out[k:k + rows] = 0.5 * (q * q).sum(1) - eps * torch.logsumexp(torch.addmm(h[None, :], q, Pt), dim=1)
+    return out
 
 
 def sinkhorn_potentials(X: torch.Tensor,  # [N, 3]
                         Y: torch.Tensor,  # [M, 3]
                         log_a: torch.Tensor,  # [N]
                         log_b: torch.Tensor,  # [M]
-                        eps_schedule: list[float]) -> tuple[torch.Tensor, torch.Tensor, object]:
+                        eps_schedule: list[float],
+                        g0: torch.Tensor | None = None,  # [M] the starting potential g (default 0)
+                        ) -> tuple[torch.Tensor, torch.Tensor]:  # f [N], g [M]
     """Log-domain Sinkhorn: for each eps of the schedule one pair of updates
     f_i = -eps logsumexp_j(log b_j + (g_j - C_ij) / eps), g_j = -eps logsumexp_i(log a_i + (f_i - C_ij) / eps),
-    the cost taken by blocks of rows (the column sums merged with logaddexp). Returns f, g and the
-    cost's block iterator."""
-    blocks = _cost_blocks(X, Y)
+    C_ij = |x_i - y_j|^2 / 2 (each by :func:`_softmin`)."""
     f = torch.zeros_like(log_a)
-    g = torch.zeros_like(log_b)
+    g = torch.zeros_like(log_b) if g0 is None else g0.clone()
     for eps in eps_schedule:
-        for sl, C in blocks():
-            f[sl] = -eps * torch.logsumexp(log_b[None, :] + (g[None, :] - C) / eps, dim=1)
-        acc = torch.full_like(log_b, -float("inf"))
-        for sl, C in blocks():
-            acc = torch.logaddexp(acc, torch.logsumexp(log_a[sl, None] + (f[sl, None] - C) / eps, dim=0))
-        g = -eps * acc
-    return f, g, blocks
+        f = _softmin(Y, log_b, g, X, eps)
+        g = _softmin(X, log_a, f, Y, eps)
+    return f, g
+
+
+def _cell_centroids(p: np.ndarray,  # [K, 3]
+                    m: np.ndarray,  # [K] masses (> 0)
+                    origin: np.ndarray,  # [3]
+                    cell: float) -> tuple[np.ndarray, np.ndarray]:  # [Kc, 3], [Kc]
+    """The mass-weighted centroid and the total mass of the points in each occupied cube of side
+    ``cell`` (cubes aligned at ``origin``)."""
+    _, inv = np.unique(np.floor((p - origin) / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    mass = np.bincount(inv, weights=m)
+    centroid = np.stack([np.bincount(inv, weights=m * p[:, d]) for d in range(3)], axis=1) / mass[:, None]
+    return centroid, mass
+
+
+def _multiscale_potentials(x: np.ndarray,  # [N, 3]
+                           a: np.ndarray,  # [N] normalised masses
+                           y: np.ndarray,  # [M, 3]
+                           b: np.ndarray,  # [M] normalised masses
+                           schedule: list[float],
+                           blur: float,
+                           dtype: torch.dtype,
+                           coarse_switch: float,
+                           min_points: int) -> tuple[torch.Tensor, torch.Tensor]:  # f [N], g [M]
+    """Sinkhorn over ``schedule`` (decreasing eps), each iteration on the coarsest level L whose cell
+    2^L blur is at most sqrt(eps) / coarse_switch (levels stop once a cloud has fewer than
+    ``min_points`` cells); between levels g is carried by one half-update against the coarser
+    level's f. Returns the finest level's f and g. The points are centred by the caller."""
+    origin = np.minimum(x.min(0), y.min(0))
+    levels = [(x, a, y, b)]
+    while coarse_switch > 0:
+        cell = blur * 2 ** len(levels)
+        xc, ac = _cell_centroids(x, a, origin, cell)
+        yc, bc = _cell_centroids(y, b, origin, cell)
+        if min(len(xc), len(yc)) < min_points or (len(xc) == len(levels[-1][0]) and len(yc) == len(levels[-1][2])):
+            break
+        levels.append((xc, ac, yc, bc))
+
+    def level_of(eps: float) -> int:
+        fits = [L for L in range(len(levels)) if blur * 2 ** L * coarse_switch <= math.sqrt(eps)]
+        return max(fits) if fits else 0
+
+    def tensors(L: int):
+        xl, al, yl, bl = levels[L]
+        return (torch.from_numpy(xl).to(dtype), torch.from_numpy(yl).to(dtype),
+                torch.log(torch.from_numpy(al)).to(dtype), torch.log(torch.from_numpy(bl)).to(dtype))
+
+    runs: list[tuple[int, list[float]]] = []  # consecutive iterations on one level
+    for eps in schedule:
+        L = level_of(eps)
+        if runs and runs[-1][0] == L:
+            runs[-1][1].append(eps)
+        else:
+            runs.append((L, [eps]))
+    g = None
+    prev = None
+    for L, epss in runs:
+        X, Y, log_a, log_b = tensors(L)
+        if prev is not None:  # g on this level's targets from the coarser level's f
+            Xp, log_ap, fp, eps_p = prev
+            g = _softmin(Xp, log_ap, fp, Y, eps_p)
+        f, g = sinkhorn_potentials(X, Y, log_a, log_b, epss, g0=g)
+        prev = (X, log_a, f, epss[-1])
+    if runs[-1][0] != 0:  # the schedule never reached the finest level: carry over and stop there
+        X, Y, log_a, log_b = tensors(0)
+        Xp, log_ap, fp, eps_p = prev
+        f, g = sinkhorn_potentials(X, Y, log_a, log_b, [schedule[-1]], g0=_softmin(Xp, log_ap, fp, Y, eps_p))
+    return f, g
 
 
 def transport_destinations(x: np.ndarray,  # [N, 3] source particles
@@ -79,11 +154,15 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
                            blur: float,
                            iters: int = 40,
                            extra_iters: int = 10,
-                           dtype: torch.dtype = torch.float32) -> np.ndarray:  # [N, 3]
+                           dtype: torch.dtype = torch.float32,
+                           coarse_switch: float = COARSE_SWITCH,
+                           min_points: int = COARSE_MIN_POINTS) -> np.ndarray:  # [N, 3]
     """T_i = sum_j P_ij y_j / a_i for the entropic plan of the module docstring, eps going from the
     squared diameter of the two clouds to blur^2 over ``iters`` Sinkhorn steps, then ``extra_iters``
     more at blur^2. On the CPU in ``dtype`` (float32: the log-domain potentials need ~1e-4 of
-    relative precision); the cost matrix is handled by blocks of rows (BLOCK_ENTRIES)."""
+    relative precision); the kernel is handled by blocks of rows (BLOCK_ENTRIES). Iterations
+    whose blur is at least ``coarse_switch`` cells run on cell centroids (coarse_switch = 0: every
+    iteration on the clouds themselves, the single-scale reference)."""
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     y = np.asarray(y, dtype=np.float64).reshape(-1, 3)
     a = np.asarray(a, dtype=np.float64).reshape(-1)
@@ -95,21 +174,26 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
                          f"with a positive sum, and blur > 0 (got blur={blur})")
     keep = b > 0
     y, b = y[keep], b[keep]
-    X, Y = torch.from_numpy(x).to(dtype), torch.from_numpy(y).to(dtype)
-    log_a = torch.log(torch.from_numpy(a / a.sum())).to(dtype)
-    log_b = torch.log(torch.from_numpy(b / b.sum())).to(dtype)
+    a, b = a / a.sum(), b / b.sum()
     lo = np.minimum(x.min(0), y.min(0))
     hi = np.maximum(x.max(0), y.max(0))
     eps0 = max(float(((hi - lo) ** 2).sum()), blur ** 2)
     eps1 = blur ** 2
     schedule = [math.exp(math.log(eps0) + (math.log(eps1) - math.log(eps0)) * k / max(iters - 1, 1)) for k in range(iters)]
     schedule += [eps1] * extra_iters
-    f, g, blocks = sinkhorn_potentials(X, Y, log_a, log_b, schedule)
+    centre = 0.5 * (lo + hi)  # centred coordinates: small |p|^2 / eps in _softmin's expansion
+    x, y = x - centre, y - centre
+    _, g = _multiscale_potentials(x, a, y, b, schedule, blur, dtype, coarse_switch, min_points)
+    X, Y = torch.from_numpy(x).to(dtype), torch.from_numpy(y).to(dtype)
+    # T_i = sum_j P_ij y_j / sum_j P_ij with P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps): the factors
+    # of i alone cancel, leaving a softmax over j of log b_j + (g_j - |y_j|^2 / 2 + x_i.y_j) / eps
+    h = torch.log(torch.from_numpy(b)).to(dtype) + (g - 0.5 * (Y * Y).sum(1)) / eps1
+    Yt = Y.T / eps1
+    rows = max(1, BLOCK_ENTRIES // len(Y))
     T = torch.empty_like(X)
-    for sl, C in blocks():  # P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps), row by row
-        P = torch.exp(log_a[sl, None] + log_b[None, :] + (f[sl, None] + g[None, :] - C) / eps1)
-        T[sl] = (P @ Y) / P.sum(dim=1, keepdim=True)
-    return T.numpy().astype(np.float64)
+    for k in range(0, len(X), rows):
+        T[k:k + rows] = torch.softmax(torch.addmm(h[None, :], X[k:k + rows], Yt), dim=1) @ Y
+    return T.numpy().astype(np.float64) + centre
 
 
 def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
