@@ -18,6 +18,7 @@ import argparse
 import datetime as _dt
 import re
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -91,10 +92,12 @@ def _wall_time_s(results_dir: Path) -> float:
 
 
 def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
-                     date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md") -> str:
+                     date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md",
+                     code: str | None = None) -> str:
     """A profile's results as Markdown, from the CSV tables in ``tables_dir`` (physmorph.tables).
     ``figures``: figure name -> link to its image (relative to the page); ``date``: when the tables
-    were made (default: the convergence table's modification date)."""
+    were made (default: the convergence table's modification date); ``code``: the checkout that
+    made them (e.g. its commit)."""
     tables_dir = Path(tables_dir)
     conv = _read(tables_dir, "convergence")
     direc = _read(tables_dir, "directions")
@@ -106,7 +109,8 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
         date = _dt.date.fromtimestamp((tables_dir / "convergence.csv").stat().st_mtime).isoformat()
     command = command or f"python -m physmorph.userdocs results {profile}"
     out = [f"# Results of the `{profile}` profile\n",
-           f"Generated on {date} by `{command}` from `results/{profile}/tables/` (do not edit by hand: "
+           f"Generated on {date} by `{command}` from `results/{profile}/tables/`"
+           + (f", made by the code at {code}" if code else "") + " (do not edit by hand: "
            "rebuild the tables, then run the command again). What each table and column means: "
            f"[docs/outputs.md]({outputs_link}).\n"]
     if len(timing):
@@ -180,7 +184,8 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
 
 
 def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, figures_dir: str | Path | None = None,
-                      images_dir: str | Path | None = None, command: str | None = None) -> Path:
+                      images_dir: str | Path | None = None, command: str | None = None,
+                      code: str | None = None) -> Path:
     """Write ``results_markdown`` to ``out_md``. Figures from ``figures_dir`` are linked; with
     ``images_dir`` they are first copied there (docs/images/ for docs/results.md)."""
     out_md = Path(out_md)
@@ -198,7 +203,7 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
                 src = dst
             figures[name] = Path(_relpath(src, out_md.parent)).as_posix()
     outputs = Path(_relpath(REPO_ROOT / "docs" / "outputs.md", out_md.parent)).as_posix()
-    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs)
+    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs, code=code)
     tmp = out_md.with_suffix(".partial")
     tmp.write_text(text)
     tmp.replace(out_md)
@@ -338,6 +343,18 @@ def write_captions(outputs_md: str | Path = OUTPUTS_MD, out_dir: str | Path = CA
     return paths
 
 
+def _checkout() -> str | None:
+    """This checkout's commit, with "+ local changes" when its tracked files differ (None without git)."""
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True,
+                             text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "physmorph", "workflow",
+                                "config", "Snakefile"], cwd=REPO_ROOT, capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return f"commit {rev}" + (" + local changes" if dirty.strip() else "")
+
+
 def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a maintenance command
     parser = argparse.ArgumentParser(prog="python -m physmorph.userdocs", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -352,7 +369,7 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     if args.what == "results":
         tree = REPO_ROOT / "results" / args.profile
         path = write_results_doc(tree / "tables", args.out, args.profile, tree / "figures", args.images or None,
-                                 command=f"python -m physmorph.userdocs results {args.profile}")
+                                 command=f"python -m physmorph.userdocs results {args.profile}", code=_checkout())
     elif args.what == "config":
         CONFIG_README.write_text(config_reference())
         path = CONFIG_README

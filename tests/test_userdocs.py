@@ -41,8 +41,9 @@ def _fake_tables(d):
 def test_results_page_carries_the_tables_numbers(tmp_path):
     tables = tmp_path / "results" / "default" / "tables"
     _fake_tables(tables)
-    text = results_markdown(tables, "default", date="2026-11-24")
+    text = results_markdown(tables, "default", date="2026-11-24", code="commit abc1234")
     assert "Generated on 2026-11-24" in text and "results/default/tables/" in text
+    assert "made by the code at commit abc1234" in text
     assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.53 -> 0.95 | 1.2 % |" in text
     assert "| 0.01306 | 0.01569 | 16.8 % | yes | +25.8 % |" in text      # a direction and whether it holds
     assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text  # the main table beside the paper
