@@ -125,8 +125,8 @@ def _multiscale_potentials(x: np.ndarray,  # [N, 3]
                 torch.log(torch.from_numpy(al)).to(dtype), torch.log(torch.from_numpy(bl)).to(dtype))
 
     runs: list[tuple[int, list[float]]] = []  # consecutive iterations on one level
-    for eps in schedule:
-        L = level_of(eps)
+    for i, eps in enumerate(schedule):
+        L = level_of(eps) if i < len(schedule) - 1 else 0  # the last on the clouds themselves
         if runs and runs[-1][0] == L:
             runs[-1][1].append(eps)
         else:
@@ -140,10 +140,6 @@ def _multiscale_potentials(x: np.ndarray,  # [N, 3]
             g = _softmin(Xp, log_ap, fp, Y, eps_p)
         f, g = sinkhorn_potentials(X, Y, log_a, log_b, epss, g0=g)
         prev = (X, log_a, f, epss[-1])
-    if runs[-1][0] != 0:  # the schedule never reached the finest level: carry over and stop there
-        X, Y, log_a, log_b = tensors(0)
-        Xp, log_ap, fp, eps_p = prev
-        f, g = sinkhorn_potentials(X, Y, log_a, log_b, [schedule[-1]], g0=_softmin(Xp, log_ap, fp, Y, eps_p))
     return f, g
 
 
