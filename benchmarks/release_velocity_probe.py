@@ -1,5 +1,5 @@
-"""The release rebound with the last frame's velocity kept (as the morph's release probe does) and
-with it set to zero, with and without the absorbed shape (docs/study/log.md finding 112).
+"""The release rebound with the last frame's velocity kept and released from rest (as the morph's
+release probe does), with and without the absorbed shape (docs/study/log.md finding 112).
 
     python benchmarks/release_velocity_probe.py --eta 0.05                 # the test profile, iso -> bunny full
     python benchmarks/release_velocity_probe.py --eta 0.1 --profile config/test.yaml
@@ -17,7 +17,6 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
 
 from physmorph import morph
 from physmorph.config import load_settings
@@ -43,9 +42,7 @@ def main() -> None:
     real = morph.release_curve
     for at_rest in (False, True):
         def release(solver, st, frames, alpha_mse, log, name, _at_rest=at_rest):
-            if _at_rest:
-                st = dataclasses.replace(st, v=np.zeros_like(st.v))
-            return real(solver, st, frames, alpha_mse, log, name)
+            return real(solver, st, frames, alpha_mse, log, name, keep_velocity=not _at_rest)
 
         morph.release_curve = release
         for absorb in (True, False):

@@ -81,8 +81,10 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.control": ("per_substep: one control dFc per particle per substep (the paper's code); per_frame: one "
                     "per frame", "", ""),
     "mpm.control_in_F": ("carry dFc in F as the authors' code does (otherwise it enters the stress only)", "", ""),
-    "mpm.learning_rate": ("step size: per-entry RMS of each normalised step (normalized_gd) or Adam's lr", "",
-                          POS),
+    "mpm.learning_rate": ("step size: per-entry RMS of each normalised step (normalized_gd) or Adam's lr, "
+                          "at a one-unit cell with step_scales_with_dx", "", POS),
+    "mpm.step_scales_with_dx": ("the step is learning_rate x dx (domain units): the same distance per frame "
+                                "at every grid resolution", "", ""),
     "mpm.optimizer": ("normalized_gd: the authors' normalised descent with line search; adam: the paper's text",
                       "", ""),
     "mpm.line_search_iters": ("normalized_gd: halvings of the step tried before a step is undone", "", ">= 1"),

@@ -28,6 +28,7 @@ recorded in the run (status "diverged") instead, since instability is the findin
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -151,7 +152,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     restart_on = {"mass_loss": "physics_loss", "alpha_mse": "alpha_mse"}.get(cfg.momentum_restart)
     previous = run.frame_metric(start - 1, restart_on) if restart_on else float("nan")
     # the adaptive step (MorphConfig.step_backoff): this frame's step, and the mass loss it is judged against
-    step = cfg.mpm.learning_rate if resumed_from is None else float(ck.get("next_step", cfg.mpm.learning_rate))
+    step = cfg.mpm.step_size if resumed_from is None else float(ck.get("next_step", cfg.mpm.step_size))
     loss_before = run.frame_metric(start - 1, "physics_loss")
     inject_F = cfg.method in ("f_inject", "full")
     inject_x = cfg.method == "position_inject"
@@ -254,7 +255,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             previous = now
         if np.isfinite(loss_before):  # the bold driver: back off after a rise, regrow after a fall
             rose = scal["physics_loss"] > loss_before
-            step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.learning_rate)
+            step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.step_size)
         loss_before = scal["physics_loss"]
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"])
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
@@ -277,12 +278,19 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     run.finish(status, extra, {**json.loads(record), "resolved": cfg.to_dict()})
 
 
-def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, log, name: str) -> list[float]:
+def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, log, name: str,
+                  keep_velocity: bool = False) -> list[float]:
     """Alpha MSE of ``st`` and of ``frames`` frames simulated from it with the control off (dFc = 0,
     no optimisation, no plasticity): what the rest state Fp keeps of the morph once nothing holds it
     (the paper's rebound, section 3.4, without the control that hides it here; docs/study/log.md).
+    The body is released from rest (v = 0, C = 0) so the curve measures the elastic rebound alone:
+    whether the last frame's body was still coasting depends on whether a momentum restart happened
+    to fire there, and a stress-free body coasts on (docs/study/log.md finding 112);
+    ``keep_velocity`` releases it with its last velocity instead.
     A divergence ends the curve (the remaining frames are NaN)."""
     curve = [alpha_mse(st)]
+    if not keep_velocity:
+        st = dataclasses.replace(st, v=np.zeros_like(st.v), C=np.zeros_like(st.C))
     solver.reset_control()
     for k in range(frames):
         try:

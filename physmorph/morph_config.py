@@ -20,7 +20,8 @@ METHODS = ("physics_only", "f_inject", "full", "position_inject")
 @dataclass(frozen=True)
 class MorphConfig:
     # always in a run's params (physmorph.config.without_defaults), so its record names the method
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart"})
+    # (and, for control_decay, because its default changed since runs were first made)
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay"})
     method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
     frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
@@ -60,7 +61,7 @@ class MorphConfig:
     # whole). control_decay: every frame starts with dFc scaled by this (a leaky integrator; 1 =
     # the control is carried whole, warm_start). Neither is in the paper.
     restart_control_keep: float = 1.0
-    control_decay: float = 1.0
+    control_decay: float = 0.95
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)

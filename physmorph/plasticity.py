@@ -53,9 +53,9 @@ class PlasticityConfig:
     # run's params, so runs made with the old default rerun
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
                                                              "eta", "correspondence", "start_frame"})
-    # base rate (the paper: 0.2; config/paper.yaml uses it; 0.02 until 2026-11-24, with the
-    # nearest-point correspondence; see config/config.yaml)
-    eta: float = 0.1
+    # base rate per frame (the paper: 0.2; config/paper_method.yaml uses it; 0.02 until 2026-11-24,
+    # with the nearest-point correspondence, then 0.1; see config/config.yaml)
+    eta: float = 0.05
     k_neighbors: int = 64
     smooth_iters: int = 3
     damping: float = 0.05  # d_p

@@ -282,7 +282,7 @@ def config_reference() -> str:
            "`workflow/schemas/config.schema.yaml`) and their descriptions (`physmorph/config_docs.py`) by "
            "`python -m physmorph.userdocs config`; do not edit by hand.\n",
            "A profile is a YAML file merged onto `config/config.yaml` key by key (`--configfile`); single keys "
-           "can be set with `--config 'plasticity={eta: 0.05}'`. Every key is checked before any job runs: an unknown "
+           "can be set with `--config 'plasticity={eta: 0.1}'`. Every key is checked before any job runs: an unknown "
            "key, a wrong type or a value out of range stops Snakemake with the dotted key. The defaults below "
            "are the dataclasses'; `config/config.yaml` restates them (a test checks they agree). Why each "
            "default was chosen: [docs/method.md](../docs/method.md); the evidence: "

@@ -163,7 +163,7 @@ def test_experiment_resolution_and_its_params():
     back = build(MorphConfig, json.loads(morph_params(full)), "morph")
     assert back == dataclasses.replace(full, progress=back.progress)
     # a setting only plasticity reads changes the full run's params, not physics-only's
-    s2 = load_settings(BASE, overrides={"plasticity": {"eta": 0.05}})
+    s2 = load_settings(BASE, overrides={"plasticity": {"eta": 0.1}})
     assert morph_params(s2.experiment_config("iso_bunny_full")) != morph_params(full)
     assert morph_params(s2.experiment_config("iso_bunny_physics_only")) == morph_params(po)
     assert morph_params(s2.experiment_config("iso_bunny_f_inject")) == morph_params(s.experiment_config("iso_bunny_f_inject"))

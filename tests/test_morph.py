@@ -266,10 +266,10 @@ def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configu
 def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
     """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
     morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
-    (1, 1) carry it whole."""
+    (0.95, 1) leak 5 % a frame and keep it whole at a restart."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
-    assert (base.control_decay, base.restart_control_keep) == (1.0, 1.0)
+    assert (base.control_decay, base.restart_control_keep) == (0.95, 1.0)
     entry, end = [], []
     real = morph.MPMSolver.optimize_control
 
@@ -420,6 +420,28 @@ def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny
         assert rebound["none"] > rebound[k] + RELEASE_REBOUND_GAP
     assert rebound["nearest_off"] > rebound["nearest_shape"] + RELEASE_REBOUND_GAP
     assert rebound["off"] < RELEASE_REBOUND_SHAPE
+
+
+def test_the_release_starts_from_rest(tiny):
+    """morph.release_curve releases the body from rest (v = 0, C = 0): the curve is the elastic
+    rebound of the rest state alone, whatever velocity the last frame ended with (a stress-free
+    body handed a velocity coasts on; docs/study/log.md finding 112). keep_velocity keeps it."""
+    from physmorph.mpm import ParticleState, solver_for
+    from physmorph.particles import load_particles
+
+    cfg, d = tiny
+    parts = load_particles(d / "p_iso.h5")
+    rest = ParticleState.at_rest(parts.x, parts.mass, parts.volume)  # F = Fp = I: no stress anywhere
+    moving = dataclasses.replace(rest, v=np.tile([2.0, 0.0, 0.0], (rest.n, 1)),
+                                 C=np.full((rest.n, 3, 3), 0.5))
+    solver = solver_for(morph_config(cfg, "iso_bunny_full").mpm, rest.n)
+    mean_x = lambda st: float(st.x[:, 0].mean())  # noqa: E731
+    quiet = morph.release_curve(solver, rest, 3, mean_x, print, "rest")
+    released = morph.release_curve(solver, moving, 3, mean_x, print, "moving")
+    coasting = morph.release_curve(solver, moving, 3, mean_x, print, "coasting", keep_velocity=True)
+    np.testing.assert_allclose(released, quiet, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(quiet, quiet[0], rtol=0, atol=1e-4)  # at rest and stress-free: it stays
+    assert coasting[-1] > coasting[0] + 0.05  # 2 units/s for 3 frames of 1/240 s x 20 substeps
 
 # ------------------------------------------------------------------- run files under failure
 # The write steps of one frame's commit (physmorph.runfile): the frame file, then the checkpoint,

@@ -635,7 +635,8 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     np.testing.assert_array_equal(v_b, v_a)
     # every driver field changed; the kernels compiled above (with cfg) are kept
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
-                  grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9)
+                  grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
+                  step_scales_with_dx=False)
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -779,9 +780,14 @@ def test_normalized_gd_line_search_decreases_the_objective_monotonically(state):
     assert stats["loss_final"] == pytest.approx(stats["loss_initial"], rel=1e-12)
 
 
-def test_normalized_gd_keeps_relative_gradient_sizes(state):
-    """The step is -alpha g / rms(g): proportional to the gradient (unlike Adam's per-entry sign-like step)."""
-    cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4)
+@pytest.mark.parametrize("scaled", [True, False])
+def test_normalized_gd_keeps_relative_gradient_sizes(state, scaled):
+    """The step is -alpha g / rms(g): proportional to the gradient (unlike Adam's per-entry sign-like
+    step), alpha = learning_rate x dx with step_scales_with_dx (dx = 2 on the tests' 16^3 grid), else
+    learning_rate."""
+    cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_scales_with_dx=scaled)
+    alpha = 2e-4 if scaled else 1e-4
+    assert cfg.dx == 2.0 and cfg.step_size == pytest.approx(alpha, rel=1e-12)
     s = make(cfg, state, reuse=True)
     s.reset_control()
     s.load_state(state)
@@ -791,7 +797,7 @@ def test_normalized_gd_keeps_relative_gradient_sizes(state):
     s.optimize_control(iters=1)
     step = s.control()
     rms = np.sqrt(np.mean(g * g))
-    np.testing.assert_allclose(step, -1e-4 * g / rms, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(step, -alpha * g / rms, rtol=1e-9, atol=1e-15)
 
 
 def test_normalized_gd_step_clip_bounds_each_entry(state):
@@ -807,7 +813,7 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     rms = np.sqrt(np.mean(g * g))
     assert np.abs(g / rms).max() > 1.5  # the clip is active somewhere
     s.optimize_control(iters=1)
-    np.testing.assert_allclose(s.control(), -1e-4 * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(s.control(), -cfg.step_size * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("optimizer", ["normalized_gd", "adam"])

@@ -188,7 +188,7 @@ def test_changed_settings_rerun_exactly_the_runs_that_use_them(test_run):
                                  "tradeoff": 1}, out.stdout[-3000:]
     assert "results/test/runs/iso_bunny_full.h5" in planned_outputs(out)
     # a global setting only the full method reads: the full run and the tradeoff points (iso_bunny_full)
-    out = _run(wd, "-n", *targets, *base, "plasticity={eta: 0.05}")
+    out = _run(wd, "-n", *targets, *base, "plasticity={eta: 0.1}")
     assert planned_jobs(out) == {"morph": 1, "tradeoff_point": 3, "make_tables": 1, "make_tradeoff": 1, "tables": 1,
                                  "tradeoff": 1}, out.stdout[-3000:]
     assert "results/test/runs/iso_bunny_physics_only.h5" not in planned_outputs(out)

@@ -44,7 +44,7 @@ BARRIER_J_LINEAR = 0.05
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
-DRIVER_FIELDS = frozenset({"learning_rate", "optimizer", "line_search_iters", "step_clip", "grad_iters",
+DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
 
@@ -94,6 +94,13 @@ class MPMConfig:
         per-entry RMS is alpha = learning_rate, so relative gradient sizes are kept; a
         backtracking line search halves alpha up to line_search_iters times until the frame's
         objective, mass loss + injected linear terms, decreases, else the step is undone).
+    step_scales_with_dx: the step used is learning_rate x dx / (1 domain unit) (``step_size``), so
+        learning_rate is the step at a one-unit cell (the default profile's grid) and the same
+        setting moves the body the same distance per frame at every grid: a control that differs
+        from particle to particle pushes on the grid with a force per unit mass ~ E dFc / (rho dx),
+        so a step fixed in F units moves a finer grid's body further (at grid 64 the mid profile's
+        cross-shape morphs spray and fall back; docs/study/log.md finding 116). False: the step is
+        learning_rate at every grid (until 2026-11-25).
     step_clip: normalized_gd only: if > 0, each entry of the normalised step g / rms(g) is clamped
         to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
         iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
@@ -134,7 +141,9 @@ class MPMConfig:
 
     # Fields whose default changed after runs were made with the old one: always in a run's params
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio"})
+    # step_scales_with_dx: a new field that changes runs on grids other than 32 at its default.
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
+                                                             "step_scales_with_dx"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -150,6 +159,7 @@ class MPMConfig:
     control: Literal["per_substep", "per_frame"] = "per_substep"
     control_in_F: bool = False
     learning_rate: float = 0.004  # history: docs/study/CHANGELOG.md
+    step_scales_with_dx: bool = True
     optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
     line_search_iters: int = 10
     step_clip: float = 3.0
@@ -250,6 +260,11 @@ class MPMConfig:
     @property
     def dx(self) -> float:
         return (self.domain_hi - self.domain_lo) / self.grid_res
+
+    @property
+    def step_size(self) -> float:
+        """The optimiser's step: learning_rate, times dx in domain units with step_scales_with_dx."""
+        return self.learning_rate * (self.dx if self.step_scales_with_dx else 1.0)
 
     @property
     def mu(self) -> float:

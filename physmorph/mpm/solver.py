@@ -758,12 +758,12 @@ class MPMSolver:
         self._forward_current = False
 
     def adam_step(self, learning_rate: float | None = None) -> None:
-        """One Adam step on dFc with the gradient of the last backward (step cfg.learning_rate
-        unless given)."""
+        """One Adam step on dFc with the gradient of the last backward (step cfg.step_size unless
+        given)."""
         self._adam_step += 1
         k = self._adam_step
         b1, b2 = self.cfg.adam_beta1, self.cfg.adam_beta2
-        lr = self.cfg.learning_rate if learning_rate is None else learning_rate
+        lr = self.cfg.step_size if learning_rate is None else learning_rate
         # folded bias correction: lr_t = lr sqrt(1 - b2^k) / (1 - b1^k), eps_hat = eps sqrt(1 - b2^k)
         lr_t = lr * np.sqrt(1.0 - b2 ** k) / (1.0 - b1 ** k)
         self._ensure_adam()
@@ -788,7 +788,7 @@ class MPMSolver:
         caller already has it for the current rollout (the morph loop's injection calibration);
         that iteration's forward and backward are then skipped. Needs a current forward.
         learning_rate: this call's step (normalised GD: the initial alpha; Adam: lr) instead of
-        cfg.learning_rate (the morph loop's adaptive step, MorphConfig.step_backoff)."""
+        cfg.step_size (the morph loop's adaptive step, MorphConfig.step_backoff)."""
         if not self._has_target:
             raise RuntimeError("optimize_control needs set_target_grid_mass first")
         J = self.cfg.grad_iters if iters is None else int(iters)
@@ -801,7 +801,7 @@ class MPMSolver:
             shape = (self.cfg.n_control_slots, self.n, 3, 3)
             if first_gradient.shape != shape or not np.isfinite(first_gradient).all():
                 raise ValueError(f"first_gradient must be finite with shape {shape}, got {first_gradient.shape}")
-        lr = self.cfg.learning_rate if learning_rate is None else float(learning_rate)
+        lr = self.cfg.step_size if learning_rate is None else float(learning_rate)
         if not (np.isfinite(lr) and lr > 0):
             raise ValueError(f"learning_rate must be finite and > 0, got {learning_rate!r}")
         if self.cfg.optimizer == "normalized_gd":
