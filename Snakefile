@@ -26,6 +26,14 @@ rule figures:
         figure_outputs(),
 
 
+rule paper_main:  # the main table's six runs and their tables, results/{profile}/main_tables/
+    input:
+        f"{R}/main_tables/main.md",
+        f"{R}/main_tables/convergence.md",
+        f"{R}/main_tables/directions.md",
+        f"{R}/main_tables/timing.md",
+
+
 rule results_page:
     input:
         f"{R}/results.md",

@@ -70,11 +70,26 @@ def splat_mass(x: np.ndarray, mass: np.ndarray, grid: Grid) -> np.ndarray:
     mass = np.asarray(mass, dtype=np.float64).reshape(-1)
     base, w = bspline_weights(x, grid)
     out = np.zeros((grid.res,) * 3, dtype=np.float64)
-    for a in range(3):
-        for b in range(3):
-            for c in range(3):
-                idx = base + np.array([a, b, c])
-                wt = w[:, 0, a] * w[:, 1, b] * w[:, 2, c] * mass
-                ok = np.all((idx >= 0) & (idx < grid.res), axis=1)
-                np.add.at(out, (idx[ok, 0], idx[ok, 1], idx[ok, 2]), wt[ok])
+    # the 27 stencil weights of each particle, [N, 3, 3, 3] in (a, b, c) order
+    wt = w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :] * mass[:, None, None, None]
+    scatter_add(out, base, wt)
     return out
+
+
+def scatter_add(out: np.ndarray,  # [R0, R1, R2], added to in place
+                base: np.ndarray,  # [M, 3] the node of offset (0, 0, 0)
+                weights: np.ndarray) -> None:  # [M, S, S, S]: weights[m, a, b, c] goes to base[m] + (a, b, c)
+    """out[base + (a, b, c)] += weights[:, a, b, c], repeated nodes summed and nodes outside the
+    grid dropped: np.add.at's result, by one bincount over the flat node index (several times
+    faster at half a million particles)."""
+    S = weights.shape[1]
+    shape = np.asarray(out.shape)
+    off = np.stack(np.meshgrid(*(np.arange(S),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)  # [S^3, 3]
+    strides = np.array([out.shape[1] * out.shape[2], out.shape[2], 1])
+    flat = (base @ strides)[:, None] + (off @ strides)[None, :]  # [M, S^3]
+    w = weights.reshape(len(base), -1)
+    if base.min() < 0 or (base.max(axis=0) + S - 1 >= shape).any():  # some stencil leaves the grid
+        idx = base[:, None, :] + off[None]
+        ok = np.all((idx >= 0) & (idx < shape), axis=-1)
+        flat, w = flat[ok], w[ok]
+    out += np.bincount(flat.ravel(), weights=w.ravel(), minlength=out.size).reshape(out.shape)

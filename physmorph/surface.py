@@ -16,6 +16,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage import measure
 
+from physmorph.grid import scatter_add
+
 
 @dataclass(frozen=True)
 class SurfaceMaskConfig:
@@ -34,14 +36,9 @@ def density_grid(x: np.ndarray, weights: np.ndarray, voxels: int, lo: float, hi:
     base = np.floor(g).astype(np.int64)
     f = g - base
     out = np.zeros((voxels,) * 3)
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                idx = base + np.array([a, b, c])
-                w = (np.where(a, f[:, 0], 1 - f[:, 0]) * np.where(b, f[:, 1], 1 - f[:, 1])
-                     * np.where(c, f[:, 2], 1 - f[:, 2]) * weights)
-                ok = np.all((idx >= 0) & (idx < voxels), axis=1)
-                np.add.at(out, tuple(idx[ok].T), w[ok])
+    w = np.stack([1.0 - f, f], axis=-1)  # [N, 3 (axis), 2 (offset)]
+    scatter_add(out, base, w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]
+                * weights[:, None, None, None])
     return out
 
 

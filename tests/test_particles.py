@@ -134,3 +134,27 @@ def test_corrupt_inputs_give_stage_input_error(tmp_path):
         stamp_checksum(f)
     with pytest.raises(StageInputError, match="'mass'"):
         load_particles(tmp_path / "nomass.h5")
+
+
+def test_scatter_add_is_np_add_at():
+    """grid.scatter_add (the splats' bincount) against np.add.at, the obviously-correct reference:
+    repeated indices summed, indices outside the grid dropped."""
+    from physmorph.grid import scatter_add
+
+    rng = np.random.default_rng(3)
+    shape = (5, 6, 7)
+    for lo, hi in ((-3, 8), (0, 3)):  # stencils leaving the grid on every side; all inside
+        base = rng.integers(lo, hi, size=(3000, 3))  # many repeated nodes
+        w = rng.standard_normal((3000, 3, 3, 3))
+        fast, ref = np.zeros(shape), np.zeros(shape)
+        scatter_add(fast, base, w)
+        dropped = 0
+        for a in range(3):
+            for b in range(3):
+                for c in range(3):
+                    idx = base + np.array([a, b, c])
+                    ok = np.all((idx >= 0) & (idx < np.array(shape)), axis=1)
+                    dropped += (~ok).sum()
+                    np.add.at(ref, tuple(idx[ok].T), w[ok, a, b, c])
+        assert (dropped > 0) == (lo < 0)
+        np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)

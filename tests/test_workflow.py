@@ -101,6 +101,18 @@ def test_unknown_experiment_is_named(tmp_path):
     assert "unknown experiment 'iso_teapot_full'" in out.stdout + out.stderr
 
 
+def test_paper_main_plans_the_main_tables_six_runs(tmp_path):
+    """`snakemake paper_main` makes the main table's six runs (physics-only and full to bunny, cow,
+    duck; config/paper_results.yaml) at the profile's scale, and their tables, nothing else."""
+    out = _run(_workdir(tmp_path), "-n", "paper_main", "--configfile", "config/paper.yaml")
+    jobs = planned_jobs(out)
+    assert jobs["morph"] == 6 and jobs["make_main_tables"] == 1 and "make_tables" not in jobs, jobs
+    runs = {p for p in planned_outputs(out) if "/runs/" in p}
+    assert runs == {f"results/paper/runs/iso_{t}_{m}.h5" for t in ("bunny", "cow", "duck")
+                    for m in ("physics_only", "full")}
+    assert "results/paper/main_tables/main.md" in planned_outputs(out)
+
+
 def test_slurm_profile_dry_run(tmp_path):
     """The cluster profile plans the paper-scale DAG; memory, runtime and a GPU come from the rules."""
     wd = _workdir(tmp_path)

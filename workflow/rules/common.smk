@@ -6,12 +6,16 @@
 from physmorph.config import Settings, morph_params, params_json, particle_estimate, without_defaults
 from physmorph.config import morph_memory, sampling_memory, target_memory
 from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
+from physmorph.layout import load_layout
 from physmorph.tradeoff import tradeoff_points
 
 S = Settings.from_mapping(config)
 R = f"results/{S.profile}"  # this profile's result tree
 RES = S.sampling.tag
 POINTS = tradeoff_points(S) if S.tradeoff is not None else {}
+# the main table's runs (physics-only and full per target, config/paper_results.yaml): `paper_main`
+MAIN_EXPERIMENTS = [n for c in load_layout("config/paper_results.yaml").tables.main.values()
+                    for n in (c.physics_only, c.full)]
 
 
 wildcard_constraints:
