@@ -100,8 +100,16 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     loss_render_is_metric = not cfg.metric_all_particles and len(views) == V
 
     def metrics_for(st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
-                    target_distance: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
+                    target_distance: np.ndarray | None = None,
+                    masked_alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray]:  # [V, H, W]
         sel = slice(None) if cfg.metric_all_particles else mask
+        if alpha is None and masked_alpha is not None and cfg.metric_all_particles:
+            # The loss rendered the masked particles from every view; coverage composes, 1 - alpha =
+            # T_mask T_rest (to within the compositing's early stop, transmittance_min), so only the
+            # particles outside the mask (~10 % at the paper's scale) are rendered again.
+            rest = ~mask
+            alpha = masked_alpha if not rest.any() else 1.0 - (1.0 - masked_alpha) * (
+                1.0 - render_views(st.x[rest], st.F[rest], parts.sigma0, target.cameras, cfg.render)[0])
         if alpha is None:
             alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
@@ -238,6 +246,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 solver.set_control(rebase_control(st.F, solver.control(), Fp_old, rebase_to))
         t4 = time.time()
         m, per_view = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None,
+                                  masked_alpha=res.alpha if want_grad and len(views) == V else None,
                                   target_distance=nearest_d)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)

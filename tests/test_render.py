@@ -329,6 +329,22 @@ def test_render_views_matches_render_and_grad_and_metric():
     assert res.alpha_mse == pytest.approx(per_view.mean(), rel=1e-5)
 
 
+@pytest.mark.parametrize("t_min", [0.0, 1e-4])
+def test_coverage_of_two_subsets_composes(t_min):
+    """1 - alpha(all) = (1 - alpha(A)) (1 - alpha(B)) for a split of the particles into A and B (the
+    morph loop's metric reuses the masked loss render this way): exact without the compositing's
+    early stop (to float32 round-off), within transmittance_min with it."""
+    cams = small_cameras(2)
+    x, F = random_scene(400, 5, spread=0.6)  # dense: many pixels past the early stop
+    cfg = RenderConfig(tile_size=8, transmittance_min=t_min)
+    part = np.random.default_rng(1).random(len(x)) < 0.8
+    whole = render_views(x, F, 0.35, cams, cfg)[0]
+    a, b = (render_views(x[s], F[s], 0.35, cams, cfg)[0] for s in (part, ~part))
+    composed = 1.0 - (1.0 - a) * (1.0 - b)
+    assert (whole > 0.999).mean() > 0.05
+    np.testing.assert_allclose(composed, whole, rtol=0, atol=1e-6 if t_min == 0 else t_min)  # float32 compositing
+
+
 def test_descending_the_render_gradient_reduces_the_dt_loss():
     cams = small_cameras(2, width=32, height=24)
     target = disk_target(cams, radius_frac=0.15)
