@@ -762,8 +762,9 @@ BASE_PROCESS_MB = 600.0  # python + numpy + torch + taichi runtime, measured ~50
 # Per particle in the morph: x, v, C, F stored per substep (96 B in float32, doubled for float64)
 # and the control field, its gradient and optimizer moments (144 B per slot), plus ~8 KB of
 # per-frame work arrays (plasticity neighbours, renderer, mask); calibrated on the paper profile
-# (471K particles, 8 x 960x540: 7.0 GB peak RSS).
-MORPH_BYTES_PER_PARTICLE = 8000.0
+# with its real particle count (iso, 471,282 particles, 8 x 960x540: 7.04 GB peak RSS; the estimate
+# with this constant 7.3 GB).
+MORPH_BYTES_PER_PARTICLE = 10000.0
 
 
 @dataclass(frozen=True)
@@ -808,8 +809,10 @@ def target_memory(sampling: SamplingConfig, target: TargetConfig, stage: str) ->
 
 
 def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: TargetConfig, mpm, domain,
-                 stage: str) -> MemoryEstimate:
-    n = particle_estimate(source, sampling, domain)
+                 stage: str, n_particles: int | None = None) -> MemoryEstimate:
+    """A morph's peak memory; ``n_particles``: the sampled count when the particles exist (a
+    scheduler's request then follows the real run), else estimated from the shape's size."""
+    n = particle_estimate(source, sampling, domain) if n_particles is None else int(n_particles)
     scale = 2 if mpm.precision == "float64" else 1
     slots = mpm.substeps if mpm.control == "per_substep" else 1
     # stored per substep: x, v, C, F and the polar rotation and pair sum (136 B in float32); per

@@ -226,6 +226,15 @@ def sample_particles(
     return summary
 
 
+def stored_particle_count(path: str | os.PathLike) -> int | None:
+    """The particle count a sample_particles file records, None when the file does not exist yet
+    (a dry run, or a job whose inputs are still to be made)."""
+    if not os.path.exists(path):
+        return None
+    with open_h5(path) as f:
+        return int(read_attr(f, "count"))
+
+
 def load_particles(path: str | os.PathLike) -> Particles:
     """Particles written by sample_particles; StageInputError on a missing/corrupt file or field."""
     with open_h5(path) as f:

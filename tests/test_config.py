@@ -154,6 +154,17 @@ def test_memory_estimate_refuses_a_grid_too_big_for_the_machine():
     assert 600 < est["morph iso_bunny_full"] < 1500  # measured peak RSS at this profile: 510-590 MB
 
 
+def test_morph_memory_from_the_sampled_count_covers_the_measured_peak():
+    """With the particles sampled, the morph rule asks for memory from their real count: the paper
+    profile's iso -> bunny full (471,282 particles) peaked at 7,038 MB (docs/performance.md)."""
+    from physmorph.config import morph_memory
+
+    s = load_settings(BASE, "config/paper.yaml")
+    args = (s.shape("iso"), s.sampling, s.target, s.mpm, s.domain, "")
+    assert 7038 < morph_memory(*args, n_particles=471_282).mb < 1.25 * 7038
+    assert morph_memory(*args).mb == morph_memory(*args, n_particles=None).mb  # the estimate before
+
+
 def test_experiment_resolution_and_its_params():
     s = load_settings(BASE)
     full, po = s.experiment_config("iso_bunny_full"), s.experiment_config("iso_bunny_physics_only")

@@ -9,7 +9,8 @@ from scipy.spatial.distance import cdist
 from physmorph.grid import Grid, splat_mass
 from physmorph.h5io import StageInputError, stamp_checksum
 from physmorph.meshes import MeshError, ShapeSpec, prepare_mesh
-from physmorph.particles import load_particles, mean_nn_distance, sample_particles, sample_volume
+from physmorph.particles import (load_particles, mean_nn_distance, sample_particles, sample_volume,
+                                 stored_particle_count)
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +97,7 @@ def test_sample_particles_writes_consistent_file_and_preview(tmp_path, iso_h5):
     np.testing.assert_allclose(summary["sampled_volume"], summary["mesh_volume"], rtol=0.03)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(q.name for q in tmp_path.iterdir()) == ["iso_16.h5", "iso_16.png"]
+    assert stored_particle_count(out) == p.count and stored_particle_count(tmp_path / "none.h5") is None
 
 
 def test_mesh_not_fitting_the_grid_is_named_and_leaves_nothing(tmp_path, iso_h5):

@@ -113,6 +113,27 @@ def test_paper_main_plans_the_main_tables_six_runs(tmp_path):
     assert "results/paper/main_tables/main.md" in planned_outputs(out)
 
 
+def test_morph_asks_for_memory_from_the_sampled_particle_count(tmp_path):
+    """Once the particles exist, the morph job's memory and run time follow their recorded count,
+    not the DAG-time estimate (which can be 20 % low, e.g. the paper profile's sphere)."""
+    from physmorph.h5io import stamp_checksum
+
+    wd = _workdir(tmp_path)
+    args = ("--profile", str(REPO / "workflow/profiles/slurm"), "-n", "results/test/runs/iso_bunny_full.h5", *TEST)
+
+    def morph_mem() -> int:
+        block = _run(wd, *args).stdout.split("rule morph:", 1)[1].split("rule ", 1)[0]
+        return int(re.search(r"mem_mb=(\d+)", block)[1])
+
+    estimated = morph_mem()
+    particles = wd / "results/test/particles/iso_32x1x1.h5"
+    particles.parent.mkdir(parents=True)
+    with h5py.File(particles, "w") as f:
+        f.attrs["count"] = 1_000_000
+        stamp_checksum(f)
+    assert estimated < 1500 and morph_mem() > 10_000
+
+
 def test_slurm_profile_dry_run(tmp_path):
     """The cluster profile plans the paper-scale DAG; memory, runtime and a GPU come from the rules."""
     wd = _workdir(tmp_path)

@@ -7,6 +7,7 @@ from physmorph.config import Settings, morph_params, params_json, particle_estim
 from physmorph.config import morph_memory, sampling_memory, target_memory
 from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.layout import load_layout
+from physmorph.particles import stored_particle_count
 from physmorph.tradeoff import tradeoff_points
 
 S = Settings.from_mapping(config)

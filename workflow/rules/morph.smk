@@ -17,9 +17,13 @@ rule morph:
         f"{R}/benchmarks/morph/{{experiment}}.tsv"
     threads: cluster_threads("morph", S.threads)
     resources:
-        mem_mb=lambda wc: mb(morph_memory(experiment_source(wc.experiment), S.sampling, S.target, S.mpm, S.domain, "")),
-        runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(wc.experiment), S.sampling, S.domain),
-                                             S.experiment_config(wc.experiment).frames),
+        # from the sampled particle count once the particles exist (the estimate before)
+        mem_mb=lambda wc, input: mb(morph_memory(experiment_source(wc.experiment), S.sampling, S.target, S.mpm,
+                                                 S.domain, "", stored_particle_count(input.particles))),
+        runtime=lambda wc, input: morph_runtime_min(
+            stored_particle_count(input.particles)
+            or particle_estimate(experiment_source(wc.experiment), S.sampling, S.domain),
+            S.experiment_config(wc.experiment).frames),
         gpu=S.morph_gpus,
     script:
         "../scripts/morph.py"
