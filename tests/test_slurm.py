@@ -142,8 +142,12 @@ def test_slurm_profile_runs_every_job_on_the_cluster_to_the_local_tables(runs):
     print(f"{len(tables)} tables through SLURM vs local: largest relative difference {worst:.1e}")
     for exp in ("iso_bunny_full", "iso_bunny_physics_only"):
         a, b = read_metrics(local / f"runs/{exp}.h5"), read_metrics(slurm / f"runs/{exp}.h5")
-        for key in ("alpha_mse", "iou", "physics_loss", "chamfer", "total_volume"):
+        for key in ("alpha_mse", "physics_loss", "chamfer", "total_volume"):
             np.testing.assert_allclose(b[key], a[key], rtol=1e-4, err_msg=f"{exp}: {key}")
+        # the silhouette IoU thresholds alpha: a pixel at the threshold can flip with the renderer's
+        # float32 round-off (seen once: 4e-4, one pixel of the ~300 in one view's union, over 8 views), so it is
+        # compared to two pixels' worth
+        np.testing.assert_allclose(b["iou"], a["iou"], rtol=0, atol=1e-3, err_msg=f"{exp}: iou")
 
 
 def _frames_committed(partial: Path) -> int:
