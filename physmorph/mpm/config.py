@@ -141,7 +141,7 @@ class MPMConfig:
 
     # Fields whose default changed after runs were made with the old one: always in a run's params
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
-    # step_scales_with_dx: a new field that changes runs on grids other than 32 at its default.
+    # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
                                                              "step_scales_with_dx"})
 
