@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from physmorph.linalg3 import singular_values
+
 from physmorph.mpm import ParticleState
 from physmorph.plasticity import PlasticityConfig
 
@@ -14,7 +16,8 @@ class MorphDivergenceError(RuntimeError):
 
 
 def anisotropy(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N]
-    s = np.linalg.svd(M, compute_uv=False)
+    """Largest over smallest singular value of each M."""
+    s = singular_values(M)
     return s[:, 0] / np.maximum(s[:, 2], 1e-12)
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from .config import BARRIER_J_LINEAR, MPMConfig, MPMStateError
+from physmorph.linalg3 import signed_singular_values
 
 _SHAPES = {"x": (3,), "v": (3,), "F": (3, 3), "C": (3, 3), "Fp": (3, 3), "mass": (), "volume": ()}
 
@@ -78,9 +79,9 @@ def fixed_corotated_energy_density(Fe: np.ndarray, mu: float, lam: float,  # [N,
                                    volume_law: str = "fixed_corotated") -> np.ndarray:  # [N]
     """Psi(Fe) = mu ||Fe - R||_F^2 + Psi_vol(J) (Stomakhin et al. 2012): Psi_vol = lam/2 (J - 1)^2
     (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued quadratically below BARRIER_J_LINEAR)."""
-    R = polar_rotation(Fe)
+    # ||Fe - R||_F^2 = sum_i (s_i - 1)^2 over the signed singular values (R = U V^T, both rotations)
     J = np.linalg.det(Fe)
-    shear = mu * ((Fe - R) ** 2).sum(axis=(1, 2))
+    shear = mu * ((signed_singular_values(Fe) - 1.0) ** 2).sum(axis=1)
     if volume_law == "fixed_corotated":
         return shear + 0.5 * lam * (J - 1.0) ** 2
     jl = BARRIER_J_LINEAR
