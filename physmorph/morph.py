@@ -172,7 +172,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         # A. physics
         solver.load_state(st)
         if cfg.control_decay < 1.0:
-            solver.set_control(cfg.control_decay * solver.control())
+            solver.scale_control(cfg.control_decay)
         try:
             recalibrate = np.isnan(scale) or cfg.injection_calibration == "every_frame"
             calibration = None
@@ -259,7 +259,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
                 if cfg.restart_control_keep < 1.0:
-                    solver.set_control(cfg.restart_control_keep * solver.control())
+                    solver.scale_control(cfg.restart_control_keep)
             scal["momentum_restart"] = float(restart)
             previous = now
         if np.isfinite(loss_before):  # the bold driver: back off after a rise, regrow after a fall

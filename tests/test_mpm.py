@@ -636,7 +636,7 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     # every driver field changed; the kernels compiled above (with cfg) are kept
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
                   grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
-                  step_scales_with_dx=False)
+                  step_scales_with_dx=False, sufficient_decrease=0.1)
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -814,6 +814,44 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     assert np.abs(g / rms).max() > 1.5  # the clip is active somewhere
     s.optimize_control(iters=1)
     np.testing.assert_allclose(s.control(), -cfg.step_size * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
+
+
+def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):
+    """With the Armijo constant c the accepted step lowers the objective by at least
+    c alpha <g, d> (d = clip(g / rms)); a larger c never accepts a longer step than c = 0."""
+    alphas = {}
+    for c in (0.0, 0.5, 0.9):
+        cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=0.05, step_clip=1.5,
+                    sufficient_decrease=c)
+        st = ball_state(perturb=False)
+        s = make(cfg, st, reuse=True)
+        s.set_target_grid_mass(stretched_target(st, cfg, stretch=(1.06, 0.97, 0.97)))
+        s.reset_control()
+        s.load_state(st)
+        before = s.forward()
+        s.backward()
+        g = s.control_gradient()
+        rms = np.sqrt(np.mean(g * g))
+        rate = float((g * np.clip(g / rms, -1.5, 1.5)).sum())
+        stats = s.optimize_control(iters=1)
+        alphas[c] = stats["step"] if stats["iters"] else 0.0
+        assert stats["loss_final"] <= before - c * alphas[c] * rate + 1e-12 * abs(before)
+    assert alphas[0.9] <= alphas[0.5] <= alphas[0.0] and alphas[0.9] < alphas[0.0]
+
+
+def test_scale_control_is_the_numpy_product(state):
+    """The morph loop's leak scales dFc in place: the same numbers as set_control(f x control())."""
+    cfg = cfg64(substeps=3)
+    s = make(cfg, state, reuse=True)
+    s.load_state(state)
+    c = random_control(cfg, state.n)
+    s.set_control(c)
+    s.forward()
+    s.scale_control(0.95)
+    np.testing.assert_array_equal(s.control(), 0.95 * c)
+    assert not s._forward_current  # the stored rollout belongs to the old control
+    with pytest.raises(ValueError, match="finite"):
+        s.scale_control(float("nan"))
 
 
 @pytest.mark.parametrize("optimizer", ["normalized_gd", "adam"])

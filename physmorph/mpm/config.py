@@ -44,7 +44,8 @@ BARRIER_J_LINEAR = 0.05
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
-DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip", "grad_iters",
+DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
+                           "sufficient_decrease", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
 
@@ -101,6 +102,12 @@ class MPMConfig:
         so a step fixed in F units moves a finer grid's body further (at grid 64 the mid profile's
         cross-shape morphs spray and fall back; docs/study/log.md finding 116). False: the step is
         learning_rate at every grid (until 2026-11-25).
+    sufficient_decrease: normalized_gd only: the line search's Armijo constant c: a trial step is
+        accepted when the objective falls by at least c alpha <g, d> (d the normalised direction,
+        <g, d> its first-order rate), else alpha is halved; 0 accepts any decrease (DiffMPMLib3D's
+        rule). A fixed-size normalised step keeps kicking a converged body by the same amount each
+        frame; with c > 0 the step shrinks where the loss no longer falls as fast as the gradient
+        promises.
     step_clip: normalized_gd only: if > 0, each entry of the normalised step g / rms(g) is clamped
         to [-step_clip, step_clip], so no particle's control moves more than step_clip x alpha per
         iteration (a gradient concentrated on a few particles otherwise moves them by many alpha).
@@ -162,6 +169,7 @@ class MPMConfig:
     step_scales_with_dx: bool = True
     optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
     line_search_iters: int = 10
+    sufficient_decrease: float = 0.0
     step_clip: float = 3.0
     grad_iters: int = 1
     adam_beta1: float = 0.9
@@ -220,6 +228,8 @@ class MPMConfig:
              f"{self.adam_beta2}, {self.adam_eps}")
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
+        need(math.isfinite(self.sufficient_decrease) and 0.0 <= self.sufficient_decrease < 1.0,
+             f"sufficient_decrease must be in [0, 1), got {self.sufficient_decrease}")
         need(isinstance(self.line_search_iters, int) and self.line_search_iters >= 1,
              f"line_search_iters must be an int >= 1, got {self.line_search_iters!r}")
         need(self.volume_law in VOLUME_LAWS, f"volume_law must be one of {VOLUME_LAWS}, got {self.volume_law!r}")

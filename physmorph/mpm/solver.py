@@ -73,6 +73,9 @@ class MPMSolver:
         # control field and Adam moments, index [slot, p]
         self.ctrl = mat.field(shape=(Tc, N))
         self.ctrl_grad = mat.field(shape=(Tc, N))
+        # the line search's starting control: the trial steps are taken from it in place, so a
+        # trial costs no NumPy copy of the [Tc, N, 3, 3] control (0.34 GB each at 471K x 20 slots)
+        self.ctrl_base = mat.field(shape=(Tc, N))
         # Adam's moments are allocated at Adam's first use (_ensure_adam): the default optimiser
         # (normalised GD) has none, which at 471K particles x 20 slots saves 0.7 GB and their checkpoint
         self.adam_m = None
@@ -592,6 +595,43 @@ class MPMSolver:
             self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
 
     @ti.kernel
+    def _scale_ctrl(self, factor: ti.f64):
+        for s, p in self.ctrl:
+            self.ctrl[s, p] = ti.cast(factor, self.dtype) * self.ctrl[s, p]
+
+    @ti.kernel
+    def _save_ctrl_base(self):
+        for s, p in self.ctrl:
+            self.ctrl_base[s, p] = self.ctrl[s, p]
+
+    @ti.kernel
+    def _restore_ctrl_base(self):
+        for s, p in self.ctrl:
+            self.ctrl[s, p] = self.ctrl_base[s, p]
+
+    @ti.kernel
+    def _normalized_step(self, alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64):
+        """dFc = base - alpha clip(g / rms(g), -clip, clip) (clip <= 0: unclipped): the normalised
+        gradient step of DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
+        for s, p in self.ctrl:
+            d = self.ctrl_grad[s, p] * ti.cast(inv_rms, self.dtype)
+            if clip > 0:
+                d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
+            self.ctrl[s, p] = self.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
+
+    @ti.kernel
+    def _direction_dot_gradient(self, inv_rms: ti.f64, clip: ti.f64):
+        """norm_acc = <g, d>, d = clip(g / rms, -clip, clip): the objective's first-order fall per
+        unit alpha along the normalised step (the Armijo test's rate)."""
+        self.norm_acc[None] = 0.0
+        for s, p in self.ctrl_grad:
+            g = self.ctrl_grad[s, p]
+            d = g * ti.cast(inv_rms, self.dtype)
+            if clip > 0:
+                d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
+            self.norm_acc[None] += ti.cast((g * d).sum(), ti.f64)
+
+    @ti.kernel
     def _adam(self, lr_t: ti.f64):
         """Adam (Kingma & Ba) on dFc; lr_t already carries the bias corrections."""
         b1 = self.dtype(self.cfg.adam_beta1)
@@ -855,30 +895,31 @@ class MPMSolver:
                 self._set_control_gradient(first_gradient)
             else:
                 self.backward(grad_F_final, grad_x_final)
-            # in the solver's precision (float32: 0.7 GB less per copy at 471K particles than
-            # float64); the norm was accumulated in float64 by the kernel
-            g = self.control_gradient(native=True)
-            rms = self._grad_norm / np.sqrt(g.size)
+            # the norm was accumulated in float64 by the kernel; the step is taken in place
+            # (_normalized_step), from the control saved at the iteration's start
+            rms = self._grad_norm / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
-            base = self.control(native=True)
-            direction = g
-            direction *= g.dtype.type(1.0 / rms)
-            if self.cfg.step_clip > 0:
-                np.clip(direction, -self.cfg.step_clip, self.cfg.step_clip, out=direction)
+            self._save_ctrl_base()
+            rate = 0.0
+            if self.cfg.sufficient_decrease > 0:
+                self._direction_dot_gradient(1.0 / rms, self.cfg.step_clip)
+                rate = self.cfg.sufficient_decrease * float(self.norm_acc[None])
             found = False
             for _ in range(self.cfg.line_search_iters):
-                self.set_control(base - alpha * direction)
+                self._normalized_step(alpha, 1.0 / rms, self.cfg.step_clip)
+                self._forward_current = False
                 try:
                     trial = self._objective(grad_F_final, grad_x_final)
                 except MPMDivergenceError:  # a step so large the rollout blows up: shorten it
                     trial = float("inf")
-                if trial < obj:
+                if trial < obj - alpha * rate:
                     obj, found = trial, True
                     break
                 alpha *= 0.5
             if not found:
-                self.set_control(base)
+                self._restore_ctrl_base()
+                self._forward_current = False
                 self.forward()
                 break
             accepted += 1
@@ -940,6 +981,13 @@ class MPMSolver:
         if dFc.shape != shape or not np.isfinite(dFc).all():
             raise MPMStateError(f"dFc must be finite with shape {shape}, got {dFc.shape}")
         self.ctrl.from_numpy(np.ascontiguousarray(dFc, dtype=self.np_dtype))
+        self._forward_current = False
+
+    def scale_control(self, factor: float) -> None:
+        """dFc <- factor dFc, in place (the morph loop's leak and restart; no copy of the control)."""
+        if not np.isfinite(factor):
+            raise ValueError(f"factor must be finite, got {factor!r}")
+        self._scale_ctrl(float(factor))
         self._forward_current = False
 
     def control_gradient(self, native: bool = False) -> np.ndarray:  # [Tc, N, 3, 3]
