@@ -473,15 +473,20 @@ EXPERIMENT_OVERRIDES = {"drag": ("mpm", "drag"), "grad_iters": ("mpm", "grad_ite
 
 @dataclass(frozen=True)
 class Tradeoff:
-    """The speed/accuracy study: the base experiment with one resolution knob changed at a time."""
+    """The speed/accuracy study: the base experiment with one knob changed at a time (physmorph.tradeoff)."""
 
     experiment: str
     frames: int
     knobs: dict[str, tuple[Any, ...]] = field(default_factory=dict)
+    # The base point's threads: the study's own, so the workflow's `threads` (which changes no
+    # result) neither adds nor removes a point nor changes what the points' times measure.
+    threads: int = 2
 
     def __post_init__(self) -> None:
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
+        if self.threads < 1:
+            raise ValueError(f"threads must be >= 1, got {self.threads}")
 
 
 @dataclass(frozen=True)
@@ -648,7 +653,11 @@ class Settings:
                            ppc_interior=point.ppc_interior)
         target = replace(self.target, width=point.width, height=point.height)
         cfg = self.experiment_config(self.tradeoff.experiment, sampling, target, cameras=point.cameras,
-                                     grad_iters=point.grad_iters, frames=self.tradeoff.frames)
+                                     grad_iters=point.grad_iters, frames=point.frames)
+        try:
+            cfg = replace(cfg, mpm=replace(cfg.mpm, learning_rate=point.learning_rate, precision=point.precision))
+        except ValueError as exc:
+            _fail(f"tradeoff.knobs.{point.knob or 'learning_rate'}", str(exc))
         return sampling, target, cfg
 
     # ---- memory -------------------------------------------------------------------------
@@ -680,9 +689,12 @@ class Settings:
             except ValueError as exc:
                 raise ConfigError(str(exc)) from exc
             for pname, p in points.items():
-                sampling = replace(self.sampling, grid_res=p.grid_res, ppc_surface=p.ppc_surface)
+                sampling = replace(self.sampling, grid_res=p.grid_res, ppc_surface=p.ppc_surface,
+                                   ppc_interior=p.ppc_interior)
                 target = replace(self.target, width=p.width, height=p.height)
-                out.append(morph_memory(src, sampling, target, mpm, self.domain, f"tradeoff point {pname}"))
+                point_mpm = types.SimpleNamespace(substeps=mpm.substeps, precision=p.precision, control=mpm.control,
+                                                  optimizer=mpm.optimizer)
+                out.append(morph_memory(src, sampling, target, point_mpm, self.domain, f"tradeoff point {pname}"))
         return out
 
     def check_memory(self, mpm=None) -> None:

@@ -88,6 +88,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.optimizer": ("normalized_gd: the authors' normalised descent with line search; adam: the paper's text",
                       "", ""),
     "mpm.line_search_iters": ("normalized_gd: halvings of the step tried before a step is undone", "", ">= 1"),
+    "mpm.sufficient_decrease": ("normalized_gd: Armijo constant c of the line search (a step must lower the "
+                                "objective by c alpha <g, d>; 0: any decrease)", "", "[0, 1)"),
     "mpm.step_clip": ("normalized_gd: clamp of each entry of the normalised step, in multiples of its RMS; "
                       "0 = off", "", ">= 0"),
     "mpm.grad_iters": ("optimiser iterations per frame (J); experiments set it with `grad_iters`", "", ">= 1"),
@@ -196,9 +198,11 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "experiments.<name>.release_frames": ("sets morph.release_frames", "frames", ">= 0"),
     # tradeoff, tables
     "tradeoff.experiment": ("the base experiment", "", "an experiments key"),
-    "tradeoff.frames": ("frames per study run", "", ">= 1"),
-    "tradeoff.knobs": ("values tried per knob: grid_res, ppc_surface, image ([w, h]), cameras, grad_iters", "",
-                       ""),
+    "tradeoff.frames": ("frames of the base point (the frames knob changes them)", "", ">= 1"),
+    "tradeoff.knobs": ("values tried per knob: grid_res, ppc_surface, ppc_interior, image ([w, h]), cameras, "
+                       "grad_iters, learning_rate, frames, precision (float32 | float64), threads", "", ""),
+    "tradeoff.threads": ("threads of the base point (the threads knob changes them); the workflow's `threads` "
+                         "does not reach the study", "", ">= 1"),
     "tables.shapes": ("shapes whose particles and targets are built", "", "shapes keys"),
     "tables.experiments": ("experiments run for the tables and figures", "", "experiments keys"),
 }

@@ -173,7 +173,7 @@ def results_doc_stage(tables_dir: str, figures_dir: str, output: str, profile: s
                                  command=f"snakemake --cores 2 results_page (profile {profile})")
 
 
-def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, log=None):
+def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, domain_width: float, log=None):
     """``points``: {name: TradeoffPoint fields} (or its JSON), as the workflow's params hold them."""
     from physmorph.tradeoff import TradeoffPoint, build_tradeoff
 
@@ -181,4 +181,4 @@ def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, log=
         points = json.loads(points)
     pts = {n: p if isinstance(p, TradeoffPoint) else TradeoffPoint(**p) for n, p in points.items()}
     with stage_log(log):
-        return build_tradeoff(pts, {n: Path(p) for n, p in zip(names, runs)}, Path(out_dir))
+        return build_tradeoff(pts, {n: Path(p) for n, p in zip(names, runs)}, Path(out_dir), float(domain_width))

@@ -1,11 +1,16 @@
-"""The speed/accuracy study: one resolution knob at a time around a base experiment.
+"""The speed/accuracy study: one knob at a time around a base experiment, on converging runs.
 
-A point is the base experiment with one knob changed: ``grid_res``, ``ppc_surface``, ``image``
-(target/render image size, WxH), ``cameras`` or ``grad_iters``. Its name is ``{knob}-{value}``
-(``base`` for the unchanged base). For each point the study records the best alpha MSE over the
-run, the best Chamfer distance (mean particle-to-target-surface distance, resolution independent),
-the morph wall time (sum of frame times) and the peak RSS; it marks the Pareto front of accuracy
-against time and ranks the knobs by accuracy bought per second.
+A point is the base experiment with one knob changed (``KNOBS``): a resolution (``grid_res``,
+``ppc_surface``, ``ppc_interior``, ``image`` as [width, height], ``cameras``), the optimiser's work
+(``grad_iters``, ``learning_rate``, ``frames``), the arithmetic (``precision``) or the machine
+(``threads``). Its name is ``{knob}-{value}`` (``base`` for the unchanged base).
+
+Each point is judged by what a unit of time buys on a run that converges: the wall time to reach
+90 % of the reachable gap (``time_to_90_s``; NaN when the run never gets there), the share of the
+gap closed at the last frame, the volume IoU and the Chamfer distance in grid cells at the last
+frame, the morph wall time (the sum of its frame times) and the peak RSS. The Pareto front is taken
+on (wall time, gap left at the last frame); the points are ranked by time to 90 %, and each knob by
+the final gap it buys per extra second.
 """
 
 from __future__ import annotations
@@ -16,7 +21,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-KNOBS = ("grid_res", "ppc_surface", "image", "cameras", "grad_iters")
+KNOBS = ("grid_res", "ppc_surface", "ppc_interior", "image", "cameras", "grad_iters", "learning_rate", "frames",
+         "precision", "threads")
+PRECISIONS = ("float32", "float64")
+QUALITY = 0.9  # the share of the reachable gap that time-to-quality is measured to
 
 
 @dataclass(frozen=True)
@@ -31,6 +39,10 @@ class TradeoffPoint:
     height: int
     cameras: int
     grad_iters: int
+    learning_rate: float
+    frames: int
+    precision: str
+    threads: int
 
     @property
     def res_tag(self) -> str:
@@ -41,6 +53,26 @@ class TradeoffPoint:
         return f"{self.width}x{self.height}"
 
 
+def _knob_value(knob: str, v):
+    """(the point's field changes, its label) of one knob value; ValueError names what it expects."""
+    if knob == "image":
+        if not isinstance(v, (list, tuple)) or len(v) != 2:
+            raise ValueError("[width, height]")
+        w, h = int(v[0]), int(v[1])
+        return {"width": w, "height": h}, f"{w}x{h}"
+    if knob == "precision":
+        if v not in PRECISIONS:
+            raise ValueError(" or ".join(PRECISIONS))
+        return {"precision": v}, v
+    if knob == "learning_rate":
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            raise ValueError("a positive number")
+        return {"learning_rate": float(v)}, f"{float(v):g}"
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v or int(v) < 1:
+        raise ValueError("a positive integer")
+    return {knob: int(v)}, str(int(v))
+
+
 def tradeoff_points(settings) -> dict[str, TradeoffPoint]:
     """Every point of the study (base first), from the settings' ``tradeoff`` section
     (``settings``: physmorph.config.Settings)."""
@@ -49,25 +81,19 @@ def tradeoff_points(settings) -> dict[str, TradeoffPoint]:
     s, tg = settings.sampling, settings.target
     base = dict(grid_res=s.grid_res, ppc_surface=s.ppc_surface, ppc_interior=s.ppc_interior,
                 width=tg.width, height=tg.height, cameras=exp.cameras or tg.cameras,
-                grad_iters=exp.grad_iters or settings.mpm.grad_iters)
+                grad_iters=exp.grad_iters or settings.mpm.grad_iters,
+                learning_rate=float(settings.mpm.learning_rate), frames=t.frames,
+                precision=settings.mpm.precision, threads=t.threads)
     points = {"base": TradeoffPoint("base", "", "", **base)}
     for knob, values in t.knobs.items():
         if knob not in KNOBS:
             raise ValueError(f"config key 'tradeoff.knobs.{knob}': unknown knob (known: {', '.join(KNOBS)})")
         for i, v in enumerate(values):
-            p = dict(base)
             try:
-                if knob == "image":
-                    if not isinstance(v, (list, tuple)) or len(v) != 2:
-                        raise ValueError
-                    p["width"], p["height"] = int(v[0]), int(v[1])
-                    label = f"{int(v[0])}x{int(v[1])}"
-                else:
-                    p[knob] = int(v)
-                    label = str(int(v))
-            except (TypeError, ValueError):
-                want = "[width, height]" if knob == "image" else "an integer"
-                raise ValueError(f"config key 'tradeoff.knobs.{knob}[{i}]': expected {want}, got {v!r}") from None
+                change, label = _knob_value(knob, v)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"config key 'tradeoff.knobs.{knob}[{i}]': expected {exc}, got {v!r}") from None
+            p = {**base, **change}
             if p == base:
                 continue
             if knob == "cameras" and p["cameras"] > tg.cameras:
@@ -87,74 +113,138 @@ def pareto_front(time_s: np.ndarray, error: np.ndarray) -> np.ndarray:
     return keep
 
 
+def time_to_quality(gap_closed: np.ndarray, frame_time_s: np.ndarray, quality: float = QUALITY) -> float:
+    """Seconds of morphing until the first frame whose gap closed reaches ``quality``; NaN: never.
+    ``gap_closed``, ``frame_time_s``: [K + 1] per frame (frame 0 is the source, its time NaN)."""
+    g = np.asarray(gap_closed, float)
+    t = np.nan_to_num(np.asarray(frame_time_s, float), nan=0.0)
+    hit = np.flatnonzero(g >= quality)
+    return float(np.cumsum(t)[hit[0]]) if len(hit) else float("nan")
+
+
+def point_row(name: str, point: TradeoffPoint, metrics: dict, dx: float) -> dict:
+    """One point's numbers from its run's metrics (physmorph.runfile.read_metrics); ``dx``: the
+    point's grid cell in domain units."""
+    g = np.asarray(metrics["gap_closed"], float)
+    return {"name": name, "knob": point.knob, "value": point.value, "particles": int(metrics["attrs"]["n_particles"]),
+            "time_to_90_s": time_to_quality(g, metrics["t_frame"]),
+            "gap_last": float(g[-1]), "gap_best": float(np.nanmax(g[1:])) if len(g) > 1 else float("nan"),
+            "volume_iou_last": float(metrics["volume_iou"][-1]),
+            "chamfer_last_dx": float(metrics["chamfer"][-1]) / dx,
+            "time_s": float(np.nansum(metrics["t_frame"])), "peak_rss_mb": float(metrics["attrs"]["peak_rss_mb"])}
+
+
 def summarize_points(rows: list[dict]) -> pd.DataFrame:
-    """rows: name, knob, value, best_alpha_mse, best_chamfer, time_s, peak_rss_mb. Adds the
-    Pareto flag and, per point, alpha MSE gained per extra second relative to the base."""
+    """rows: name, knob, value, time_to_90_s, gap_last, time_s (and more). Adds the Pareto flag
+    (wall time against the gap left at the last frame) and, per point, the final gap closed per
+    extra second relative to the base; sorted by time to 90 % (never last)."""
     df = pd.DataFrame(rows)
-    df["pareto"] = pareto_front(df["time_s"].to_numpy(), df["best_alpha_mse"].to_numpy())
+    df["pareto"] = pareto_front(df["time_s"].to_numpy(), 1.0 - df["gap_last"].to_numpy())
     base = df[df["name"] == "base"].iloc[0]
     dt = df["time_s"] - base["time_s"]
-    gain = base["best_alpha_mse"] - df["best_alpha_mse"]
-    df["alpha_gain_per_s"] = np.where(np.abs(dt) > 1e-9, gain / dt.where(np.abs(dt) > 1e-9, 1.0), 0.0)
-    return df
+    gain = df["gap_last"] - base["gap_last"]
+    df["gap_gain_per_s"] = np.where(np.abs(dt) > 1e-9, gain / dt.where(np.abs(dt) > 1e-9, 1.0), 0.0)
+    return df.sort_values(["time_to_90_s", "time_s"], na_position="last", ignore_index=True)
 
 
 def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
-    """One row per knob: its best point by alpha MSE, the gain over the base, its cost and a
+    """One row per knob: its best point by final gap closed, the gain over the base, its cost and a
     verdict (free: faster and better, its gain_per_s inf; costs time; worse)."""
     base = df[df["name"] == "base"].iloc[0]
     rows = []
     for knob, g in df[df["knob"] != ""].groupby("knob"):
-        best = g.loc[g["best_alpha_mse"].idxmin()]
-        gain = base["best_alpha_mse"] - best["best_alpha_mse"]
+        best = g.loc[g["gap_last"].idxmax()]
+        gain = best["gap_last"] - base["gap_last"]
         extra = best["time_s"] - base["time_s"]
         # a knob that is both faster and better has no cost to divide by: "free" ranks it first
         verdict = ("worse" if gain <= 0 else "free (faster and better)" if extra <= 1e-9 else "costs time")
-        rows.append({"knob": knob, "best_value": best["value"], "alpha_mse": best["best_alpha_mse"],
+        rows.append({"knob": knob, "best_value": best["value"], "gap_last": best["gap_last"],
                      "gain_vs_base": gain, "extra_time_s": extra,
                      "gain_per_s": gain / extra if extra > 1e-9 else (np.inf if gain > 0 else 0.0),
                      "verdict": verdict})
     return pd.DataFrame(rows).sort_values("gain_per_s", ascending=False, ignore_index=True)
 
 
-def build_tradeoff(points: dict[str, TradeoffPoint], runs: dict[str, Path], out_dir: Path) -> pd.DataFrame:
-    """Write tradeoff.csv, tradeoff.md (with the knob ranking) and pareto.png; return the table."""
-    from physmorph.runfile import read_metrics
-    from physmorph.tables import markdown_table
-
+def recommendations(df: pd.DataFrame, quality: float = QUALITY) -> pd.DataFrame:
+    """What to run for a budget, read off the front: the fastest point to reach ``quality`` at its
+    last frame (fast), the base (default) and the point with the most gap closed (accurate)."""
     rows = []
-    for name, path in runs.items():
-        m = read_metrics(path)
-        p = points[name]
-        rows.append({"name": name, "knob": p.knob, "value": p.value, "particles": int(m["attrs"]["n_particles"]),
-                     "best_alpha_mse": float(np.nanmin(m["alpha_mse"])), "best_chamfer": float(np.nanmin(m["chamfer"])),
-                     "time_s": float(np.nansum(m["t_frame"])), "peak_rss_mb": float(m["attrs"]["peak_rss_mb"])})
-    df = summarize_points(rows)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    df.to_csv(out / "tradeoff.csv", index=False)
-    rank = knob_ranking(df)
-    (out / "tradeoff.md").write_text("## Points\n\n" + markdown_table(df) + "\n## Which knob buys the most accuracy per second\n\n"
-                                     + markdown_table(rank))
+    ok = df[df["gap_last"] >= quality]
+    if len(ok):
+        rows.append(("fast", ok.loc[ok["time_s"].idxmin()]))
+    rows.append(("default", df[df["name"] == "base"].iloc[0]))
+    rows.append(("accurate", df.loc[df["gap_last"].idxmax()]))
+    return pd.DataFrame([{"budget": b, "point": r["name"], "time_s": r["time_s"], "time_to_90_s": r["time_to_90_s"],
+                          "gap_last": r["gap_last"], "volume_iou_last": r["volume_iou_last"]} for b, r in rows])
+
+
+def pareto_figure(frames: dict[str, pd.DataFrame], out_png: Path, title: str) -> None:
+    """Final gap closed against wall time, every point (``frames``: scale name -> its summary),
+    each scale its own marker, each scale's front drawn; time to 90 % in the second panel."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for knob, g in df.groupby("knob"):
-        ax.scatter(g["time_s"], g["best_alpha_mse"], label=knob or "base", s=36, zorder=3)
-        for _, r in g.iterrows():
-            ax.annotate(r["name"], (r["time_s"], r["best_alpha_mse"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
-    front = df[df["pareto"]].sort_values("time_s")
-    ax.step(front["time_s"], front["best_alpha_mse"], where="post", color="k", lw=1, label="Pareto front")
+    markers = "os^Dv<>"
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.4))
+    knobs = sorted({k for df in frames.values() for k in df["knob"]})
+    colors = {k: plt.cm.tab10(i % 10) for i, k in enumerate(knobs)}
+    for j, (scale, df) in enumerate(frames.items()):
+        m = markers[j % len(markers)]
+        for _, r in df.iterrows():
+            ax.scatter(r["time_s"], 100 * r["gap_last"], marker=m, color=colors[r["knob"]], s=36, zorder=3,
+                       edgecolor="k" if r["pareto"] else "none")
+            ax.annotate(r["name"], (r["time_s"], 100 * r["gap_last"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+            if np.isfinite(r["time_to_90_s"]):
+                ax2.scatter(r["time_to_90_s"], 100 * r["gap_last"], marker=m, color=colors[r["knob"]], s=36)
+                ax2.annotate(r["name"], (r["time_to_90_s"], 100 * r["gap_last"]), fontsize=6, xytext=(3, 3),
+                             textcoords="offset points")
+        front = df[df["pareto"]].sort_values("time_s")
+        ax.step(front["time_s"], 100 * front["gap_last"], where="post", color="k", lw=1, ls="-" if j == 0 else "--",
+                label=f"{scale}: Pareto front")
+        ax.scatter([], [], marker=m, color="grey", label=f"{scale} ({df['particles'].iloc[0]:,} particles at the base)")
+    for k in knobs:
+        ax.scatter([], [], marker="s", color=colors[k], label=k or "base")
+    ax.axhline(100 * QUALITY, color="grey", lw=0.8, ls=":")
     ax.set_xscale("log")
     ax.set_xlabel("morph wall time (s)")
-    ax.set_ylabel("best alpha MSE")
+    ax.set_ylabel("gap closed at the last frame (%)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    ax.set_title("speed / accuracy: one knob at a time around the default", fontsize=9)
+    ax.legend(fontsize=6, ncol=2)
+    ax.set_title(title, fontsize=9)
+    if any(np.isfinite(df["time_to_90_s"]).any() for df in frames.values()):
+        ax2.set_xscale("log")
+    else:
+        ax2.text(0.5, 0.5, f"no point reached {100 * QUALITY:.0f} % of the gap", ha="center", transform=ax2.transAxes)
+    ax2.set_xlabel(f"wall time to {100 * QUALITY:.0f} % of the gap (s; points that never get there are left out)")
+    ax2.set_ylabel("gap closed at the last frame (%)")
+    ax2.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out / "pareto.png", dpi=120)
+    fig.savefig(out_png, dpi=120)
     plt.close(fig)
+
+
+def tradeoff_markdown(df: pd.DataFrame) -> str:
+    from physmorph.tables import markdown_table
+
+    return ("## Points, by time to 90 % of the reachable gap (empty: never)\n\n" + markdown_table(df)
+            + "\n## Which knob buys the most final gap per second\n\n" + markdown_table(knob_ranking(df))
+            + "\n## What to run for a budget\n\n" + markdown_table(recommendations(df)))
+
+
+def build_tradeoff(points: dict[str, TradeoffPoint], runs: dict[str, Path], out_dir: Path,
+                   domain_width: float) -> pd.DataFrame:
+    """Write tradeoff.csv, tradeoff.md (the ranked points, the knob ranking, the recommendations)
+    and pareto.png; return the table. ``domain_width``: hi - lo of the simulation cube."""
+    from physmorph.runfile import read_metrics
+
+    rows = [point_row(name, points[name], read_metrics(path), domain_width / points[name].grid_res)
+            for name, path in runs.items()]
+    df = summarize_points(rows)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(out / "tradeoff.csv", index=False)
+    (out / "tradeoff.md").write_text(tradeoff_markdown(df))
+    pareto_figure({"this profile": df}, out / "pareto.png", "speed / accuracy: one knob at a time around the base")
     return df

@@ -4,12 +4,15 @@
   profile) from ``results/{profile}/tables/`` and its figures.
 * ``config_reference``: config/README.md, every key of the config schema with its meaning, unit and
   range (physmorph.config_docs), type and default (physmorph.config.json_schema).
+* ``write_tradeoff_doc``: docs/tradeoff.md, the speed/accuracy study of each profile that has one
+  (``results/{profile}/tradeoff/tradeoff.csv``) and one Pareto figure with every scale.
 * ``output_captions`` / ``write_captions``: the HTML report's caption of each table and figure, taken
   from docs/outputs.md (the paragraph after each ``### `name` `` heading), so the two say the same.
 
 Command line: ``python -m physmorph.userdocs results default`` (writes docs/results.md and copies the
 figures to docs/images/), ``python -m physmorph.userdocs config`` (config/README.md),
-``python -m physmorph.userdocs captions`` (workflow/report/captions/).
+``python -m physmorph.userdocs captions`` (workflow/report/captions/),
+``python -m physmorph.userdocs tradeoff default mid`` (docs/tradeoff.md, docs/images/pareto_scales.png).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ OUTPUTS_MD = REPO_ROOT / "docs" / "outputs.md"
 CAPTIONS_DIR = REPO_ROOT / "workflow" / "report" / "captions"
 CONFIG_README = REPO_ROOT / "config" / "README.md"
 RESULTS_MD = REPO_ROOT / "docs" / "results.md"
+TRADEOFF_MD = REPO_ROOT / "docs" / "tradeoff.md"
 
 FIGURE_TITLES = {
     "sequences_main": "iso -> bunny, cow, duck (full method), frames 0 to the last and the target",
@@ -210,6 +214,37 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
     return out_md
 
 
+def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: str | Path, out_png: str | Path,
+                       code: str | None = None) -> Path:
+    """docs/tradeoff.md: for each profile whose study exists under ``results_root/{profile}/tradeoff/``
+    its ranked points, knob ranking and budget recommendations, and one Pareto figure with every
+    scale (``out_png``, linked relative to the page)."""
+    from physmorph.tradeoff import pareto_figure, tradeoff_markdown
+
+    frames = {}
+    for p in profiles:
+        csv = Path(results_root) / p / "tradeoff" / "tradeoff.csv"
+        if not csv.exists():
+            raise FileNotFoundError(f"{csv}: no speed/accuracy study for profile '{p}' "
+                                    f"(snakemake --cores 2 tradeoff, with that profile's --configfile)")
+        frames[p] = pd.read_csv(csv)
+    out_md, out_png = Path(out_md), Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    pareto_figure(frames, out_png, "speed / accuracy: one knob at a time around each profile's base")
+    date = _dt.date.today().isoformat()
+    lines = ["# The speed/accuracy study", "",
+             f"Generated {date}" + (f" from {code}" if code else "") + " by `python -m physmorph.userdocs tradeoff "
+             + " ".join(profiles) + "` from each profile's `snakemake --cores 2 tradeoff`. Each point is the base "
+             "experiment with one knob changed; times are the morph's frame times on this machine; the gap is "
+             "the share of the reachable α-MSE gap closed; Chamfer is in grid cells of the point's own grid.", "",
+             f"![Pareto front per scale]({_relpath(out_png, out_md.parent)})", ""]
+    for p, df in frames.items():
+        lines += [f"# Profile `{p}` ({int(df.loc[df['name'] == 'base', 'particles'].iloc[0]):,} particles at the base)", "",
+                  tradeoff_markdown(df).replace("## ", "### "), ""]
+    out_md.write_text("\n".join(lines))
+    return out_md
+
+
 def _relpath(path: Path, start: Path) -> str:
     import os
 
@@ -365,6 +400,8 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
                      help="copy the profile's figures here and link them ('' links them in place)")
     sub.add_parser("config", help="config/README.md from the settings")
     sub.add_parser("captions", help="workflow/report/captions/ from docs/outputs.md")
+    tr = sub.add_parser("tradeoff", help="docs/tradeoff.md from results/{profile}/tradeoff/ of each profile")
+    tr.add_argument("profiles", nargs="+")
     args = parser.parse_args(argv)
     if args.what == "results":
         tree = REPO_ROOT / "results" / args.profile
@@ -373,6 +410,9 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     elif args.what == "config":
         CONFIG_README.write_text(config_reference())
         path = CONFIG_README
+    elif args.what == "tradeoff":
+        path = write_tradeoff_doc(args.profiles, REPO_ROOT / "results", TRADEOFF_MD,
+                                  REPO_ROOT / "docs" / "images" / "pareto_scales.png", code=_checkout())
     else:
         path = CAPTIONS_DIR
         write_captions()

@@ -1,4 +1,4 @@
-# The speed/accuracy study: the base experiment with one resolution knob changed at a time.
+# The speed/accuracy study: the base experiment with one knob changed at a time (physmorph.tradeoff).
 rule rasterize_target_image:
     # A target at another image size than the profile's (for the image-size knob).
     input:
@@ -33,7 +33,7 @@ rule tradeoff_point:
     output:
         f"{R}/tradeoff/runs/{{point}}.h5",
     wildcard_constraints:
-        point=r"[A-Za-z0-9_x-]+",
+        point=r"[A-Za-z0-9_.x-]+",
     params:
         settings=lambda wc: morph_params(point_settings(wc.point)[2]),
         experiment=lambda wc: params_json({"tradeoff_point": wc.point, **without_defaults(S.experiment(S.tradeoff.experiment))}),
@@ -42,12 +42,12 @@ rule tradeoff_point:
         f"{R}/logs/tradeoff/{{point}}.log",
     benchmark:
         f"{R}/benchmarks/tradeoff/{{point}}.tsv"
-    threads: cluster_threads("tradeoff_point", S.threads)
+    threads: lambda wc: cluster_threads("tradeoff_point", POINTS[wc.point].threads)(wc)
     resources:
         mem_mb=lambda wc: mb(morph_memory(experiment_source(S.tradeoff.experiment), point_settings(wc.point)[0],
-                                          point_settings(wc.point)[1], S.mpm, S.domain, "")),
+                                          point_settings(wc.point)[1], point_settings(wc.point)[2].mpm, S.domain, "")),
         runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(S.tradeoff.experiment),
-                                                               point_settings(wc.point)[0], S.domain), S.tradeoff.frames),
+                                                               point_settings(wc.point)[0], S.domain), POINTS[wc.point].frames),
         gpu=S.morph_gpus,
     script:
         "../scripts/morph.py"
@@ -64,6 +64,7 @@ rule make_tradeoff:
         names=list(POINTS),
         points=params_json(POINTS),
         out_dir=f"{R}/tradeoff",
+        domain_width=S.domain[1] - S.domain[0],
     log:
         f"{R}/logs/make_tradeoff.log",
     benchmark:
