@@ -45,6 +45,12 @@ rule tradeoff:
         f"{R}/tradeoff/pareto.png",
 
 
+rule stability_map:  # the extremes, one setting at a time (docs/stability.md), results/{profile}/stability_map/
+    input:
+        f"{R}/stability_map/stability_map.md",
+        f"{R}/stability_map/stability_map.png",
+
+
 include: "workflow/rules/fetch_mesh.smk"
 include: "workflow/rules/prepare_mesh.smk"
 include: "workflow/rules/sample_particles.smk"
@@ -54,3 +60,4 @@ include: "workflow/rules/tables.smk"
 include: "workflow/rules/figures.smk"
 include: "workflow/rules/tradeoff.smk"
 include: "workflow/rules/results_doc.smk"
+include: "workflow/rules/stability_map.smk"

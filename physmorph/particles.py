@@ -25,7 +25,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from physmorph.grid import Grid
+from physmorph.grid import BOUNDARY_CELLS, Grid
 from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
 from physmorph.meshes import MeshError, load_mesh
 
@@ -85,7 +85,8 @@ def sample_volume(
     if np.any(mesh.bounds[0] < inner_lo) or np.any(mesh.bounds[1] > inner_hi):
         raise MeshError(
             f"{label}: mesh bounds {np.round(mesh.bounds, 3).tolist()} do not fit the grid's particle region "
-            f"[{inner_lo}, {inner_hi}]^3 (res {grid.res}, domain [{grid.lo}, {grid.hi}]); shrink the shape or enlarge the domain"
+            f"[{inner_lo}, {inner_hi}]^3 (res {grid.res}, domain [{grid.lo}, {grid.hi}]; particles keep {BOUNDARY_CELLS} "
+            f"cells from each face); raise sampling.grid_res, shrink the shape (shapes.{label}.size) or enlarge the domain"
         )
     rng = np.random.default_rng(seed)
     dx = grid.dx

@@ -1,0 +1,220 @@
+"""The stability map of the extremes (physmorph.extremes): every cell's outcome is one of converged,
+not converged, warned, refused (naming the key) or stopped (naming frame and quantity, earlier
+frames kept), never a crash, a hang or a silent NaN. The classifier on hand-made runs, the
+refusals of the most extreme configs, the process guard, and the most extreme cells that run, on
+the tiny test profile with fewer frames (the outcome's class is what is tested)."""
+
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from physmorph.config import deep_merge, load_mapping, load_settings
+from physmorph.extremes import (FAILURES, KNOBS, MAP_EXPERIMENT, OUTCOMES, CellRun, build_map, cell_mapping,
+                                check_cell, classify, map_cells, parse_stop, read_cell_run, run_cell, run_isolated)
+from physmorph.stages import prepare_mesh_stage
+
+REPO = Path(__file__).resolve().parent.parent
+ALLOWED = tuple(o for o in OUTCOMES if o not in FAILURES)
+
+
+@pytest.fixture(scope="module")
+def base():
+    return load_mapping(REPO / "config" / "config.yaml", REPO / "config" / "test.yaml")
+
+
+@pytest.fixture(scope="module")
+def cells(base):
+    return map_cells(base)
+
+
+# ------------------------------------------------------------------------------ classify
+
+STOP_F = "frame 7: |F| = 61.2 exceeds 50 (particle 3) (completed frames are kept in r.h5.partial)"
+STOP_X = "frame 3: x became non-finite (NaN/Inf or |x| > 1e+06) at substep 4 (particle 12) (completed frames are kept in p)"
+STOP_GRAD = "frame 2: the dFc gradient became non-finite (NaN/Inf) in the backward pass (completed frames are kept in p)"
+MESH_MISFIT = ("bunny: mesh bounds [[-8.5, -6.2, -8.4], [9.5, 11.6, 5.5]] do not fit the grid's particle region "
+               "[-10.0, 10.0]^3 (res 16, domain [-16.0, 16.0]; particles keep 3 cells from each face); raise "
+               "sampling.grid_res, shrink the shape (shapes.bunny.size) or enlarge the domain")
+DONE = dict(status="complete", frames_planned=12, frames_completed=12, gap_closed_last=0.5, gap_closed_best=0.6)
+
+
+@pytest.mark.parametrize("run, outcome, named", [
+    (CellRun(refusal="config key 'mpm.dt': dt=0.0132 exceeds the stable step 0.011"), "refused", "mpm.dt"),
+    (CellRun(refusal="config: morph iso_bunny_full needs an estimated 29,098 MB (...) above the limit of 24,105 MB "
+                     "(max_memory_mb (null: this machine's memory)); lower sampling.grid_res"), "refused", "max_memory_mb"),
+    (CellRun(refusal="something is wrong"), "crash", "names no config key"),
+    (CellRun(timed_out=True, returncode=-9, frames_completed=4), "hang", "after frame 4"),
+    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_F, frames_completed=6), "stopped", "F"),
+    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_X, frames_completed=2), "stopped", "x"),
+    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_GRAD, frames_completed=1), "stopped",
+     "dFc gradient"),
+    # a stop that lost frames, or names no frame, is a bug
+    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_F, frames_completed=3), "crash",
+     "frames 0..3 are kept"),
+    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message="it diverged"), "crash", "names no frame"),
+    (CellRun(returncode=1, error_type="ValueError", error_message="x of particle 3 is outside"), "crash", "ValueError"),
+    (CellRun(returncode=1, error_type="MeshError", error_message=MESH_MISFIT), "refused", "sampling.grid_res"),
+    (CellRun(returncode=1, error_type="MeshError", error_message="bunny: mesh is empty, nothing to sample"), "crash",
+     "MeshError"),
+    (CellRun(returncode=-9), "crash", "SIGKILL"),
+    (CellRun(**DONE), "converged", "50 %"),
+    (CellRun(**{**DONE, "gap_closed_last": 0.1}), "not converged", "closed 10 %"),
+    (CellRun(**DONE, config_warnings=("CFLWarning: dt=0.0099 is 90% of the stable step",)), "warned", "90% of the stable"),
+    (CellRun(**DONE, run_warnings=("frame 9: alpha MSE rose for 8 frames in a row",)), "warned", "rose for 8 frames"),
+    # success with garbage
+    (CellRun(**{**DONE, "metrics_finite": False}), "crash", "silent NaN"),
+    (CellRun(**{**DONE, "gap_closed_last": math.nan}), "crash", "silent NaN"),
+    (CellRun(**{**DONE, "frames_completed": 5}), "crash", "after 5 of 12 frames"),
+])
+def test_classify_names_what_happened(run, outcome, named):
+    got = classify(run)
+    assert got.outcome == outcome, got
+    assert named in " ".join(str(v) for v in (got.detail, got.key, got.quantity)), got
+    if outcome == "stopped":
+        assert got.frame == parse_stop(run.error_message)[0] == run.frames_completed + 1
+
+
+# ------------------------------------------------------------------------------ the sweep
+
+def test_the_map_covers_every_knob_with_at_least_four_values_around_its_default(base, cells):
+    for knob in KNOBS:
+        mine = [c for c in cells.values() if c.knob == knob.name]
+        assert len(mine) >= 4, knob.name
+        assert sum(c.is_default for c in mine) == 1, knob.name
+        assert all(c.key == knob.key.format(experiment=MAP_EXPERIMENT) for c in mine)
+    assert all(c.overrides for c in cells.values())
+    assert any(c.knob == "dt" and check_cell(cell_mapping(base, c)).settings is None for c in cells.values())  # past CFL
+
+
+def test_a_default_cell_is_the_base_run(base, cells):
+    want = load_settings(REPO / "config" / "config.yaml", REPO / "config" / "test.yaml").experiment_config(MAP_EXPERIMENT)
+    for c in cells.values():
+        if c.is_default:
+            assert check_cell(cell_mapping(base, c)).settings.experiment_config(MAP_EXPERIMENT) == want, c.name
+
+
+@pytest.mark.parametrize("cell, key", [
+    ("dt-0.0132", "mpm.dt"),                       # 1.2 x the stable step
+    ("youngs_modulus-1e+07", "mpm.dt"),            # the stiffest: its stable step is 0.3 x the default dt
+    ("poisson_ratio-0.499", "mpm.dt"),             # nearly incompressible: the P-wave outruns dt
+    ("grid_res-128", "mpm.dt"),                    # a finer cell shortens the stable step
+    ("drag-480", f"experiments.{MAP_EXPERIMENT}.drag"),  # drag x dt = 2
+    ("particles-ppc14x14", "max_memory_mb"),       # ~2M particles: more than the machine (or the limit) holds
+])
+def test_the_most_extreme_configs_are_refused_naming_the_key(base, cells, cell, key):
+    # the memory refusal with a limit below this machine's, so it holds on any machine
+    mapping = deep_merge(cell_mapping(base, cells[cell]), {"max_memory_mb": 16000})
+    check = check_cell(mapping)
+    assert check.settings is None
+    out = classify(CellRun(refusal=check.refusal))
+    assert (out.outcome, out.key) == ("refused", key), out
+
+
+def test_near_the_stable_step_the_config_warns(base, cells):
+    check = check_cell(cell_mapping(base, cells["dt-0.00988"]))
+    assert check.settings is not None
+    assert len(check.warnings) == 1 and "CFLWarning: dt=0.00988" in check.warnings[0] and "of the stable step" in check.warnings[0]
+
+
+# ------------------------------------------------------------------------------ the process guard
+
+def test_a_hang_is_cut_at_its_limit_with_what_it_started():
+    r = run_isolated("subprocess:run", {"args": ["sleep", "47.125"]}, timeout_s=2.0)
+    assert r.timed_out and r.wall_s < 20
+    assert classify(CellRun(timed_out=r.timed_out, returncode=r.returncode)).outcome == "hang"
+    # the grandchild (the sleep the child started) went with the child's process group
+    assert subprocess.run(["pgrep", "-f", "^sleep 47.125$"], capture_output=True).stdout == b""
+
+
+def test_a_dead_interpreter_and_an_exception_are_crashes_that_say_why():
+    dead = run_isolated("os:abort", {}, timeout_s=60)
+    assert classify(CellRun(returncode=dead.returncode)).detail.endswith("(SIGABRT) without a result")
+    raised = run_isolated("json:loads", {"s": "{"}, timeout_s=60)
+    assert raised.error_type == "JSONDecodeError" and "json/decoder.py" in raised.traceback
+    out = classify(CellRun(returncode=raised.returncode, error_type=raised.error_type,
+                           error_message=raised.error_message))
+    assert out.outcome == "crash" and out.detail.startswith("JSONDecodeError: Expecting")
+
+
+# ------------------------------------------------------------------------------ the table and figure
+
+def test_the_map_writes_a_table_and_a_figure_with_failures_first(tmp_path):
+    common = dict(key="k", order=0.0, is_default=False, note="", n_particles=1178, frames_planned=12, wall_s=1.0,
+                  refused_key=None, stop_frame=None, stop_quantity=None, warnings=[], frames_completed=12,
+                  gap_closed_last=0.5, gap_closed_best=0.6)
+    records = [
+        {**common, "cell": "dt-a", "knob": "dt", "value": "0.38 (default)", "is_default": True,
+         "outcome": "converged", "detail": "closed 50 % of the gap"},
+        {**common, "cell": "dt-b", "knob": "dt", "value": "1.2", "order": 1.2, "outcome": "refused",
+         "detail": "config key 'mpm.dt': dt=0.0132 exceeds", "refused_key": "mpm.dt", "n_particles": None,
+         "frames_planned": None, "frames_completed": None, "gap_closed_last": math.nan, "gap_closed_best": math.nan},
+        {**common, "cell": "eta-a", "knob": "eta", "value": "1", "outcome": "stopped", "detail": STOP_F,
+         "stop_frame": 7, "stop_quantity": "F", "frames_completed": 6},
+        {**common, "cell": "eta-b", "knob": "eta", "value": "0.5", "order": 0.5, "outcome": "crash",
+         "detail": "ValueError: boom"},
+    ]
+    df = build_map(records, tmp_path)
+    assert df["knob"].tolist() == ["dt", "dt", "eta", "eta"]
+    md = (tmp_path / "stability_map.md").read_text()
+    assert md.startswith("4 cells: converged 1, refused 1, stopped 1, crash 1.")
+    assert "**Cells that crashed or hung**" in md and "ValueError: boom" in md
+    assert "`mpm.dt`: dt=0.0132 exceeds" in md and "frame 7, F: frame 7: \\|F\\| = 61.2 exceeds 50" in md
+    assert (tmp_path / "stability_map.png").stat().st_size > 10_000
+
+
+def test_the_workflow_plans_one_job_per_cell_and_none_for_a_refused_cells_inputs(tmp_path, cells):
+    for name in ("Snakefile", "config", "workflow"):
+        (tmp_path / name).symlink_to(REPO / name)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([str(Path(sys.executable).with_name("snakemake")), "-n", "--cores", "2", "stability_map",
+                          "--configfile", "config/test.yaml"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300, env=env)
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text[-3000:]
+    assert f"stability_cell           {len(cells)}" in text, text[-2000:]
+    assert "results/test/stability_map/stability_map.png" in text
+    assert "particles/iso_32x14x14.h5" not in text and "targets/bunny_128x1x1.h5" not in text  # refused: never made
+
+
+# ------------------------------------------------------------------------------ the extreme cells that run
+
+@pytest.fixture(scope="module")
+def meshes(tmp_path_factory, mesh_dir):
+    """The prepared iso and bunny meshes (a cell samples and rasterizes them at its resolution)."""
+    d = tmp_path_factory.mktemp("extremes")
+    cfg = load_settings(REPO / "config" / "config.yaml", REPO / "config" / "test.yaml")
+    prepare_mesh_stage("iso", cfg.shapes["iso"], None, d / "iso.h5")
+    prepare_mesh_stage("bunny", cfg.shapes["bunny"], mesh_dir / "stanford-bunny.obj", d / "bunny.h5")
+    return d
+
+
+@pytest.mark.parametrize("name", ["step_size-x10", "gamma-10", "eta-1"])
+def test_the_most_extreme_running_cells_end_in_an_allowed_outcome(base, cells, meshes, name):
+    """The largest step, gain and plasticity rate, 5 frames (two with plasticity), in this process:
+    they share one compiled solver (none of the three is a kernel setting)."""
+    short = {"experiments": {MAP_EXPERIMENT: {"frames": 5, "release_frames": 0}}}
+    cell = dataclasses.replace(cells[name], overrides=deep_merge(cells[name].overrides, short))
+    work = meshes / name
+    rec = run_cell(cell, cell_mapping(base, cell), meshes / "iso.h5", meshes / "bunny.h5", work, isolate=False)
+    assert rec["outcome"] in ALLOWED, rec
+    assert rec["n_particles"] > 1000 and rec["frames_planned"] == 5
+    found = read_cell_run(work / "run.h5")
+    if rec["outcome"] == "stopped":
+        assert found["frames_completed"] == rec["stop_frame"] - 1 and found["metrics_finite"]
+    else:
+        assert found["frames_completed"] == 5 and np.isfinite(rec["gap_closed_last"])
+
+
+def test_a_grid_too_coarse_to_hold_the_target_is_refused_naming_the_grid(base, cells, meshes):
+    """At 16 cells the particle region ([-10, 10]^3: 3 cells kept from each face) cannot hold the
+    bunny around its centroid: its sampling refuses it naming sampling.grid_res, before any morph."""
+    rec = run_cell(cells["grid_res-16"], cell_mapping(base, cells["grid_res-16"]), meshes / "iso.h5",
+                   meshes / "bunny.h5", meshes / "grid16", isolate=False)
+    assert (rec["outcome"], rec["refused_key"]) == ("refused", "sampling.grid_res"), rec
+    assert "bunny: mesh bounds" in rec["detail"] and not (meshes / "grid16" / "run.h5.partial").exists()
