@@ -245,6 +245,53 @@ def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: st
     return out_md
 
 
+def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Path, out_png: str | Path,
+                        code: str | None = None) -> Path:
+    """docs/stability.md: the stability map of ``results_root/{profile}/stability_map/`` (its figure
+    copied to ``out_png``), the outcome counts, and every cell's row."""
+    import shutil
+
+    from physmorph.extremes import FAILURES, OUTCOMES
+
+    src = Path(results_root) / profile / "stability_map"
+    csv = src / "stability_map.csv"
+    if not csv.exists():
+        raise FileNotFoundError(f"{csv}: no stability map for profile '{profile}' "
+                                f"(snakemake --cores 2 stability_map, with that profile's --configfile)")
+    df = pd.read_csv(csv, keep_default_na=False)
+    out_md, out_png = Path(out_md), Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src / "stability_map.png", out_png)
+    counts = df["outcome"].value_counts()
+    failures = int(df["outcome"].isin(FAILURES).sum())
+    knobs = df.groupby("knob", sort=False)["value"].count()
+    lines = ["# The stability map of the extremes", "",
+             f"Generated {_dt.date.today().isoformat()}" + (f" from {code}" if code else "")
+             + f" by `python -m physmorph.userdocs stability {profile}` from `snakemake --cores 2 stability_map"
+             + ("" if profile == "default" else f" --configfile config/{profile}.yaml") + "`.", "",
+             "The base experiment (iso → bunny, full method) with one setting at a time moved from the profile's "
+             "default to and past its limit. Every cell runs in its own process under a wall-clock limit and "
+             "ends in one outcome: **converged** (every frame ran, metrics finite, the last frame closed at "
+             "least a quarter of the reachable gap), **not converged** (ran and finite, closed less), "
+             "**warned** (ran and finite, with the config's or the run's warning, quoted), **refused** (before "
+             "any frame, naming the key), or **stopped** (at a named frame and quantity, every earlier frame "
+             "kept in the partial run). **crash** (any other exception, a killed process, lost frames, a "
+             "success with a non-finite metric) and **hang** (past the cell's limit) are bugs; "
+             "tests/test_extremes.py runs the most extreme cells on every test run.", "",
+             f"![stability map]({_relpath(out_png, out_md.parent)})", "",
+             f"{len(df)} cells over {len(knobs)} settings ({', '.join(f'{k} {n}' for k, n in knobs.items())}): "
+             + ", ".join(f"{o} {int(counts[o])}" for o in OUTCOMES if o in counts)
+             + f". Cells that crashed or hung: {failures}.", ""]
+    cols = ["knob", "value", "particles", "frames", "outcome", "gap_closed_last_%", "detail", "wall_s"]
+    table = df[cols].copy()
+    table["gap_closed_last_%"] = [f"{float(v):.0f}" if str(v) not in ("", "nan") else "" for v in table["gap_closed_last_%"]]
+    lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for _, r in table.iterrows():
+        lines.append("| " + " | ".join(str(r[c]) for c in cols) + " |")
+    out_md.write_text("\n".join(lines) + "\n")
+    return out_md
+
+
 def _relpath(path: Path, start: Path) -> str:
     import os
 
@@ -402,6 +449,8 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     sub.add_parser("captions", help="workflow/report/captions/ from docs/outputs.md")
     tr = sub.add_parser("tradeoff", help="docs/tradeoff.md from results/{profile}/tradeoff/ of each profile")
     tr.add_argument("profiles", nargs="+")
+    st = sub.add_parser("stability", help="docs/stability.md from results/{profile}/stability_map/")
+    st.add_argument("profile", nargs="?", default="test")
     args = parser.parse_args(argv)
     if args.what == "results":
         tree = REPO_ROOT / "results" / args.profile
@@ -413,6 +462,9 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     elif args.what == "tradeoff":
         path = write_tradeoff_doc(args.profiles, REPO_ROOT / "results", TRADEOFF_MD,
                                   REPO_ROOT / "docs" / "images" / "pareto_scales.png", code=_checkout())
+    elif args.what == "stability":
+        path = write_stability_doc(args.profile, REPO_ROOT / "results", REPO_ROOT / "docs" / "stability.md",
+                                   REPO_ROOT / "docs" / "images" / "stability_map.png", code=_checkout())
     else:
         path = CAPTIONS_DIR
         write_captions()

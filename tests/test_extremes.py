@@ -166,6 +166,19 @@ def test_the_map_writes_a_table_and_a_figure_with_failures_first(tmp_path):
     assert "**Cells that crashed or hung**" in md and "ValueError: boom" in md
     assert "`mpm.dt`: dt=0.0132 exceeds" in md and "frame 7, F: frame 7: \\|F\\| = 61.2 exceeds 50" in md
     assert (tmp_path / "stability_map.png").stat().st_size > 10_000
+    # the docs page (python -m physmorph.userdocs stability PROFILE) reads the same files
+    from physmorph.userdocs import write_stability_doc
+
+    tree = tmp_path / "results" / "test" / "stability_map"
+    tree.mkdir(parents=True)
+    for f in ("stability_map.csv", "stability_map.png"):
+        (tmp_path / f).rename(tree / f)
+    page = write_stability_doc("test", tmp_path / "results", tmp_path / "docs" / "stability.md",
+                               tmp_path / "docs" / "images" / "stability_map.png").read_text()
+    assert "4 cells over 2 settings (dt 2, eta 2): converged 1, refused 1, stopped 1, crash 1. Cells that crashed " \
+           "or hung: 1." in page
+    assert "](images/stability_map.png)" in page and (tmp_path / "docs" / "images" / "stability_map.png").exists()
+    assert "| eta | 0.5 | 1,178 | 12/12 | crash | 50 | ValueError: boom |" in page
 
 
 def test_the_workflow_plans_one_job_per_cell_and_none_for_a_refused_cells_inputs(tmp_path, cells):
