@@ -31,6 +31,46 @@ from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_
 REPO = Path(__file__).resolve().parent.parent
 
 
+STAGES = ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame")
+
+
+def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path) -> dict:
+    """Prepare the source particles and the target in ``workdir`` (reused when there), run ``frames``
+    frames of ``experiment`` (plasticity from the first frame, no release), and return the mean
+    seconds per stage over the frames after the first, the first frame, the particle count, the mask
+    fraction, the peak RSS (MB) and the data preparation's seconds."""
+    s = cfg.sampling
+    exp = cfg.experiment(experiment)
+    wd = Path(workdir)
+    wd.mkdir(parents=True, exist_ok=True)
+    t_prep = time.time()
+    for role, shape in (("source", exp.source), ("target", exp.target)):
+        spec = cfg.shape(shape)
+        raw = (Path(spec.path) if spec.path else Path(mesh_dir) / spec.file) if spec.kind == "file" else None
+        mesh = wd / f"{shape}.h5"
+        if not mesh.exists():
+            prepare_mesh_stage(shape, spec, raw, mesh)
+        if role == "source" and not (wd / f"p_{shape}.h5").exists():
+            sample_particles_stage(mesh, wd / f"p_{shape}.h5", wd / f"p_{shape}.png", s, 0)
+        if role == "target" and not (wd / f"t_{shape}.h5").exists():
+            rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg.target, 0)
+    prep = time.time() - t_prep
+    mc = morph_config(cfg, experiment)
+    mc = dataclasses.replace(mc, frames=frames, save_every=frames, release_frames=0,
+                             plasticity=dataclasses.replace(mc.plasticity, start_frame=1))
+    out = wd / "run.h5"
+    out.unlink(missing_ok=True)
+    shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
+    run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=experiment)
+    m = read_metrics(out)
+    sel = slice(2, None) if frames > 1 else slice(1, None)
+    row = {key[2:]: float(np.nanmean(m[key][sel])) for key in STAGES}
+    row.update(first_frame=float(m["t_frame"][1]), particles=int(m["attrs"]["n_particles"]),
+               mask_fraction=float(np.nanmean(m["mask_fraction"][sel])),
+               peak_rss_mb=float(m["attrs"]["peak_rss_mb"]), preparation=prep)
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--profile", default="default", choices=["default", "mid", "paper", "test"])
@@ -43,37 +83,14 @@ def main() -> None:
     files = [REPO / "config/config.yaml"] + ([REPO / f"config/{args.profile}.yaml"] if args.profile != "default" else [])
     cfg = load_settings(*files, overrides={"device": args.device} if args.device else None)
     s = cfg.sampling
-    exp = cfg.experiment(args.experiment)
-    wd = Path(args.workdir) / f"{args.profile}_{s.tag}"
-    wd.mkdir(parents=True, exist_ok=True)
-    t_prep = time.time()
-    for role, shape in (("source", exp.source), ("target", exp.target)):
-        spec = cfg.shape(shape)
-        raw = (Path(spec.path) if spec.path else Path(args.mesh_dir) / spec.file) if spec.kind == "file" else None
-        mesh = wd / f"{shape}.h5"
-        if not mesh.exists():
-            prepare_mesh_stage(shape, spec, raw, mesh)
-        if role == "source" and not (wd / f"p_{shape}.h5").exists():
-            sample_particles_stage(mesh, wd / f"p_{shape}.h5", wd / f"p_{shape}.png", s, 0)
-        if role == "target" and not (wd / f"t_{shape}.h5").exists():
-            rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg.target, 0)
-    prep = time.time() - t_prep
-    mc = morph_config(cfg, args.experiment)
-    mc = dataclasses.replace(mc, frames=args.frames, save_every=args.frames, release_frames=0,
-                             plasticity=dataclasses.replace(mc.plasticity, start_frame=1))
-    out = wd / "run.h5"
-    out.unlink(missing_ok=True)
-    shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
-    run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=args.experiment)
-    m = read_metrics(out)
-    sel = slice(2, None) if args.frames > 1 else slice(1, None)
+    row = bench(cfg, args.experiment, Path(args.workdir) / f"{args.profile}_{s.tag}", args.frames, args.mesh_dir)
     print(f"\nprofile {args.profile} on {cfg.device} ({s.tag}, {cfg.target.width}x{cfg.target.height} x {cfg.target.cameras} views), "
-          f"{args.experiment}, {int(m['attrs']['n_particles'])} particles, data preparation {prep:.1f} s")
+          f"{args.experiment}, {row['particles']} particles, data preparation {row['preparation']:.1f} s")
     print("| stage | seconds per frame |\n|---|---|")
-    for key in ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame"):
-        print(f"| {key[2:]} | {np.nanmean(m[key][sel]):.2f} |")
-    print(f"| first frame (incl. compilation) | {m['t_frame'][1]:.2f} |")
-    print(f"mask fraction {np.nanmean(m['mask_fraction'][sel]):.2f}, peak RSS {float(m['attrs']['peak_rss_mb']):.0f} MB")
+    for key in STAGES:
+        print(f"| {key[2:]} | {row[key[2:]]:.2f} |")
+    print(f"| first frame (incl. compilation) | {row['first_frame']:.2f} |")
+    print(f"mask fraction {row['mask_fraction']:.2f}, peak RSS {row['peak_rss_mb']:.0f} MB")
 
 
 if __name__ == "__main__":

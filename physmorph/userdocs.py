@@ -227,7 +227,9 @@ def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: st
         if not csv.exists():
             raise FileNotFoundError(f"{csv}: no speed/accuracy study for profile '{p}' "
                                     f"(snakemake --cores 2 tradeoff, with that profile's --configfile)")
-        frames[p] = pd.read_csv(csv)
+        df = pd.read_csv(csv)
+        df[["knob", "value"]] = df[["knob", "value"]].fillna("")  # the base's (written empty)
+        frames[p] = df
     out_md, out_png = Path(out_md), Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     pareto_figure(frames, out_png, "speed / accuracy: one knob at a time around each profile's base")

@@ -1,0 +1,75 @@
+"""Per-stage cost against what the scene holds: the same morph with the material filling 1-25 % of the domain.
+
+    python benchmarks/bench_scene.py                          # default profile, 4 frames per run
+    python benchmarks/bench_scene.py --profile mid --shares 0.04 0.1 --frames 3
+
+The source is the iso-sphere scaled so its volume is the given share of the domain cube, the target
+a cube of the same volume (a mesh written to --workdir), at the profile's grid and particles per cell,
+so the particle density is the same in every row. Each share runs physics-only and with the full
+method (benchmarks/bench_morph.py's measurement: mean seconds per stage over the frames after the
+first, plasticity from the first frame). Prints a markdown table; docs/performance.md quotes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+import trimesh
+
+from bench_morph import REPO, bench
+from physmorph.config import load_settings
+
+DOMAIN_SHARES = (0.01, 0.04, 0.10, 0.25)
+
+
+def scene_settings(files: list[Path], share: float, mesh_path: Path):
+    """The profile's settings with the iso source and a cube target each holding ``share`` of the
+    domain's volume (the cube mesh written to ``mesh_path``)."""
+    base = load_settings(*files)
+    width = base.domain[1] - base.domain[0]
+    volume = share * width ** 3
+    radius = (3.0 * volume / (4.0 * math.pi)) ** (1.0 / 3.0)
+    side = volume ** (1.0 / 3.0)
+    trimesh.creation.box(extents=(side, side, side)).export(mesh_path)
+    overrides = {"shapes": {"iso": {"kind": "isosphere", "size": 2.0 * radius},
+                            "cube": {"kind": "file", "path": str(mesh_path), "size": side}},
+                 "experiments": {f"iso_cube_{m}": {"source": "iso", "target": "cube", "method": m}
+                                 for m in ("physics_only", "full")}}
+    return load_settings(*files, overrides=overrides)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--profile", default="default", choices=["default", "mid", "paper", "test"])
+    ap.add_argument("--shares", type=float, nargs="+", default=list(DOMAIN_SHARES),
+                    help="volume of the shape over the domain's")
+    ap.add_argument("--frames", type=int, default=4)
+    ap.add_argument("--workdir", default="/tmp/physmorph_bench_scene")
+    ap.add_argument("--mesh-dir", default=os.environ.get("PHYSMORPH_MESH_DIR", str(REPO.parent / "shared" / "meshes")))
+    args = ap.parse_args()
+    files = [REPO / "config/config.yaml"] + ([REPO / f"config/{args.profile}.yaml"] if args.profile != "default" else [])
+    rows = []
+    for share in args.shares:
+        wd = Path(args.workdir) / f"{args.profile}_share{share:g}"
+        wd.mkdir(parents=True, exist_ok=True)
+        cfg = scene_settings(files, share, wd / "cube.obj")
+        for method in ("physics_only", "full"):
+            r = bench(cfg, f"iso_cube_{method}", wd, args.frames, args.mesh_dir)
+            rows.append({"share": share, "method": method, **r})
+            print(f"share {share:g} {method}: {r}", flush=True)
+    print(f"\nprofile {args.profile} (grid {cfg.sampling.grid_res}, PPC {cfg.sampling.ppc_surface}/"
+          f"{cfg.sampling.ppc_interior}), {args.frames} frames, mean of frames 2-{args.frames}; seconds per frame")
+    print("| share of the domain | method | particles | physics | render | plasticity | mask | frame | "
+          "frame per 1K particles | peak RSS |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {100 * r['share']:g} % | {r['method']} | {r['particles']:,} | {r['physics']:.2f} | {r['render']:.2f} | "
+              f"{r['plasticity']:.2f} | {r['mask']:.2f} | {r['frame']:.2f} | {1000 * r['frame'] / r['particles']:.3f} | "
+              f"{r['peak_rss_mb'] / 1024:.2f} GB |")
+
+
+if __name__ == "__main__":
+    main()
