@@ -113,7 +113,15 @@ def _same_numbers(a: pd.DataFrame, b: pd.DataFrame, what: str) -> float:
         x, y = a[col], b[col]
         if pd.api.types.is_numeric_dtype(x) and pd.api.types.is_numeric_dtype(y):
             u, v = x.to_numpy(float), y.to_numpy(float)
-            np.testing.assert_allclose(v, u, rtol=1e-4, atol=1e-12, equal_nan=True, err_msg=f"{what}: {col}")
+            # a percentage of a difference (the rebound %: (last - best) / best of alpha MSEs that
+            # agree to 1e-5, checked below) magnifies the float32 atomics' round-off of two runs:
+            # percentages (a column named "%", or a directions row whose measure is one) are
+            # compared in their own unit, to 0.01 percentage point
+            pct = np.full(len(a), "%" in str(col))
+            if "measure" in a.columns:
+                pct |= a["measure"].astype(str).str.contains("%").to_numpy()
+            np.testing.assert_allclose(v[~pct], u[~pct], rtol=1e-4, atol=1e-12, equal_nan=True, err_msg=f"{what}: {col}")
+            np.testing.assert_allclose(v[pct], u[pct], rtol=0, atol=1e-2, equal_nan=True, err_msg=f"{what}: {col} (%)")
             both = np.isfinite(u) & np.isfinite(v) & (u != 0)
             worst = max([worst, *np.abs((v[both] - u[both]) / u[both])])
         else:
@@ -144,6 +152,10 @@ def test_slurm_profile_runs_every_job_on_the_cluster_to_the_local_tables(runs):
         a, b = read_metrics(local / f"runs/{exp}.h5"), read_metrics(slurm / f"runs/{exp}.h5")
         for key in ("alpha_mse", "physics_loss", "chamfer", "total_volume"):
             np.testing.assert_allclose(b[key], a[key], rtol=1e-4, err_msg=f"{exp}: {key}")
+        if "release_alpha_mse" in a["attrs"]:  # the release probe the rebound % comes from
+            np.testing.assert_allclose(json.loads(str(b["attrs"]["release_alpha_mse"])),
+                                       json.loads(str(a["attrs"]["release_alpha_mse"])), rtol=1e-4,
+                                       err_msg=f"{exp}: release_alpha_mse")
         # the silhouette IoU thresholds alpha: a pixel at the threshold can flip with the renderer's
         # float32 round-off (seen once: 4e-4, one pixel of the ~300 in one view's union, over 8 views), so it is
         # compared to two pixels' worth
