@@ -254,6 +254,7 @@ def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Pa
     import shutil
 
     from physmorph.extremes import FAILURES, OUTCOMES
+    from physmorph.tables import markdown_table
 
     src = Path(results_root) / profile / "stability_map"
     csv = src / "stability_map.csv"
@@ -287,10 +288,7 @@ def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Pa
     cols = ["knob", "value", "particles", "frames", "outcome", "gap_closed_last_%", "detail", "wall_s"]
     table = df[cols].copy()
     table["gap_closed_last_%"] = [f"{float(v):.0f}" if str(v) not in ("", "nan") else "" for v in table["gap_closed_last_%"]]
-    lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for _, r in table.iterrows():
-        lines.append("| " + " | ".join(str(r[c]) for c in cols) + " |")
-    out_md.write_text("\n".join(lines) + "\n")
+    out_md.write_text("\n".join(lines) + "\n" + markdown_table(table.astype(str)))
     return out_md
 
 
