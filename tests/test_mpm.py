@@ -857,8 +857,10 @@ def test_scale_control_is_the_numpy_product(state):
 @pytest.mark.parametrize("optimizer", ["normalized_gd", "adam"])
 def test_first_gradient_from_the_injection_calibration_skips_nothing_it_should_not(state, optimizer):
     """The morph loop hands the optimiser the calibration's two gradients, mass + c x injected
-    (physmorph.injection), instead of a forward and backward of its own: the controls and losses
-    after two iterations equal the plain path's, and a gradient for a stale rollout is refused."""
+    (physmorph.injection, combined in place by MPMSolver.combine_calibration), instead of a forward
+    and backward of its own: the two gradients equal separate backwards', their combination is
+    their NumPy sum, the controls and losses after two iterations equal the plain path's, and a
+    gradient for a stale rollout is refused."""
     from physmorph.injection import calibrate_injection
 
     cfg = cfg64(substeps=4, optimizer=optimizer, learning_rate=1e-3)
@@ -871,19 +873,56 @@ def test_first_gradient_from_the_injection_calibration_skips_nothing_it_should_n
         s.set_target_grid_mass(target)
         s.reset_control()
         s.load_state(st)
+        s.forward()
+        s.backward(None, None)
+        g_mass = s.control_gradient()
+        s.backward(gF, None, include_mass_loss=False)
+        g_inj = s.control_gradient()
         cal = calibrate_injection(s, 0.1, gF, None)
-        assert cal.scale > 0
-        stats = s.optimize_control(grad_F_final=cal.scale * gF, iters=2,
-                                   first_gradient=cal.objective_gradient(cal.scale) if use_first else None)
+        assert cal.scale == pytest.approx(0.1 * np.linalg.norm(g_mass) / np.linalg.norm(g_inj), rel=1e-9)
+        np.testing.assert_allclose(s.control_gradient(), g_inj, rtol=1e-10, atol=1e-14 * np.abs(g_inj).max())
+        if use_first:
+            s.combine_calibration(cal.scale)
+            np.testing.assert_allclose(s.control_gradient(), g_mass + cal.scale * g_inj, rtol=1e-14, atol=1e-300)
+            assert s.grad_norm == pytest.approx(np.linalg.norm(g_mass + cal.scale * g_inj), rel=1e-12)
+        stats = s.optimize_control(grad_F_final=cal.scale * gF, iters=2, gradient_ready=use_first)
         runs.append((s.control(), stats["losses"], stats["loss_final"]))
     (c_plain, l_plain, f_plain), (c_first, l_first, f_first) = runs
     assert np.abs(c_plain).max() > 0
     np.testing.assert_allclose(c_first, c_plain, rtol=1e-9, atol=1e-12 * np.abs(c_plain).max())
     np.testing.assert_allclose(l_first, l_plain, rtol=1e-10)
     assert f_first == pytest.approx(f_plain, rel=1e-10)
+    with pytest.raises(RuntimeError, match="calibration"):  # consumed: the line search reused its field
+        s.combine_calibration(1.0)
     with pytest.raises(RuntimeError, match="forward"):  # the control changed since the rollout
         s.set_control(c_first)
-        s.optimize_control(iters=1, first_gradient=np.zeros_like(c_first))
+        s.optimize_control(iters=1, gradient_ready=True)
+    s.load_state(st)
+    calibrate_injection(s, 0.1, gF, None)
+    s.backward(None, None)  # a later backward overwrites the injected gradient
+    with pytest.raises(RuntimeError, match="calibration"):
+        s.combine_calibration(1.0)
+
+
+def test_control_mean_and_rebase_in_place_equal_their_numpy_formulas(state):
+    """MPMSolver.control_mean is mean_t dFc_t and MPMSolver.rebase_control is
+    physmorph.plasticity.rebase_control, in place, for a per-substep control."""
+    from physmorph.plasticity import rebase_control
+
+    cfg = cfg64(substeps=3)
+    st = ball_state(perturb=False)
+    s = make(cfg, st, reuse=True)
+    rng = np.random.default_rng(7)
+    c = 0.05 * rng.standard_normal((cfg.n_control_slots, st.n, 3, 3))
+    s.set_control(c)
+    np.testing.assert_allclose(s.control_mean(), c.mean(axis=0), rtol=1e-13, atol=1e-16)
+    F = np.eye(3) + 0.1 * rng.standard_normal((st.n, 3, 3))
+    Fp_old = np.eye(3) + 0.05 * rng.standard_normal((st.n, 3, 3))
+    Fp_new = np.eye(3) + 0.05 * rng.standard_normal((st.n, 3, 3))
+    s.rebase_control(F, np.linalg.solve(Fp_old, Fp_new))
+    np.testing.assert_allclose(s.control(), rebase_control(F, c, Fp_old, Fp_new), rtol=1e-12, atol=1e-14)
+    with pytest.raises(MPMStateError, match="shape"):
+        s.rebase_control(F[:-1], Fp_new)
 
 
 def test_optimizer_config_is_checked():

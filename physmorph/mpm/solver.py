@@ -74,7 +74,9 @@ class MPMSolver:
         self.ctrl = mat.field(shape=(Tc, N))
         self.ctrl_grad = mat.field(shape=(Tc, N))
         # the line search's starting control: the trial steps are taken from it in place, so a
-        # trial costs no NumPy copy of the [Tc, N, 3, 3] control (0.34 GB each at 471K x 20 slots)
+        # trial costs no NumPy copy of the [Tc, N, 3, 3] control (0.34 GB each at 471K x 20 slots).
+        # Before the line search it holds the injection calibration's mass gradient
+        # (calibration_gradients), which the first iteration's gradient is combined from.
         self.ctrl_base = mat.field(shape=(Tc, N))
         # Adam's moments are allocated at Adam's first use (_ensure_adam): the default optimiser
         # (normalised GD) has none, which at 471K particles x 20 slots saves 0.7 GB and their checkpoint
@@ -135,6 +137,9 @@ class MPMSolver:
         self._loaded = False
         self._forward_done = False
         self._forward_current = False  # the stored trajectory is that of the current dFc/state
+        self._rollout_id = 0  # counts forwards: the calibration's gradients belong to one
+        self._calibrated_for = -1
+        self._combined_for = -1
         self._grad_norm = float("nan")
         self._Fp = None
         self._last_loss: float | None = None
@@ -610,6 +615,39 @@ class MPMSolver:
             self.ctrl[s, p] = self.ctrl_base[s, p]
 
     @ti.kernel
+    def _combine_gradients(self, scale: ti.f64):
+        """g = g_mass + scale g_inj: ctrl_base holds g_mass, ctrl_grad g_inj (calibration_gradients)."""
+        for s, p in self.ctrl_grad:
+            self.ctrl_grad[s, p] = self.ctrl_base[s, p] + ti.cast(scale, self.dtype) * self.ctrl_grad[s, p]
+
+    @ti.kernel
+    def _copy_grad_to_base(self):
+        for s, p in self.ctrl_grad:
+            self.ctrl_base[s, p] = self.ctrl_grad[s, p]
+
+    @ti.kernel
+    def _control_mean(self, out: ti.types.ndarray()):
+        """out_p = (1 / Tc) sum_t dFc_t,p, in float64."""
+        for p in range(self.n):
+            acc = ti.Matrix.zero(ti.f64, 3, 3)
+            for s in range(ti.static(self.cfg.n_control_slots)):
+                acc += ti.cast(self.ctrl[s, p], ti.f64)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                out[p, a, b] = acc[a, b] / ti.static(self.cfg.n_control_slots)
+
+    @ti.kernel
+    def _rebase_ctrl(self, F: ti.types.ndarray(), M: ti.types.ndarray()):
+        """dFc_t <- (F + dFc_t) M - F for every slot t (physmorph.plasticity.rebase_control), in
+        float64 as the NumPy formula, stored in the solver's precision."""
+        for s, p in self.ctrl:
+            Fp = ti.Matrix.zero(ti.f64, 3, 3)
+            Mp = ti.Matrix.zero(ti.f64, 3, 3)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                Fp[a, b] = F[p, a, b]
+                Mp[a, b] = M[p, a, b]
+            self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
+
+    @ti.kernel
     def _normalized_step(self, alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64):
         """dFc = base - alpha clip(g / rms(g), -clip, clip) (clip <= 0: unclipped): the normalised
         gradient step of DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
@@ -706,6 +744,7 @@ class MPMSolver:
         """T substeps from the loaded state with the current dFc; returns the mass loss (or nan
         without a target). Raises MPMDivergenceError if the state became non-finite."""
         self._require_loaded()
+        self._rollout_id += 1
         for t in range(self.cfg.substeps):
             self._clear_grid()
             self._p2g(t)
@@ -734,6 +773,7 @@ class MPMSolver:
         it to compare their size with the mass loss's without float32 cancellation)."""
         if not self._forward_current:
             raise RuntimeError("backward needs a forward() of the current state and dFc first")
+        self._calibrated_for = self._combined_for = -1  # ctrl_grad is overwritten
         N = self.n
         gx = np.zeros((N, 3)) if grad_x_final is None else self._check_adjoint(grad_x_final, (N, 3), "grad_x_final")
         gF = np.zeros((N, 3, 3)) if grad_F_final is None else self._check_adjoint(grad_F_final, (N, 3, 3), "grad_F_final")
@@ -819,14 +859,14 @@ class MPMSolver:
     def optimize_control(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
                          grad_x_final: np.ndarray | None = None,  # [N, 3]
                          iters: int | None = None,
-                         first_gradient: np.ndarray | None = None,  # [Tc, N, 3, 3]
+                         gradient_ready: bool = False,
                          learning_rate: float | None = None) -> dict:
         """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> a step on dFc (cfg.optimizer),
         then a last forward with the updated dFc (its loss is loss_final; rollout() returns it).
 
-        first_gradient: the first iteration's dFc gradient (mass loss + injected terms) when the
-        caller already has it for the current rollout (the morph loop's injection calibration);
-        that iteration's forward and backward are then skipped. Needs a current forward.
+        gradient_ready: the first iteration's dFc gradient (mass loss + injected terms) is already
+        in place for the current rollout (combine_calibration after calibration_gradients: the
+        morph loop's injection calibration); that iteration's forward and backward are skipped.
         learning_rate: this call's step (normalised GD: the initial alpha; Adam: lr) instead of
         cfg.step_size (the morph loop's adaptive step, MorphConfig.step_backoff)."""
         if not self._has_target:
@@ -834,23 +874,18 @@ class MPMSolver:
         J = self.cfg.grad_iters if iters is None else int(iters)
         if J < 1:
             raise ValueError(f"iters must be >= 1, got {J}")
-        if first_gradient is not None:
-            if not self._forward_current:
-                raise RuntimeError("first_gradient needs a forward() of the current state and dFc")
-            first_gradient = np.asarray(first_gradient)
-            shape = (self.cfg.n_control_slots, self.n, 3, 3)
-            if first_gradient.shape != shape or not np.isfinite(first_gradient).all():
-                raise ValueError(f"first_gradient must be finite with shape {shape}, got {first_gradient.shape}")
+        if gradient_ready and not (self._forward_current and self._combined_for == self._rollout_id):
+            raise RuntimeError("gradient_ready needs calibration_gradients and combine_calibration on a "
+                               "forward() of the current state and dFc")
         lr = self.cfg.step_size if learning_rate is None else float(learning_rate)
         if not (np.isfinite(lr) and lr > 0):
             raise ValueError(f"learning_rate must be finite and > 0, got {learning_rate!r}")
         if self.cfg.optimizer == "normalized_gd":
-            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J, first_gradient, lr)
+            return self._optimize_normalized_gd(grad_F_final, grad_x_final, J, gradient_ready, lr)
         losses = []
         for j in range(J):
-            if j == 0 and first_gradient is not None:
+            if j == 0 and gradient_ready:
                 losses.append(self._last_loss)
-                self._set_control_gradient(first_gradient)
             else:
                 losses.append(self.forward())
                 self.backward(grad_F_final, grad_x_final)
@@ -860,9 +895,31 @@ class MPMSolver:
                 "grad_norm": self._grad_norm, "iters": J,
                 "delta_E_percent": 100.0 * (losses[0] - loss_final) / losses[0] if losses[0] > 0 else 0.0}
 
-    def _set_control_gradient(self, g: np.ndarray) -> None:  # g [Tc, N, 3, 3]
-        """Take g as the last backward's dFc gradient (and its norm, accumulated in float64)."""
-        self.ctrl_grad.from_numpy(np.ascontiguousarray(g, dtype=self.np_dtype))
+    def calibration_gradients(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
+                              grad_x_final: np.ndarray | None = None) -> tuple[float, float]:  # [N, 3]
+        """The injection calibration's two dFc gradients on one rollout of the current state and
+        dFc (run here): the mass loss's and the injected adjoint's alone. Returns their norms;
+        the gradients stay in the solver (no [Tc, N, 3, 3] copies) for combine_calibration."""
+        self.forward()
+        self.backward(None, None)
+        n_mass = self._grad_norm
+        self._copy_grad_to_base()
+        # the injected part alone (a difference of the two would drown in float32 round-off)
+        self.backward(grad_F_final, grad_x_final, include_mass_loss=False)
+        self._calibrated_for = self._rollout_id
+        return n_mass, self._grad_norm
+
+    def combine_calibration(self, scale: float) -> None:
+        """The dFc gradient of mass loss + scale <g, final state> from calibration_gradients' two
+        (the backward is linear in the injected adjoint), in place, as the last backward's
+        gradient: optimize_control(gradient_ready=True) starts from it."""
+        if not (self._forward_current and self._calibrated_for == self._rollout_id):
+            raise RuntimeError("combine_calibration needs calibration_gradients on the current rollout")
+        if not np.isfinite(scale):
+            raise ValueError(f"scale must be finite, got {scale!r}")
+        self._combine_gradients(float(scale))
+        self._calibrated_for = -1  # the mass gradient's copy is consumed (the line search reuses its field)
+        self._combined_for = self._rollout_id
         self._grad_norm_sq()
         self._grad_norm = float(np.sqrt(self.norm_acc[None]))
 
@@ -879,21 +936,19 @@ class MPMSolver:
         return J
 
     def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
-                                first_gradient: np.ndarray | None, learning_rate: float) -> dict:
+                                gradient_ready: bool, learning_rate: float) -> dict:
         """Normalised gradient descent with backtracking (DiffMPMLib3D's optimiser): per
         iteration dFc <- dFc - alpha g / rms(g), alpha starting at learning_rate and halved
         until the objective decreases (at most line_search_iters tries; else the step is undone
         and the frame's optimisation stops)."""
         losses = []
-        obj = self._objective(grad_F_final, grad_x_final, run_forward=first_gradient is None)
+        obj = self._objective(grad_F_final, grad_x_final, run_forward=not gradient_ready)
         loss_initial = self._last_loss
         alpha = learning_rate  # optimize_control resolved it (cfg.learning_rate unless given)
         accepted = 0
         for j in range(iters):
             losses.append(self._last_loss)
-            if j == 0 and first_gradient is not None:
-                self._set_control_gradient(first_gradient)
-            else:
+            if not (j == 0 and gradient_ready):
                 self.backward(grad_F_final, grad_x_final)
             # the norm was accumulated in float64 by the kernel; the step is taken in place
             # (_normalized_step), from the control saved at the iteration's start
@@ -988,6 +1043,25 @@ class MPMSolver:
         if not np.isfinite(factor):
             raise ValueError(f"factor must be finite, got {factor!r}")
         self._scale_ctrl(float(factor))
+        self._forward_current = False
+
+    def control_mean(self) -> np.ndarray:  # [N, 3, 3]
+        """mean_t dFc_t, float64 (no [Tc, N, 3, 3] copy of the control)."""
+        out = np.empty((self.n, 3, 3))
+        self._control_mean(out)
+        return out
+
+    def rebase_control(self, F: np.ndarray,  # [N, 3, 3]
+                       M: np.ndarray) -> None:  # [N, 3, 3]
+        """dFc_t <- (F + dFc_t) M - F for every slot, in place (physmorph.plasticity.rebase_control
+        with M = Fp_old^-1 Fp_new; no [Tc, N, 3, 3] copy of the control)."""
+        F = np.ascontiguousarray(F, dtype=np.float64)
+        M = np.ascontiguousarray(M, dtype=np.float64)
+        if F.shape != (self.n, 3, 3) or M.shape != (self.n, 3, 3):
+            raise MPMStateError(f"F and M must have shape {(self.n, 3, 3)}, got {F.shape} and {M.shape}")
+        if not (np.isfinite(F).all() and np.isfinite(M).all()):
+            raise MPMStateError("F and M must be finite")
+        self._rebase_ctrl(F, M)
         self._forward_current = False
 
     def control_gradient(self, native: bool = False) -> np.ndarray:  # [Tc, N, 3, 3]
