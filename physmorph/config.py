@@ -655,7 +655,10 @@ class Settings:
         cfg = self.experiment_config(self.tradeoff.experiment, sampling, target, cameras=point.cameras,
                                      grad_iters=point.grad_iters, frames=point.frames)
         try:
-            cfg = replace(cfg, mpm=replace(cfg.mpm, learning_rate=point.learning_rate, precision=point.precision))
+            # release_frames 0: a point measures the morph; no study quantity reads the release probe,
+            # which cost the test profile's 3-frame points most of their run time
+            cfg = replace(cfg, release_frames=0,
+                          mpm=replace(cfg.mpm, learning_rate=point.learning_rate, precision=point.precision))
         except ValueError as exc:
             _fail(f"tradeoff.knobs.{point.knob or 'learning_rate'}", str(exc))
         return sampling, target, cfg

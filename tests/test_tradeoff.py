@@ -50,6 +50,9 @@ def test_point_settings_carry_the_knob():
     assert s.point_config(pts["learning_rate-0.008"])[2].mpm.learning_rate == 0.008
     assert s.point_config(pts["precision-float64"])[2].mpm.precision == "float64"
     assert s.point_config(pts["frames-60"])[2].frames == 60
+    # the study's experiment has a release probe; its points do not run it (nothing reads it)
+    assert s.experiment_config(s.tradeoff.experiment).release_frames == 40
+    assert {s.point_config(p)[2].release_frames for p in pts.values()} == {0}
     sampling, _, _ = s.point_config(pts["ppc_interior-2"])
     assert sampling.tag == "32x2x2"
     # float64 doubles the per-particle state: its memory estimate is the larger one

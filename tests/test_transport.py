@@ -98,19 +98,42 @@ def test_softmin_equals_the_dense_formula():
         np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=1e-12, atol=1e-12 * eps)
 
 
+def test_the_plan_of_the_same_grid_masses_is_computed_once(monkeypatch):
+    """destinations_in_grid_mass keeps the node plan of the last inputs: the same particles and
+    target give the same destinations without a new plan; another target makes a new one."""
+    from physmorph import transport
+
+    grid = Grid(16)
+    rng = np.random.default_rng(6)
+    src = rng.uniform(-3, 3, size=(200, 3))
+    gm = splat_mass(rng.uniform(-2, 2, size=(200, 3)) + [4.0, 0.0, 0.0], np.ones(200), grid)
+    calls = []
+    real = transport.transport_destinations
+    monkeypatch.setattr(transport, "transport_destinations", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(transport, "_PLANS", {})
+    first = destinations_in_grid_mass(src, np.ones(200), gm, grid)
+    again = destinations_in_grid_mass(src.copy(), np.ones(200), gm.copy(), grid)
+    assert len(calls) == 1
+    np.testing.assert_array_equal(again, first)
+    other = destinations_in_grid_mass(src, np.ones(200), np.roll(gm, 1, axis=1), grid)  # the target moved a cell
+    assert len(calls) == 2 and np.abs(other - first).max() > 0.5
+    np.testing.assert_allclose(destinations_in_grid_mass(src + 1e-3, np.ones(200), gm, grid), first + 1e-3, atol=0.05)
+    assert len(calls) == 3  # moved particles: a new plan
+
+
 def test_coarse_to_fine_plan_equals_the_single_scale_plan(monkeypatch):
-    """Grid-node clouds of two different blobs, 1,600 and 2,000 nodes: the iterations run on coarse
+    """Grid-node clouds of two different blobs, 2,018 and 2,687 nodes: the iterations run on coarse
     cell centroids while the blur is large (checked: Sinkhorn sees fewer points), and the
     destinations equal the single-scale plan's (coarse_switch=0) to 2 % of the blur."""
     from physmorph import transport
 
     rng = np.random.default_rng(5)
     grid = Grid(32)
-    src = splat_mass(rng.normal(scale=[4.0, 2.0, 2.0], size=(3000, 3)) + [-6.0, 0.0, 0.0], np.ones(3000), grid)
-    tgt = splat_mass(rng.normal(scale=[2.0, 4.0, 3.0], size=(3000, 3)) + [5.0, 2.0, 0.0], np.ones(3000), grid)
+    src = splat_mass(rng.normal(scale=[3.0, 1.5, 1.5], size=(3000, 3)) + [-6.0, 0.0, 0.0], np.ones(3000), grid)
+    tgt = splat_mass(rng.normal(scale=[1.5, 3.0, 2.25], size=(3000, 3)) + [5.0, 2.0, 0.0], np.ones(3000), grid)
     x, a = grid.lo + grid.dx * np.argwhere(src > 0), src[src > 0]
     y, b = grid.lo + grid.dx * np.argwhere(tgt > 0), tgt[tgt > 0]
-    assert len(x) > 1000 and len(y) > 1000
+    assert len(x) > 2000 and len(y) > 2000
     sizes = []
     real = transport.sinkhorn_potentials
 
