@@ -26,12 +26,13 @@ rule figures:
         figure_outputs(),
 
 
-rule paper_main:  # the main table's six runs and their tables, results/{profile}/main_tables/
+rule paper_main:  # the main table's six runs, their tables and figures, results/{profile}/main_{tables,figures}/
     input:
         f"{R}/main_tables/main.md",
         f"{R}/main_tables/convergence.md",
         f"{R}/main_tables/directions.md",
         f"{R}/main_tables/timing.md",
+        expand(f"{R}/main_figures/{{figure}}.png", figure=MAIN_FIGURES),
 
 
 rule results_page:

@@ -189,33 +189,46 @@ def coverage_figure(run: Path | None, target_h5: Path | None, out_png: Path, cam
 
 
 def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: dict, out_dir: Path,
-                  layout: PaperLayout) -> list[Path]:
-    """Every figure of FIGURE_NAMES as out_dir/{name}.png; ``layout`` (physmorph.layout) names the
-    runs of each figure."""
+                  layout: PaperLayout, names: tuple[str, ...] = FIGURE_NAMES) -> list[Path]:
+    """The figures ``names`` (default: every one of FIGURE_NAMES) as out_dir/{name}.png; ``layout``
+    (physmorph.layout) names the runs of each figure."""
+    unknown = sorted(set(names) - set(FIGURE_NAMES))
+    if unknown:
+        raise ValueError(f"unknown figures {unknown} (known: {', '.join(FIGURE_NAMES)})")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sel = {name: {r: runs.get(r) for r in layout.figures.get(name, ())} for name in FIGURE_NAMES}
-    for name in ("sequences_main", "sequences_cross_shape", "sequences_letters"):
-        sequence_figure(sel[name], target_cfg, out / f"{name}.png", targets=targets)
-    curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], out / "drag_ablation.png",
-                  "drag ablation: iso -> bunny")
-    curves_figure(sel["trajectory_divergence"], [("physics_loss", "physics (mass) loss"), ("alpha_mse", "alpha MSE")],
-                  out / "trajectory_divergence.png", "trajectory divergence: iso -> duck", logy=("physics_loss",))
-    # The paper shows frames 10, 15 and 19 side by side; the saved frames nearest to them.
-    sequence_figure(sel["trajectory_frames"], target_cfg, out / "trajectory_frames.png", columns=3,
-                    frames=[10, 15, 19])
-    curves_figure(sel["plasticity_effect"], [("alpha_mse", "alpha MSE"), ("physics_loss", "physics loss"),
-                                             ("fp_det_range", "det Fp range")], out / "plasticity_effect.png",
-                  "Chamfer plasticity: with (full) and without (f_inject)", logy=("physics_loss",))
-    curves_figure(sel["optimization_traces"], [("alpha_mse", "alpha MSE"), ("grad_F_norm", "|dL/dF|"),
-                                               ("loss_render", "render loss"), ("physics_loss", "physics loss")],
-                  out / "optimization_traces.png", "optimization traces: iso -> bunny (full)",
-                  logy=("grad_F_norm", "physics_loss"))
-    coverage = next(iter(layout.figures.get("gradient_coverage", ())), None)
-    run = runs.get(coverage) if coverage else None
-    target = None
-    if run is not None and Path(run).exists():
-        with h5py.File(run, "r") as f:
-            target = targets.get(run_target_shape(f, coverage))
-    coverage_figure(run, target, out / "gradient_coverage.png")
-    return [out / f"{n}.png" for n in FIGURE_NAMES]
+
+    def coverage(png: Path) -> None:
+        name = next(iter(layout.figures.get("gradient_coverage", ())), None)
+        run = runs.get(name) if name else None
+        target = None
+        if run is not None and Path(run).exists():
+            with h5py.File(run, "r") as f:
+                target = targets.get(run_target_shape(f, name))
+        coverage_figure(run, target, png)
+
+    makers = {
+        **{name: (lambda png, name=name: sequence_figure(sel[name], target_cfg, png, targets=targets))
+           for name in ("sequences_main", "sequences_cross_shape", "sequences_letters")},
+        "drag_ablation": lambda png: curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], png,
+                                                   "drag ablation: iso -> bunny"),
+        "trajectory_divergence": lambda png: curves_figure(
+            sel["trajectory_divergence"], [("physics_loss", "physics (mass) loss"), ("alpha_mse", "alpha MSE")],
+            png, "trajectory divergence: iso -> duck", logy=("physics_loss",)),
+        # The paper shows frames 10, 15 and 19 side by side; the saved frames nearest to them.
+        "trajectory_frames": lambda png: sequence_figure(sel["trajectory_frames"], target_cfg, png, columns=3,
+                                                         frames=[10, 15, 19]),
+        "plasticity_effect": lambda png: curves_figure(
+            sel["plasticity_effect"], [("alpha_mse", "alpha MSE"), ("physics_loss", "physics loss"),
+                                       ("fp_det_range", "det Fp range")], png,
+            "Chamfer plasticity: with (full) and without (f_inject)", logy=("physics_loss",)),
+        "optimization_traces": lambda png: curves_figure(
+            sel["optimization_traces"], [("alpha_mse", "alpha MSE"), ("grad_F_norm", "|dL/dF|"),
+                                         ("loss_render", "render loss"), ("physics_loss", "physics loss")],
+            png, "optimization traces: iso -> bunny (full)", logy=("grad_F_norm", "physics_loss")),
+        "gradient_coverage": coverage,
+    }
+    for name in names:
+        makers[name](out / f"{name}.png")
+    return [out / f"{n}.png" for n in names]

@@ -153,14 +153,16 @@ def tables_stage(names: list[str], runs: list[str], layout: str, out_dir: str, l
 
 
 def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target,
-                  layout: str, out_dir: str, log=None) -> list:
+                  layout: str, out_dir: str, log=None, figures: list[str] | None = None) -> list:
+    """``figures``: the figures to make (default: every one, physmorph.metrics.FIGURE_NAMES)."""
     from physmorph.figures import build_figures
     from physmorph.layout import load_layout
+    from physmorph.metrics import FIGURE_NAMES
 
     t = typed(TargetConfig, target, "target")
     with stage_log(log):
         return build_figures({n: Path(p) for n, p in zip(names, runs)}, {s: Path(p) for s, p in zip(shapes, targets)},
-                             t, Path(out_dir), load_layout(layout))
+                             t, Path(out_dir), load_layout(layout), tuple(figures or FIGURE_NAMES))
 
 
 def results_doc_stage(tables_dir: str, figures_dir: str, output: str, profile: str, log=None):

@@ -97,7 +97,7 @@ def _wall_time_s(results_dir: Path) -> float:
 
 def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
                      date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md",
-                     code: str | None = None) -> str:
+                     code: str | None = None, title: str | None = None) -> str:
     """A profile's results as Markdown, from the CSV tables in ``tables_dir`` (physmorph.tables).
     ``figures``: figure name -> link to its image (relative to the page); ``date``: when the tables
     were made (default: the convergence table's modification date); ``code``: the checkout that
@@ -112,8 +112,8 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     if date is None:
         date = _dt.date.fromtimestamp((tables_dir / "convergence.csv").stat().st_mtime).isoformat()
     command = command or f"python -m physmorph.userdocs results {profile}"
-    out = [f"# Results of the `{profile}` profile\n",
-           f"Generated on {date} by `{command}` from `results/{profile}/tables/`"
+    out = [f"# {title or f'Results of the `{profile}` profile'}\n",
+           f"Generated on {date} by `{command}` from `results/{profile}/{tables_dir.name}/`"
            + (f", made by the code at {code}" if code else "") + " (do not edit by hand: "
            "rebuild the tables, then run the command again). What each table and column means: "
            f"[docs/outputs.md]({outputs_link}).\n"]
@@ -189,7 +189,7 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
 
 def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, figures_dir: str | Path | None = None,
                       images_dir: str | Path | None = None, command: str | None = None,
-                      code: str | None = None) -> Path:
+                      code: str | None = None, title: str | None = None) -> Path:
     """Write ``results_markdown`` to ``out_md``. Figures from ``figures_dir`` are linked; with
     ``images_dir`` they are first copied there (docs/images/ for docs/results.md)."""
     out_md = Path(out_md)
@@ -207,7 +207,8 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
                 src = dst
             figures[name] = Path(_relpath(src, out_md.parent)).as_posix()
     outputs = Path(_relpath(REPO_ROOT / "docs" / "outputs.md", out_md.parent)).as_posix()
-    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs, code=code)
+    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs, code=code,
+                            title=title)
     tmp = out_md.with_suffix(".partial")
     tmp.write_text(text)
     tmp.replace(out_md)
@@ -445,6 +446,8 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     res.add_argument("--out", default=str(RESULTS_MD))
     res.add_argument("--images", default=str(REPO_ROOT / "docs" / "images"),
                      help="copy the profile's figures here and link them ('' links them in place)")
+    pm = sub.add_parser("paper_main", help="docs/paper_scale.md from results/{profile}/main_tables/ and main_figures/")
+    pm.add_argument("profile", nargs="?", default="paper")
     sub.add_parser("config", help="config/README.md from the settings")
     sub.add_parser("captions", help="workflow/report/captions/ from docs/outputs.md")
     tr = sub.add_parser("tradeoff", help="docs/tradeoff.md from results/{profile}/tradeoff/ of each profile")
@@ -456,6 +459,12 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
         tree = REPO_ROOT / "results" / args.profile
         path = write_results_doc(tree / "tables", args.out, args.profile, tree / "figures", args.images or None,
                                  command=f"python -m physmorph.userdocs results {args.profile}", code=_checkout())
+    elif args.what == "paper_main":
+        tree = REPO_ROOT / "results" / args.profile
+        path = write_results_doc(tree / "main_tables", REPO_ROOT / "docs" / "paper_scale.md", args.profile,
+                                 tree / "main_figures", REPO_ROOT / "docs" / "images" / args.profile,
+                                 command=f"python -m physmorph.userdocs paper_main {args.profile}", code=_checkout(),
+                                 title=f"The main table at the `{args.profile}` profile's scale")
     elif args.what == "config":
         CONFIG_README.write_text(config_reference())
         path = CONFIG_README

@@ -52,3 +52,21 @@ def test_sequence_figure_shows_the_target_and_the_share_closed(tmp_path):
     # Without targets (trajectory frames) the figure is as before: no extra column.
     titles = sequence_figure({"iso_bunny_full": run}, target_cfg, png, columns=3)
     assert titles == [["iso_bunny_full  k=0", "k=5", "k=10"]]
+
+
+def test_build_figures_makes_the_figures_asked_for(tmp_path):
+    """The main table's figures alone (workflow rule make_main_figures): only those files are
+    written, and an unknown figure name is refused, naming the known ones."""
+    import pytest
+
+    from physmorph.figures import build_figures
+    from physmorph.layout import load_layout
+
+    alpha = np.linspace(0.06, 0.02, 11)
+    runs = {"iso_bunny_full": _write_run(tmp_path / "iso_bunny_full.h5", "bunny", alpha, ceiling=0.01)}
+    out = tmp_path / "figs"
+    made = build_figures(runs, {}, dict(cameras=2, width=16, height=12), out, load_layout("config/paper_results.yaml"),
+                         names=("sequences_main",))
+    assert made == [out / "sequences_main.png"] and sorted(p.name for p in out.iterdir()) == ["sequences_main.png"]
+    with pytest.raises(ValueError, match="unknown figures.*sequences_main"):
+        build_figures(runs, {}, {}, out, load_layout("config/paper_results.yaml"), names=("sequence_main",))

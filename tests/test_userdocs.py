@@ -66,6 +66,17 @@ def test_results_page_links_and_copies_figures(tmp_path):
     assert "drag_ablation" not in text  # a figure not made is not linked
 
 
+def test_main_table_page_names_its_tables_and_title(tmp_path):
+    """The paper-scale page (python -m physmorph.userdocs paper_main) is the results page of the main
+    table's own tables: its title, and the tables directory it was made from."""
+    tables = tmp_path / "results" / "paper" / "main_tables"
+    _fake_tables(tables)
+    text = results_markdown(tables, "paper", date="2026-11-25", title="The main table at the `paper` profile's scale")
+    assert text.startswith("# The main table at the `paper` profile's scale\n")
+    assert "from `results/paper/main_tables/`" in text
+    assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text
+
+
 def test_config_reference_documents_every_schema_key():
     keys = [k for k, _ in schema_keys()]
     undocumented = [k for k in keys if k not in FIELD_DOCS and k not in SECTIONS]

@@ -103,14 +103,16 @@ def test_unknown_experiment_is_named(tmp_path):
 
 def test_paper_main_plans_the_main_tables_six_runs(tmp_path):
     """`snakemake paper_main` makes the main table's six runs (physics-only and full to bunny, cow,
-    duck; config/paper_results.yaml) at the profile's scale, and their tables, nothing else."""
+    duck; config/paper_results.yaml) at the profile's scale, and their tables and figures, nothing else."""
     out = _run(_workdir(tmp_path), "-n", "paper_main", "--configfile", "config/paper.yaml")
     jobs = planned_jobs(out)
-    assert jobs["morph"] == 6 and jobs["make_main_tables"] == 1 and "make_tables" not in jobs, jobs
+    assert jobs["morph"] == 6 and jobs["make_main_tables"] == 1 and jobs["make_main_figures"] == 1, jobs
+    assert "make_tables" not in jobs and "make_figures" not in jobs, jobs
     runs = {p for p in planned_outputs(out) if "/runs/" in p}
     assert runs == {f"results/paper/runs/iso_{t}_{m}.h5" for t in ("bunny", "cow", "duck")
                     for m in ("physics_only", "full")}
     assert "results/paper/main_tables/main.md" in planned_outputs(out)
+    assert "results/paper/main_figures/sequences_main.png" in planned_outputs(out)
 
 
 def test_morph_asks_for_memory_from_the_sampled_particle_count(tmp_path):

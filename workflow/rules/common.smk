@@ -17,6 +17,9 @@ POINTS = tradeoff_points(S) if S.tradeoff is not None else {}
 # the main table's runs (physics-only and full per target, config/paper_results.yaml): `paper_main`
 MAIN_EXPERIMENTS = [n for c in load_layout("config/paper_results.yaml").tables.main.values()
                     for n in (c.physics_only, c.full)]
+# ... their targets, and the figures drawn from those six runs alone (results/{profile}/main_figures/)
+MAIN_TARGETS = sorted({S.experiment(n).target for n in MAIN_EXPERIMENTS})
+MAIN_FIGURES = ("sequences_main", "optimization_traces")
 
 
 wildcard_constraints:

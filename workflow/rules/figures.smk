@@ -23,3 +23,31 @@ rule make_figures:
         runtime=20,
     script:
         "../scripts/make_figures.py"
+
+
+# The main table's figures from its six runs alone (`snakemake paper_main`), results/{profile}/main_figures/.
+rule make_main_figures:
+    input:
+        runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=MAIN_EXPERIMENTS),
+        targets=[target_path(s) for s in MAIN_TARGETS],
+        layout="config/paper_results.yaml",
+    output:
+        [report(f"{R}/main_figures/{f}.png", caption=f"../report/captions/{f}.rst", category="Main table",
+                labels={"figure": f})
+         for f in MAIN_FIGURES],
+    params:
+        names=MAIN_EXPERIMENTS,
+        shapes=MAIN_TARGETS,
+        target=params_json(S.target),
+        out_dir=f"{R}/main_figures",
+        figures=list(MAIN_FIGURES),
+    log:
+        f"{R}/logs/make_main_figures.log",
+    benchmark:
+        f"{R}/benchmarks/make_main_figures.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    script:
+        "../scripts/make_figures.py"
