@@ -29,6 +29,8 @@ from .config import BARRIER_J_LINEAR, VOLUME_LAWS
 # Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
 # dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
 _ROT_DENOM_FLOOR = 1e-6
+# polar_from falls back to the SVD below this smallest pair sum, relative to |S|
+_WARM_GAP_MIN = 0.05
 
 
 @ti.func
@@ -66,6 +68,9 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
     if volume_law not in VOLUME_LAWS:
         raise ValueError(f"volume_law must be one of {VOLUME_LAWS}, got {volume_law!r}")
     newton_steps = 2 if dtype == ti.f64 else 0
+    # polar_from: at most this many steps, converged when the step's angle is below warm_tol
+    warm_steps = 6 if dtype == ti.f64 else 4
+    warm_tol = 1e-7 if dtype == ti.f64 else 1e-4
     # Python float constants would enter kernels as f32; typed constants keep float64 exact
     two_mu = 2.0 * mu
     jl = BARRIER_J_LINEAR
@@ -126,6 +131,62 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
         return R, 0.5 * (S + S.transpose()), gap
 
     @ti.func
+    def largest_eigenvalue(S):
+        """Largest eigenvalue of the symmetric 3x3 S: q + 2 p cos(acos(det((S - q I) / p) / 2) / 3),
+        q = tr(S) / 3, p = sqrt(|S - q I|^2 / 6)."""
+        q = S.trace() / 3.0
+        C = S - q * ti.Matrix.identity(dtype, 3)
+        p = ti.sqrt((C * C).sum() / 6.0)
+        lam = q
+        if p > dtype(1e-30):
+            r = ti.math.clamp((C / p).determinant() / 2.0, -1.0, 1.0)
+            lam = q + 2.0 * p * ti.cos(ti.acos(r) / 3.0)
+        return lam
+
+    @ti.func
+    def polar_from(Fe, R0):
+        """polar(Fe) by Newton steps on the symmetry of R^T Fe started from the rotation R0 (the
+        particle's rotation one substep earlier): each step R <- R exp(omega^) with
+        (tr S - S) omega = axial(S0 - S0^T), S0 = R^T Fe, S = sym(S0), converging quadratically, so
+        one or two steps reach float32 precision where the rotation moved little. The smallest pair
+        sum of the signed singular values is gap = tr S - lambda_max(S). Falls back to polar(Fe)
+        (its SVD) where R0 is not a rotation (no earlier substep), where the steps have not
+        converged after a few, or where gap is small or negative: near an inversion, or a step
+        that found another stationary rotation (R flipped by pi about an axis of S, which
+        negates two eigenvalues of S and makes gap negative)."""
+        R = R0
+        converged = False
+        gap = dtype(0.0)
+        if ti.abs(R0.determinant() - 1.0) < dtype(1e-3):
+            for _ in range(warm_steps):
+                S0 = R.transpose() @ Fe
+                S = 0.5 * (S0 + S0.transpose())
+                gap = S.trace() - largest_eigenvalue(S)
+                if gap < dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum()):
+                    break
+                om = skew_solve(S, gap, axial(S0))
+                th2 = om.dot(om)
+                th = ti.sqrt(th2)
+                a = 1.0 - th2 / 6.0
+                b = 0.5 - th2 / 24.0
+                if th > 1e-4:
+                    a = ti.sin(th) / th
+                    b = (1.0 - ti.cos(th)) / th2
+                K = hat(om)
+                R = R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K))
+                if th < dtype(warm_tol):  # the step's error is ~th^2: below the float's precision
+                    converged = True
+                    break
+        S = R.transpose() @ Fe
+        S = 0.5 * (S + S.transpose())
+        if converged:
+            gap = S.trace() - largest_eigenvalue(S)
+            converged = gap >= dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum())
+        if not converged:
+            R, S, gap = polar(Fe)
+        return R, S, gap
+
+    @ti.func
     def stress_from_polar(Fe, R):
         """P = 2 mu (Fe - R) + g(J) cof(Fe)  (Stomakhin et al. 2012: g = lam (J - 1)), R the rotation of Fe."""
         cof = _cofactor(Fe)
@@ -159,7 +220,7 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
         R, S, gap = polar(Fe)
         return stress_and_diff_polar(Fe, R, S, gap, dFe)
 
-    return SimpleNamespace(stress=stress, polar=polar, stress_from_polar=stress_from_polar,
+    return SimpleNamespace(stress=stress, polar=polar, polar_from=polar_from, stress_from_polar=stress_from_polar,
                            stress_and_diff=stress_and_diff, stress_and_diff_polar=stress_and_diff_polar)
 
 
@@ -194,6 +255,38 @@ def evaluate_stress(Fe: np.ndarray,  # [N, 3, 3]
     dP = np.zeros_like(Fe)
     _stress_kernels[key](Fe, dFe, P, dP)
     return P.astype(np.float64), dP.astype(np.float64)
+
+
+def evaluate_polar(Fe: np.ndarray,  # [N, 3, 3]
+                   R0: np.ndarray | None = None,  # [N, 3, 3] warm starts (polar_from); None: the SVD (polar)
+                   precision: str = "float64") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the solver's polar decomposition on arrays (for tests and diagnostics): (R [N, 3, 3],
+    S [N, 3, 3], gap [N]) as float64, from the SVD or, with R0, from those rotations."""
+    if not _runtime_ready():
+        init_taichi("cpu")
+    dtype = ti.f64 if precision == "float64" else ti.f32
+    npd = np.float64 if precision == "float64" else np.float32
+    key = ("polar", precision)
+    if key not in _stress_kernels:
+        funcs = make_stress_funcs(dtype, 1.0, 1.0)
+        mat = ti.types.matrix(3, 3, dtype)
+
+        @ti.kernel
+        def run(Fe: ti.types.ndarray(dtype=mat, ndim=1), R0: ti.types.ndarray(dtype=mat, ndim=1), warm: ti.i32,
+                R: ti.types.ndarray(dtype=mat, ndim=1), S: ti.types.ndarray(dtype=mat, ndim=1),
+                gap: ti.types.ndarray(dtype=dtype, ndim=1)):
+            for p in range(Fe.shape[0]):
+                if warm:
+                    R[p], S[p], gap[p] = funcs.polar_from(Fe[p], R0[p])
+                else:
+                    R[p], S[p], gap[p] = funcs.polar(Fe[p])
+
+        _stress_kernels[key] = run
+    Fe = np.ascontiguousarray(Fe, dtype=npd).reshape(-1, 3, 3)
+    R0_ = np.zeros_like(Fe) if R0 is None else np.ascontiguousarray(R0, dtype=npd).reshape(-1, 3, 3)
+    R, S, gap = np.zeros_like(Fe), np.zeros_like(Fe), np.zeros(len(Fe), npd)
+    _stress_kernels[key](Fe, R0_, int(R0 is not None), R, S, gap)
+    return R.astype(np.float64), S.astype(np.float64), gap.astype(np.float64)
 
 
 def _runtime_ready() -> bool:
