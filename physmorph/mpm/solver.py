@@ -135,7 +135,6 @@ class MPMSolver:
         forward, backward), so a reset solver computes what a new one would."""
         self._has_target = False
         self._loaded = False
-        self.R_t.fill(0.0)  # the warm start of the first forward's polar decompositions (none: the SVD)
         self._forward_done = False
         self._forward_current = False  # the stored trajectory is that of the current dFc/state
         self._rollout_id = 0  # counts forwards: the calibration's gradients belong to one
@@ -210,9 +209,16 @@ class MPMSolver:
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
             Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
-            # warm start: the rotation one substep earlier (at t = 0 the last forward's first
-            # substep; zero before any forward, where polar_from takes the SVD)
-            R, S, gap = self._stress_model.polar_from(Fe, self.R_t[ti.max(t - 1, 0), p])
+            # warm start: the rotation one substep earlier; the first substep takes the SVD, so
+            # a forward depends only on the loaded state and the control (a resumed run computes
+            # what an uninterrupted one does)
+            R = ti.Matrix.zero(self.dtype, 3, 3)
+            S = ti.Matrix.zero(self.dtype, 3, 3)
+            gap = self.dtype(0.0)
+            if t == 0:
+                R, S, gap = self._stress_model.polar(Fe)
+            else:
+                R, S, gap = self._stress_model.polar_from(Fe, self.R_t[t - 1, p])
             self.R_t[t, p] = R
             self.gap_t[t, p] = gap
             P = self._stress_model.stress_from_polar(Fe, R)
