@@ -212,13 +212,12 @@ class MPMSolver:
             # warm start: the rotation one substep earlier; the first substep takes the SVD, so
             # a forward depends only on the loaded state and the control (a resumed run computes
             # what an uninterrupted one does)
-            R = ti.Matrix.zero(self.dtype, 3, 3)
-            S = ti.Matrix.zero(self.dtype, 3, 3)
-            gap = self.dtype(0.0)
-            if t == 0:
-                R, S, gap = self._stress_model.polar(Fe)
-            else:
-                R, S, gap = self._stress_model.polar_from(Fe, self.R_t[t - 1, p])
+            # (the zero start is no rotation: polar_from takes the SVD; one call site, since each
+            # inlined SVD costs seconds of compile time)
+            R0 = ti.Matrix.zero(self.dtype, 3, 3)
+            if t > 0:
+                R0 = self.R_t[t - 1, p]
+            R, S, gap = self._stress_model.polar_from(Fe, R0)
             self.R_t[t, p] = R
             self.gap_t[t, p] = gap
             P = self._stress_model.stress_from_polar(Fe, R)
