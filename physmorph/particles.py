@@ -20,14 +20,16 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
-from scipy.spatial import cKDTree
 
 from physmorph.grid import BOUNDARY_CELLS, Grid
 from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
-from physmorph.meshes import MeshError, load_mesh
+
+if TYPE_CHECKING:  # trimesh, scipy and the mesh stage are imported where they are used: the
+    # workflow reads stored_particle_count at every start
+    import trimesh
 
 # Cells whose centre is within this many cells of the surface get the surface PPC. The paper does
 # not give its shell width; 2 cells reproduces its counts at grid 64, PPC 5/1 (iso: 496K here vs
@@ -53,6 +55,8 @@ def _surface_distance(mesh: trimesh.Trimesh, points: np.ndarray, spacing: float,
     bary = np.stack([1.0 - s, s * (1.0 - r2), s * r2], axis=1)  # uniform on each triangle
     tri = mesh.triangles[face]  # [n, 3, 3]
     surf = np.einsum("nk,nkd->nd", bary, tri)
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(np.concatenate([surf, mesh.vertices]))
     dist, _ = tree.query(points, k=1)
     return dist
@@ -73,6 +77,8 @@ def sample_volume(
     is_surface [N] (particle came from a shell cell). Deterministic for a seed. Raises MeshError
     (naming ``name``) when the mesh does not fit within ``grid.interior_bounds()``.
     """
+    from physmorph.meshes import MeshError
+
     label = name or mesh.metadata.get("shape", "mesh")
     for key, val in (("ppc_surface", ppc_surface), ("ppc_interior", ppc_interior)):
         if int(val) != val or val < 1:
@@ -139,6 +145,8 @@ def mean_nn_distance(x: np.ndarray) -> float:
     """Mean distance from each point of x: [N, 3] to its nearest other point."""
     if len(x) < 2:
         raise ValueError("need at least two particles for a nearest-neighbour distance")
+    from scipy.spatial import cKDTree
+
     d, _ = cKDTree(x).query(x, k=2)
     return float(d[:, 1].mean())
 
@@ -183,6 +191,8 @@ def sample_particles(
         raise ValueError(f"density must be positive, got {density!r}")
     if not (np.isfinite(sigma_scale) and sigma_scale > 0):
         raise ValueError(f"sigma_scale must be positive, got {sigma_scale!r}")
+    from physmorph.meshes import load_mesh
+
     mesh = load_mesh(mesh_h5)
     shape = mesh.metadata["shape"]
     lo, hi = mesh.metadata["domain"]

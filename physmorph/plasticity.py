@@ -38,12 +38,14 @@ frames).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from physmorph.linalg3 import singular_values
+
+if TYPE_CHECKING:  # scipy.spatial is imported where it is used: the workflow reads the config classes at every start
+    from scipy.spatial import cKDTree
 
 
 UPDATES = ("incremental", "target_rest")
@@ -369,6 +371,8 @@ def chamfer_plasticity_step(
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring); with
     ``destination`` step 1 is d_i = destination_i - x_i."""
+    from scipy.spatial import cKDTree
+
     if destination is not None:
         d_raw = np.asarray(destination, dtype=np.float64) - x
     else:

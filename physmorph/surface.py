@@ -10,13 +10,15 @@ are added, and the mask of a run only ever grows (union with the previous frame'
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import ndimage
-from scipy.spatial import cKDTree
-from skimage import measure
 
 from physmorph.grid import scatter_add
+
+if TYPE_CHECKING:  # scipy and scikit-image are imported where they are used (the workflow reads
+    # the config classes at every start)
+    from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,10 @@ def density_grid(x: np.ndarray, weights: np.ndarray, voxels: int, lo: float, hi:
 
 def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConfig, lo: float, hi: float) -> np.ndarray:
     """Particles within ``cfg.band`` voxels of the density iso-surface. x: [N, 3], volume: [N] -> [N] bool."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+    from skimage import measure
+
     h = (hi - lo) / cfg.voxels
     rho = ndimage.gaussian_filter(density_grid(x, volume, cfg.voxels, lo, hi), cfg.blur_sigma)
     positive = rho[rho > 0]
