@@ -42,6 +42,10 @@ def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = F
         threads = int(env) if env else None
     kwargs = dict(arch=ti.cuda if arch == "cuda" else ti.cpu, debug=debug, log_level=ti.WARN,
                   offline_cache=True, random_seed=0)
+    if os.environ.get("PHYSMORPH_QUICK_COMPILE") == "1":
+        # Taichi's IR optimisation passes off: kernels compile in about 60 % of the time, for
+        # many small solvers of different settings (the test suite sets it; runs do not)
+        kwargs["advanced_optimization"] = False
     if threads is not None and arch == "cpu":
         kwargs["cpu_max_num_threads"] = int(threads)
     ti.init(**kwargs)

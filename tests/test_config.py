@@ -272,3 +272,23 @@ def test_resolution_tag_roundtrip():
     assert s.with_tag(s.tag) == s and s.with_tag("64x5x1") == SamplingConfig(64, 5, 1, 75.0, 0.7)
     with pytest.raises(ConfigError, match="32x2x1"):
         s.with_tag("32")
+
+
+@pytest.mark.parametrize("quick", ["1", None])
+def test_quick_compile_turns_off_taichis_ir_optimisation_only_when_asked(monkeypatch, quick):
+    """PHYSMORPH_QUICK_COMPILE=1 (the suite sets it) initialises Taichi without its IR optimisation
+    passes; unset (every run), Taichi keeps its defaults."""
+    import taichi as ti
+
+    import physmorph.taichi_runtime as rt
+
+    seen = {}
+    monkeypatch.setattr(ti, "init", lambda **kw: seen.update(kw))
+    monkeypatch.setattr(rt, "_state", {})
+    if quick:
+        monkeypatch.setenv("PHYSMORPH_QUICK_COMPILE", quick)
+    else:
+        monkeypatch.delenv("PHYSMORPH_QUICK_COMPILE", raising=False)
+    rt.init_taichi("cpu")
+    assert seen["offline_cache"] is True
+    assert seen.get("advanced_optimization", True) is (quick is None)
