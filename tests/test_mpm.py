@@ -1140,5 +1140,7 @@ def test_polar_from_a_nearby_rotation_is_the_svd_polar(precision):
         else:
             assert np.abs(R - R64).max() <= max(np.abs(R_svd - R64).max(), 2e-6)
             np.testing.assert_allclose(gap, gap64, atol=1e-5 * np.abs(S64).max())
+    # (the SVD itself: from a zero start the steps would give no rotation; in float32 the two
+    # inlined copies of the SVD may round differently when Taichi's IR optimisation is off)
     R, _, _ = evaluate_polar(Fe, np.zeros_like(Fe), precision)
-    np.testing.assert_allclose(R, R_svd, atol=1e-14)
+    np.testing.assert_allclose(R, R_svd, atol=1e-14 if precision == "float64" else 2e-6)
