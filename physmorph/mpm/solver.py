@@ -209,11 +209,9 @@ class MPMSolver:
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
             Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
-            # warm start: the rotation one substep earlier; the first substep takes the SVD, so
-            # a forward depends only on the loaded state and the control (a resumed run computes
-            # what an uninterrupted one does)
-            # (the zero start is no rotation: polar_from takes the SVD; one call site, since each
-            # inlined SVD costs seconds of compile time)
+            # warm start: the rotation one substep earlier. At the first substep the zero start
+            # (no rotation) makes polar_from take the SVD, so a forward depends only on the loaded
+            # state and the control; one call site, since each inlined SVD costs seconds of compile
             R0 = ti.Matrix.zero(self.dtype, 3, 3)
             if t > 0:
                 R0 = self.R_t[t - 1, p]
