@@ -292,3 +292,28 @@ def test_quick_compile_turns_off_taichis_ir_optimisation_only_when_asked(monkeyp
     rt.init_taichi("cpu")
     assert seen["offline_cache"] is True
     assert seen.get("advanced_optimization", True) is (quick is None)
+
+
+def test_taichi_errors_still_name_file_line_and_source_with_short_positions():
+    """init_taichi makes Taichi's frontend record one-line source positions (use_short_source_positions:
+    the caret lines it formatted for every node were a third of a cached kernel build); a kernel
+    that fails to compile is still reported with its file, line, function and source line."""
+    import taichi as ti
+    from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext
+
+    from physmorph.taichi_runtime import init_taichi
+
+    init_taichi("cpu")
+    assert getattr(ASTTransformerContext.get_pos_info, "short_positions", False)
+    values = ti.field(ti.f32, shape=2)
+
+    @ti.kernel
+    def broken():
+        for i in values:
+            values[i] = name_defined_nowhere + 1.0  # noqa: F821
+
+    with pytest.raises(Exception) as err:
+        broken()
+    msg = str(err.value)
+    assert "test_config.py\", line" in msg and "in broken" in msg, msg
+    assert "values[i] = name_defined_nowhere + 1.0" in msg and "name_defined_nowhere" in msg.splitlines()[-1], msg
