@@ -133,6 +133,9 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     # plasticity
     "plasticity.eta": ("plasticity rate (the paper: 0.2)", "", ">= 0"),
     "plasticity.k_neighbors": ("neighbours of the displacement smoothing", "", ">= 1"),
+    "plasticity.neighbour_ppc": ("the neighbours are drawn from at most this many particles per cell per axis, "
+                                 "so k_neighbors spans the same cells at every sampling density (0 = every particle)",
+                                 "", ">= 0"),
     "plasticity.smooth_iters": ("passes of neighbour averaging of the displacements", "", ">= 0"),
     "plasticity.damping": ("damping d_p of the Fp update", "", R01),
     "plasticity.start_frame": ("k0: first frame with plasticity; experiments set it with `plasticity_start`",

@@ -43,7 +43,7 @@ from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-export
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, kinetic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou, volume_metrics
-from physmorph.plasticity import absorbed_rest, chamfer_plasticity_step, rebase_reference
+from physmorph.plasticity import absorbed_rest, chamfer_plasticity_step, neighbour_pool, rebase_reference
 from physmorph.render import RenderTarget, render_and_grad, render_views
 from physmorph.stability import MorphDivergenceError, StabilityMonitor, anisotropy, check_state  # noqa: F401 (re-exported)
 from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
@@ -128,6 +128,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 **volume_metrics(st.x, parts.mass, target.grid_mass, target.grid)}, per_view
 
     destination = None  # correspondence="transport": computed at the first update (a function of the inputs alone)
+    pool = None  # the plasticity's neighbour pool, chosen at the first update from the positions at rest
     monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
     checkpoint = run.resume(log=lambda msg: log(f"[{name}] {msg}"))
     resumed_from = None if checkpoint is None else checkpoint.frame
@@ -237,8 +238,12 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             Fp_from = absorbed_rest(st.F, control_mean, st.Fp, cfg.plasticity) if absorbing else st.Fp
             if cfg.plasticity.correspondence == "transport" and destination is None:
                 destination = destinations_in_grid_mass(parts.x, parts.mass, target.grid_mass, target.grid)
+            if pool is None:
+                pool = neighbour_pool(parts.x, target.grid.lo, target.grid.dx, cfg.plasticity.neighbour_ppc)
+                pool = np.arange(N) if pool is None else pool
             pl = chamfer_plasticity_step(st.x, Fp_from, target.surface_points, cfg.plasticity, tree, F=F_stress,
-                                         destination=destination, nearest_index=nearest_i)
+                                         destination=destination, nearest_index=nearest_i,
+                                         pool=None if len(pool) == N else pool)
             Fp_old = st.Fp
             st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
             try:  # before the re-base: a bad Fp is named as such, not as a bad control

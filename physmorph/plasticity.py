@@ -61,6 +61,12 @@ class PlasticityConfig:
     # with the nearest-point correspondence, then 0.1; see config/config.yaml)
     eta: float = 0.05
     k_neighbors: int = 64
+    # the particles a neighbourhood is drawn from: at most neighbour_ppc per cell per axis (one per
+    # sub-cell of dx / neighbour_ppc, the one nearest its centre at rest; neighbour_pool), so the k
+    # neighbours span the same cells at every sampling density: k = 64 from the default sampling
+    # (PPC 2/1, which it keeps whole) is about 8 cells. 0: every particle (until 2026-11-26; at
+    # the paper's PPC 5 a neighbourhood was half a cell)
+    neighbour_ppc: int = 2
     smooth_iters: int = 3
     damping: float = 0.05  # d_p
     # k0 (the paper: 20 of 90 frames; 10, then 5, until 2026-11-24): transport destinations need
@@ -113,6 +119,8 @@ class PlasticityConfig:
         lo, hi = self.det_bounds
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"plasticity.det_bounds must satisfy 0 < lo <= 1 <= hi, got {self.det_bounds}")
+        if self.neighbour_ppc < 0:
+            raise ValueError(f"plasticity.neighbour_ppc must be >= 0 (0: every particle), got {self.neighbour_ppc}")
         if self.max_anisotropy < 1:
             raise ValueError(f"plasticity.max_anisotropy must be >= 1, got {self.max_anisotropy}")
         if not 0 < self.absorb_rate <= 1:
@@ -359,6 +367,28 @@ class PlasticityResult:
     mean_distance: float  # mean |d| before smoothing (a Chamfer-like term)
 
 
+def neighbour_pool(x: np.ndarray,  # [N, 3] positions at rest
+                   lo: float, dx: float, ppc: int) -> np.ndarray | None:  # -> [P] sorted indices, or None
+    """The particles the plasticity's neighbourhoods are drawn from (PlasticityConfig.neighbour_ppc):
+    in each sub-cell of side dx / ppc of the simulation grid, the particle nearest its centre. None
+    (every particle) when ppc <= 0 or no sub-cell holds two particles, as with a sampling of at most
+    ppc particles per cell per axis (the jittered lattice puts one per sub-cell of dx / PPC)."""
+    if ppc <= 0:
+        return None
+    h = dx / ppc
+    cell = np.floor((x - lo) / h).astype(np.int64)  # [N, 3]
+    off = x - (lo + (cell + 0.5) * h)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    order = np.lexsort(((off * off).sum(axis=1), key))  # by sub-cell, nearest its centre first
+    first = np.ones(len(x), dtype=bool)
+    first[1:] = key[order[1:]] != key[order[:-1]]
+    if first.all():
+        return None
+    return np.sort(order[first])
+
+
 def chamfer_plasticity_step(
     x: np.ndarray,  # [N, 3]
     Fp: np.ndarray,  # [N, 3, 3]
@@ -368,9 +398,11 @@ def chamfer_plasticity_step(
     F: np.ndarray | None = None,  # [N, 3, 3] the deformation the stress sees (F + dFc), for update="target_rest"
     destination: np.ndarray | None = None,  # [N, 3] per-particle destinations (correspondence="transport")
     nearest_index: np.ndarray | None = None,  # [N] index of each x's nearest target point, when the caller has it
+    pool: np.ndarray | None = None,  # [P] the particles neighbourhoods are drawn from (neighbour_pool); None: all
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring); with
-    ``destination`` step 1 is d_i = destination_i - x_i."""
+    ``destination`` step 1 is d_i = destination_i - x_i. With ``pool`` every particle's k neighbours
+    are taken from the pool's particles, whose displacements the smoothing passes update as well."""
     from scipy.spatial import cKDTree
 
     if destination is not None:
@@ -379,9 +411,10 @@ def chamfer_plasticity_step(
         tree = target_tree if target_tree is not None else cKDTree(target_points)
         d_raw = (nearest_target_displacement(x, tree, target_points) if nearest_index is None
                  else target_points[nearest_index] - x)
-    k = min(cfg.k_neighbors, len(x))
-    dist, neighbors = cKDTree(x).query(x, k=k, workers=-1)
-    neighbors = np.asarray(neighbors).reshape(len(x), k)
+    source = np.arange(len(x)) if pool is None else np.asarray(pool)
+    k = min(cfg.k_neighbors, len(source))
+    dist, neighbors = cKDTree(x[source]).query(x, k=k, workers=-1)
+    neighbors = source[np.asarray(neighbors).reshape(len(x), k)]
     r2 = np.asarray(dist).reshape(len(x), k) ** 2
     r2[neighbors == np.arange(len(x))[:, None]] = 0.0  # the particle itself carries no information
     d = knn_smooth_sparse(d_raw, neighbors, cfg.smooth_iters)

@@ -1,5 +1,7 @@
 """Chamfer-guided plasticity: Jacobian estimate, zero-displacement invariance, projection bounds."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -320,3 +322,63 @@ def test_absorption_starts_at_its_frame_and_picks_what_the_control_is_rebased_on
     assert rebase_reference(late_cs, True, Fp_absorbed, Fp_new) is Fp_new
     with pytest.raises(ValueError, match="absorb_start_frame"):
         PlasticityConfig(absorb_start_frame=0)
+
+
+def _sphere_particles(res: int, ppc_surface: int):
+    import trimesh
+
+    from physmorph.grid import Grid
+    from physmorph.particles import sample_volume
+
+    grid = Grid(res, -4.0, 4.0)
+    x, _, _ = sample_volume(trimesh.creation.icosphere(subdivisions=3, radius=2.5), grid, ppc_surface, 1, seed=0)
+    return x, grid
+
+
+def test_neighbour_pool_keeps_a_sampling_of_its_density_whole_and_thins_a_denser_one_to_the_same_cells():
+    """neighbour_pool (PlasticityConfig.neighbour_ppc): a sampling of at most ppc particles per cell
+    per axis (the default's PPC 2/1) is kept whole, so the update is the same as without a pool; a
+    denser one (PPC 5 at the surface, as the paper profile) keeps the particle nearest the centre of
+    each sub-cell of dx / ppc, and k neighbours drawn from it span the cells they span at PPC 2."""
+    from physmorph.plasticity import neighbour_pool
+
+    x2, grid = _sphere_particles(16, 2)
+    assert neighbour_pool(x2, grid.lo, grid.dx, 2) is None
+    assert neighbour_pool(x2, grid.lo, grid.dx, 0) is None
+    x5, _ = _sphere_particles(16, 5)
+    pool = neighbour_pool(x5, grid.lo, grid.dx, 2)
+    h = grid.dx / 2
+    cell = np.floor((x5 - grid.lo) / h).astype(int)
+    keys = {tuple(c) for c in cell}
+    assert len(pool) == len(keys) and len({tuple(c) for c in cell[pool]}) == len(pool)  # one per sub-cell
+    centre_dist = np.linalg.norm(x5 - (grid.lo + (cell + 0.5) * h), axis=1)
+    best = {}
+    for i, c in enumerate(map(tuple, cell)):
+        if c not in best or centre_dist[i] < centre_dist[best[c]]:
+            best[c] = i
+    assert sorted(best.values()) == pool.tolist()  # the one nearest its sub-cell's centre
+    radius = {name: np.median(cKDTree(src).query(x, k=64)[0][:, -1]) / grid.dx
+              for name, src, x in (("ppc2", x2, x2), ("ppc5", x5, x5), ("ppc5_pool", x5[pool], x5))}
+    assert radius["ppc5"] < 0.6 * radius["ppc2"]  # counted in particles, a neighbourhood shrinks with the density
+    assert radius["ppc5_pool"] == pytest.approx(radius["ppc2"], rel=0.15)
+
+
+def test_plasticity_step_takes_its_neighbours_from_the_pool():
+    """With a pool every particle's neighbours come from it: the whole set as the pool is the step
+    without one, and a pool still recovers an affine displacement field exactly (least squares)."""
+    from physmorph.plasticity import neighbour_pool
+
+    x, grid = _sphere_particles(16, 4)
+    pool = neighbour_pool(x, grid.lo, grid.dx, 2)
+    assert 0 < len(pool) < len(x) / 4
+    A = np.array([[0.02, 0.01, -0.01], [0.0, -0.03, 0.01], [0.01, 0.0, 0.02]])
+    dest = x + x @ A.T + 0.1
+    Fp = np.tile(np.eye(3), (len(x), 1, 1))
+    cfg = PlasticityConfig(jacobian="least_squares", damping=0.0, smooth_iters=2, k_neighbors=32)
+    plain = chamfer_plasticity_step(x, Fp, x[:10], cfg, destination=dest)
+    whole = chamfer_plasticity_step(x, Fp, x[:10], cfg, destination=dest, pool=np.arange(len(x)))
+    np.testing.assert_array_equal(plain.Fp, whole.Fp)
+    # unsmoothed (an average over one-sided neighbours moves an affine field), d_j - d_i = A (x_j - x_i)
+    pooled = chamfer_plasticity_step(x, Fp, x[:10], dataclasses.replace(cfg, smooth_iters=0), destination=dest, pool=pool)
+    eta = pooled.eta[:, None, None]
+    np.testing.assert_allclose(pooled.Fp, np.eye(3) + eta * 0.5 * (A + A.T), atol=1e-10)
