@@ -92,6 +92,9 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                                 "objective by c alpha <g, d>; 0: any decrease)", "", "[0, 1)"),
     "mpm.step_clip": ("normalized_gd: clamp of each entry of the normalised step, in multiples of its RMS; "
                       "0 = off", "", ">= 0"),
+    "mpm.step_per_volume": ("normalized_gd: the step direction is the gradient per unit of particle volume "
+                            "(a shell-biased sampling's surface particles are driven as hard as its interior ones)",
+                            "", ""),
     "mpm.grad_iters": ("optimiser iterations per frame (J); experiments set it with `grad_iters`", "", ">= 1"),
     "mpm.adam_beta1": ("Adam's first-moment decay", "", "[0, 1)"),
     "mpm.adam_beta2": ("Adam's second-moment decay", "", "[0, 1)"),

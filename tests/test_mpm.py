@@ -9,6 +9,7 @@ rate, optimiser, line search) share one.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -814,6 +815,34 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     assert np.abs(g / rms).max() > 1.5  # the clip is active somewhere
     s.optimize_control(iters=1)
     np.testing.assert_allclose(s.control(), -cfg.step_size * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("clip", [0.0, 1.5])
+def test_step_per_volume_is_the_gradient_per_unit_volume_normalised(state, clip):
+    """With step_per_volume the step is -alpha clip(w g / rms(w g)), w_p = V_max / V_p: a particle of
+    a tenth of the volume (a denser sampling's) moves as far as a large one under the same stress;
+    with equal volumes it is the plain step, bit for bit."""
+    vol = state.volume * np.where(np.arange(state.n) % 3 == 0, 1.0, 0.1)  # two samplings' particles
+    st = dataclasses.replace(state, volume=vol, mass=state.mass * vol / state.volume)
+    steps = {}
+    for per_volume, s_state in ((True, st), (False, st), (True, state), (False, state)):
+        cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=clip,
+                    step_per_volume=per_volume)
+        s = make(cfg, s_state, reuse=True)
+        s.reset_control()
+        s.load_state(s_state)
+        s.forward()
+        s.backward()
+        g = s.control_gradient()
+        s.optimize_control(iters=1)
+        steps[per_volume, s_state is st] = (s.control(), g)
+    step, g = steps[True, True]
+    wg = g * (vol.max() / vol)[None, :, None, None]
+    d = wg / np.sqrt(np.mean(wg * wg))
+    np.testing.assert_allclose(step, -1e-4 * 2.0 * (np.clip(d, -clip, clip) if clip else d), rtol=1e-9, atol=1e-15)
+    plain, g = steps[False, True]
+    assert np.abs(plain - step).max() > 1e-6  # the weights change the step
+    np.testing.assert_array_equal(steps[True, False][0], steps[False, False][0])  # equal volumes: no change
 
 
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):

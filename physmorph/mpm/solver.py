@@ -70,6 +70,7 @@ class MPMSolver:
         self.mass = ti.field(f, shape=N)
         self.vol = ti.field(f, shape=N)
         self.press = ti.field(f, shape=N)  # the frame's packing pressure (volume_stiffness)
+        self.step_weight = ti.field(f, shape=N)  # w_p of the normalised step (step_per_volume), else 1
         # control field and Adam moments, index [slot, p]
         self.ctrl = mat.field(shape=(Tc, N))
         self.ctrl_grad = mat.field(shape=(Tc, N))
@@ -655,25 +656,34 @@ class MPMSolver:
 
     @ti.kernel
     def _normalized_step(self, alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64):
-        """dFc = base - alpha clip(g / rms(g), -clip, clip) (clip <= 0: unclipped): the normalised
-        gradient step of DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
+        """dFc = base - alpha clip(w g / rms(w g), -clip, clip) (clip <= 0: unclipped; w the
+        particle's step weight, 1 unless step_per_volume): the normalised gradient step of
+        DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
         for s, p in self.ctrl:
-            d = self.ctrl_grad[s, p] * ti.cast(inv_rms, self.dtype)
+            d = self.ctrl_grad[s, p] * (self.step_weight[p] * ti.cast(inv_rms, self.dtype))
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.ctrl[s, p] = self.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
 
     @ti.kernel
     def _direction_dot_gradient(self, inv_rms: ti.f64, clip: ti.f64):
-        """norm_acc = <g, d>, d = clip(g / rms, -clip, clip): the objective's first-order fall per
+        """norm_acc = <g, d>, d = clip(w g / rms(w g), -clip, clip): the objective's first-order fall per
         unit alpha along the normalised step (the Armijo test's rate)."""
         self.norm_acc[None] = 0.0
         for s, p in self.ctrl_grad:
             g = self.ctrl_grad[s, p]
-            d = g * ti.cast(inv_rms, self.dtype)
+            d = g * (self.step_weight[p] * ti.cast(inv_rms, self.dtype))
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.norm_acc[None] += ti.cast((g * d).sum(), ti.f64)
+
+    @ti.kernel
+    def _weighted_grad_norm_sq(self):
+        """norm_acc = |w g|^2, the squared norm of the step weights times the gradient."""
+        self.norm_acc[None] = 0.0
+        for s, p in self.ctrl_grad:
+            g = self.ctrl_grad[s, p] * self.step_weight[p]
+            self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
 
     @ti.kernel
     def _adam(self, lr_t: ti.f64):
@@ -726,6 +736,9 @@ class MPMSolver:
         self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
         self.mass.from_numpy(st.mass.astype(dt_))
         self.vol.from_numpy(st.volume.astype(dt_))
+        weight = st.volume.max() / st.volume if self.cfg.step_per_volume else np.ones(self.n)
+        self.step_weight.from_numpy(weight.astype(dt_))
+        self._weighted_step = bool(self.cfg.step_per_volume and (weight != 1.0).any())
         if self._pressure_on:
             self._frame_pressure()
         self._Fp = st.Fp.copy()
@@ -958,7 +971,11 @@ class MPMSolver:
                 self.backward(grad_F_final, grad_x_final)
             # the norm was accumulated in float64 by the kernel; the step is taken in place
             # (_normalized_step), from the control saved at the iteration's start
-            rms = self._grad_norm / np.sqrt(self.cfg.n_control_slots * self.n * 9)
+            norm = self._grad_norm
+            if self._weighted_step:
+                self._weighted_grad_norm_sq()
+                norm = float(np.sqrt(self.norm_acc[None]))
+            rms = norm / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
             self._save_ctrl_base()
