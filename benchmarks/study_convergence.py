@@ -61,6 +61,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--results", default=str(REPO / "results"), help="where results/{profile}/ lives")
     ap.add_argument("--csv", default=str(CSV), help="the record the rows are appended to")
     ap.add_argument("--no-csv", action="store_true")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue a killed call's run from its last committed frame instead of starting again")
     args = ap.parse_args(argv)
     csv_path = Path(args.csv)
     overrides = parse_set(args.set)
@@ -80,8 +82,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         tpath = Path(args.results) / cfg.profile / "targets" / f"{exp.target}_{res}.h5"
         out = Path(args.workdir) / args.tag / f"{name}.h5"
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.unlink(missing_ok=True)
-        shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
+        if not args.resume:
+            out.unlink(missing_ok=True)
+            shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
         t0 = time.time()
         run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True))
         wall = time.time() - t0
