@@ -116,8 +116,8 @@ class MPMConfig:
         volume, g_p V_max / V_p, normalised by its RMS (and clipped by step_clip). dL/dFc_p carries
         the particle's volume (its stress enters P2G times V_p), so a plain normalised step drives
         a shell-biased sampling's interior particles (PPC 1) harder than its surface ones: 8x at
-        PPC 2, 125x at the paper's PPC 5, where 99 % of the particles are in the surface shell.
-        False: g / rms(g), the authors' step.
+        PPC 2, 125x at the paper's PPC 5, where 99 % of the particles are in the surface shell
+        (docs/study/log.md finding 131). False: g / rms(g), the authors' step (until 2026-11-26).
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -157,7 +157,7 @@ class MPMConfig:
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
-                                                             "step_scales_with_dx"})
+                                                             "step_scales_with_dx", "step_per_volume"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -178,7 +178,7 @@ class MPMConfig:
     line_search_iters: int = 10
     sufficient_decrease: float = 0.0
     step_clip: float = 3.0
-    step_per_volume: bool = False
+    step_per_volume: bool = True  # history: docs/study/CHANGELOG.md
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
