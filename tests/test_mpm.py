@@ -781,6 +781,19 @@ def test_normalized_gd_line_search_decreases_the_objective_monotonically(state):
     assert stats["loss_final"] == pytest.approx(stats["loss_initial"], rel=1e-12)
 
 
+def _gradient_and_one_step(cfg, st):
+    """The dFc gradient of one forward/backward from zero control, and the control after one
+    optimiser iteration from there."""
+    s = make(cfg, st, reuse=True)
+    s.reset_control()
+    s.load_state(st)
+    s.forward()
+    s.backward()
+    g = s.control_gradient()
+    s.optimize_control(iters=1)
+    return g, s.control()
+
+
 @pytest.mark.parametrize("scaled", [True, False])
 def test_normalized_gd_keeps_relative_gradient_sizes(state, scaled):
     """The step is -alpha g / rms(g): proportional to the gradient (unlike Adam's per-entry sign-like
@@ -789,14 +802,7 @@ def test_normalized_gd_keeps_relative_gradient_sizes(state, scaled):
     cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_scales_with_dx=scaled)
     alpha = 2e-4 if scaled else 1e-4
     assert cfg.dx == 2.0 and cfg.step_size == pytest.approx(alpha, rel=1e-12)
-    s = make(cfg, state, reuse=True)
-    s.reset_control()
-    s.load_state(state)
-    s.forward()
-    s.backward()
-    g = s.control_gradient()
-    s.optimize_control(iters=1)
-    step = s.control()
+    g, step = _gradient_and_one_step(cfg, state)
     rms = np.sqrt(np.mean(g * g))
     np.testing.assert_allclose(step, -alpha * g / rms, rtol=1e-9, atol=1e-15)
 
@@ -805,16 +811,10 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     """With step_clip c the step is -alpha clip(g / rms(g), -c, c): entries under c are the plain
     normalised step, larger ones are cut to c alpha."""
     cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=1.5)
-    s = make(cfg, state, reuse=True)
-    s.reset_control()
-    s.load_state(state)
-    s.forward()
-    s.backward()
-    g = s.control_gradient()
+    g, step = _gradient_and_one_step(cfg, state)
     rms = np.sqrt(np.mean(g * g))
     assert np.abs(g / rms).max() > 1.5  # the clip is active somewhere
-    s.optimize_control(iters=1)
-    np.testing.assert_allclose(s.control(), -cfg.step_size * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(step, -cfg.step_size * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("clip", [0.0, 1.5])
@@ -828,14 +828,8 @@ def test_step_per_volume_is_the_gradient_per_unit_volume_normalised(state, clip)
     for per_volume, s_state in ((True, st), (False, st), (True, state), (False, state)):
         cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=clip,
                     step_per_volume=per_volume)
-        s = make(cfg, s_state, reuse=True)
-        s.reset_control()
-        s.load_state(s_state)
-        s.forward()
-        s.backward()
-        g = s.control_gradient()
-        s.optimize_control(iters=1)
-        steps[per_volume, s_state is st] = (s.control(), g)
+        g, step = _gradient_and_one_step(cfg, s_state)
+        steps[per_volume, s_state is st] = (step, g)
     step, g = steps[True, True]
     wg = g * (vol.max() / vol)[None, :, None, None]
     d = wg / np.sqrt(np.mean(wg * wg))
