@@ -16,6 +16,7 @@ from physmorph.plasticity import (
     displacement_jacobian_sparse,
     knn_smooth,
     knn_smooth_sparse,
+    nearest_neighbours,
     project_plastic,
     rebase_control,
     rebase_reference,
@@ -60,6 +61,24 @@ def test_neighbour_sum_jacobian_and_smoothing_equal_their_gather_references(mode
     r2[nb == np.arange(len(x))[:, None]] = 0.0
     np.testing.assert_allclose(displacement_jacobian_sparse(x, d, nb, mode, r2=r2), ref, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(knn_smooth_sparse(d, nb, 3), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
+
+
+def test_nearest_neighbours_by_chunks_equal_a_brute_force_search():
+    """nearest_neighbours (the chamfer step's query by chunks of rows, int32 indices) against
+    sorting every pairwise distance: the same k neighbours from a subset, the particle itself at
+    r2 = 0, and chunks that do not divide the particle count."""
+    rng = np.random.default_rng(7)
+    x = rng.uniform(0, 3, (301, 3))
+    source = np.sort(rng.choice(len(x), 150, replace=False))
+    nb, r2 = nearest_neighbours(x, source, 9, chunk=64)
+    assert nb.dtype == np.int32 and nb.shape == r2.shape == (301, 9)
+    all_r2 = ((x[:, None] - x[source][None]) ** 2).sum(-1)  # [N, P]
+    order = np.argsort(all_r2, axis=1, kind="stable")[:, :9]
+    np.testing.assert_array_equal(nb, source[order])
+    expect = np.take_along_axis(all_r2, order, axis=1)
+    expect[nb == np.arange(len(x))[:, None]] = 0.0
+    np.testing.assert_allclose(r2, expect, rtol=1e-12, atol=1e-12)
+    assert (r2[np.isin(np.arange(len(x)), source), 0] == 0).all()  # a source particle is its own nearest
 
 
 def test_knn_smoothing_keeps_constant_fields():
