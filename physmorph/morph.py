@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
+from physmorph.linalg3 import det3
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, kinetic_energy, total_volume
 from physmorph.particles import load_particles
@@ -50,6 +51,7 @@ from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summariz
 from physmorph.surface import update_surface_mask
 from physmorph.targets import load_target
 from physmorph.transport import destinations_in_grid_mass
+
 
 def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
               name: str = "", config_record: dict | None = None, log=None) -> dict:
@@ -116,7 +118,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
         iou = silhouette_iou(alpha, target.alpha)
-        det = np.linalg.det(st.Fp)
+        det = det3(st.Fp)
         d = tree.query(st.x, k=1, workers=-1)[0] if target_distance is None else target_distance
         return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
                 "fp_anisotropy_max": float(anisotropy(st.Fp).max()),

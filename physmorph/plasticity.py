@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
 
-from physmorph.linalg3 import singular_values
+from physmorph.linalg3 import det3, singular_values
 
 if TYPE_CHECKING:  # scipy.spatial is imported where it is used: the workflow reads the config classes at every start
     from scipy.spatial import cKDTree
@@ -248,7 +248,7 @@ def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotr
     Fp = np.asarray(Fp, dtype=np.float64)
     # inside with a margin well above the closed-form singular values' error (1e-8 relative)
     sv = singular_values(Fp)
-    det = np.linalg.det(Fp)
+    det = det3(Fp)
     g = np.cbrt(np.maximum(det, 0.0))
     margin = 1.0 - 1e-6
     inside = ((det > det_bounds[0] / margin) & (det < det_bounds[1] * margin)
@@ -264,7 +264,7 @@ def _project_plastic_svd(Fp: np.ndarray, det_bounds: tuple[float, float], max_an
     U, s, Vt = np.linalg.svd(Fp)
     # Signed SVD: put any reflection into the smallest singular value, then force it positive,
     # which un-inverts an inverted Fp.
-    flip = np.linalg.det(U) * np.linalg.det(Vt) < 0
+    flip = det3(U) * det3(Vt) < 0
     U[flip, :, 2] *= -1
     s = np.abs(s)
     s = np.maximum(s, 1e-6)
@@ -315,7 +315,7 @@ def absorb_control(
     F + mean dFc is near-singular keep their Fp.
     """
     A = F + control_mean  # [N, 3, 3]
-    ok = np.linalg.det(A) > 1e-3
+    ok = det3(A) > 1e-3
     out = Fp.copy()
     out[ok] = (1.0 - rate) * Fp[ok] + rate * (Fp[ok] @ np.linalg.solve(A[ok], F[ok]))
     return out
@@ -338,7 +338,7 @@ def absorb_shape(
     """
     _, sig, Vt = np.linalg.svd(F)
     S = np.einsum("nji,nj,njk->nik", Vt, sig, Vt)  # V diag(sigma) V^T, symmetric positive
-    ok = np.linalg.det(F) > 1e-3
+    ok = det3(F) > 1e-3
     out = Fp.copy()
     out[ok] = (1.0 - rate) * Fp[ok] + rate * S[ok]
     return out

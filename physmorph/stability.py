@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from physmorph.linalg3 import singular_values
+from physmorph.linalg3 import det3, singular_values
 
 from physmorph.mpm import ParticleState
 from physmorph.plasticity import PlasticityConfig
@@ -49,7 +49,7 @@ class StabilityMonitor:
     def update(self, frame: int, Fp: np.ndarray, alpha_mse: float) -> list[str]:  # Fp [N, 3, 3]
         out = []
         lo, hi = self.cfg.det_bounds
-        det = np.linalg.det(Fp)
+        det = det3(Fp)
         tol = 1e-3
         pinned = (det <= lo * (1 + tol)) | (det >= hi * (1 - tol)) | (anisotropy(Fp) >= self.cfg.max_anisotropy * (1 - tol))
         share = float(pinned.mean())

@@ -1,9 +1,9 @@
-"""Closed-form 3x3 singular values against NumPy's SVD, on the matrices a morph meets and the hard cases."""
+"""Closed-form 3x3 determinants and singular values against NumPy's, on the matrices a morph meets and the hard cases."""
 
 import numpy as np
 import pytest
 
-from physmorph.linalg3 import signed_singular_values, singular_values, symmetric_eigenvalues
+from physmorph.linalg3 import det3, signed_singular_values, singular_values, symmetric_eigenvalues
 from physmorph.mpm.state import fixed_corotated_energy_density, polar_rotation
 
 
@@ -17,6 +17,18 @@ def _cases() -> np.ndarray:  # [N, 3, 3]
     near_identity = np.eye(3) + 0.1 * rng.normal(size=(200, 3, 3))
     wild = rng.normal(size=(200, 3, 3)) * rng.uniform(0.01, 10.0, size=(200, 1, 1))
     return np.concatenate([np.array(diag, float), np.array(spun), near_identity, wild])
+
+
+def test_determinants_match_numpy():
+    """det3 against np.linalg.det: to round-off of the entries' products (exact zeros stay zero,
+    signs of inverted matrices kept)."""
+    M = _cases()
+    scale = np.abs(M).reshape(len(M), -1).max(axis=1) ** 3
+    assert np.all(np.abs(det3(M) - np.linalg.det(M)) <= 1e-14 * scale)
+    assert det3(np.zeros((2, 3, 3))).tolist() == [0.0, 0.0]
+    clear = np.abs(np.linalg.det(M)) > 1e-10 * scale
+    assert np.array_equal(np.sign(det3(M[clear])), np.sign(np.linalg.det(M[clear])))
+    assert det3(np.zeros((0, 3, 3))).shape == (0,)
 
 
 def test_singular_values_match_numpy_svd():

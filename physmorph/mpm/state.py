@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from .config import BARRIER_J_LINEAR, MPMConfig, MPMStateError
-from physmorph.linalg3 import signed_singular_values
+from physmorph.linalg3 import det3, signed_singular_values
 
 _SHAPES = {"x": (3,), "v": (3,), "F": (3, 3), "C": (3, 3), "Fp": (3, 3), "mass": (), "volume": ()}
 
@@ -60,7 +60,7 @@ class ParticleState:
             raise MPMStateError(f"mass must be > 0, particle {int(np.argmax(out['mass'] <= 0))} is not")
         if (out["volume"] <= 0).any():
             raise MPMStateError(f"volume must be > 0, particle {int(np.argmax(out['volume'] <= 0))} is not")
-        detp = np.linalg.det(out["Fp"])
+        detp = det3(out["Fp"])
         if (np.abs(detp) < 1e-12).any():
             raise MPMStateError(f"Fp is singular (det ~ 0) at particle {int(np.argmax(np.abs(detp) < 1e-12))}")
         return ParticleState(**out)
@@ -70,7 +70,7 @@ def polar_rotation(F: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3, 3]
     """Rotation R of the polar decomposition F = R S with det R = +1 (inversion-safe, via SVD)."""
     U, _, Vt = np.linalg.svd(F)
     R = U @ Vt
-    flip = np.linalg.det(R) < 0
+    flip = det3(R) < 0
     U[flip, :, 2] *= -1.0
     return U @ Vt
 
@@ -80,7 +80,7 @@ def fixed_corotated_energy_density(Fe: np.ndarray, mu: float, lam: float,  # [N,
     """Psi(Fe) = mu ||Fe - R||_F^2 + Psi_vol(J) (Stomakhin et al. 2012): Psi_vol = lam/2 (J - 1)^2
     (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued quadratically below BARRIER_J_LINEAR)."""
     # ||Fe - R||_F^2 = sum_i (s_i - 1)^2 over the signed singular values (R = U V^T, both rotations)
-    J = np.linalg.det(Fe)
+    J = det3(Fe)
     shear = mu * ((signed_singular_values(Fe) - 1.0) ** 2).sum(axis=1)
     if volume_law == "fixed_corotated":
         return shear + 0.5 * lam * (J - 1.0) ** 2
@@ -100,7 +100,7 @@ def elastic_energy(state: ParticleState, cfg: MPMConfig) -> float:
 
 def total_volume(state: ParticleState) -> float:
     """Current total volume sum_p det(F_p) V0_p."""
-    return float((np.linalg.det(np.asarray(state.F)) * np.asarray(state.volume)).sum())
+    return float((det3(np.asarray(state.F)) * np.asarray(state.volume)).sum())
 
 
 def kinetic_energy(state: ParticleState) -> float:
