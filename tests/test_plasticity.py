@@ -61,6 +61,12 @@ def test_neighbour_sum_jacobian_and_smoothing_equal_their_gather_references(mode
     r2[nb == np.arange(len(x))[:, None]] = 0.0
     np.testing.assert_allclose(displacement_jacobian_sparse(x, d, nb, mode, r2=r2), ref, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(knn_smooth_sparse(d, nb, 3), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
+    # by chunks of rows, and with neighbourhoods drawn from a pool (its rows alone until the last pass)
+    np.testing.assert_allclose(knn_smooth_sparse(d, nb, 3, chunk=100), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
+    pool = np.arange(0, len(x), 3)
+    nbp = pool[cKDTree(x[pool]).query(x, k=9)[1]]
+    np.testing.assert_allclose(knn_smooth_sparse(d, nbp, 3, sources=pool, chunk=70), knn_smooth(d, nbp, 3),
+                               rtol=1e-12, atol=1e-12)
 
 
 def test_nearest_neighbours_by_chunks_equal_a_brute_force_search():
