@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
 from physmorph.linalg3 import det3
+from physmorph.memory import release_free_memory
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, kinetic_energy, total_volume
 from physmorph.particles import load_particles
@@ -207,6 +208,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 break
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
+        # each stage's temporaries go back to the system before the next stage's are made, so
+        # the frame's peak is one stage's, not the sum of the heap's leftovers (physmorph.memory)
+        release_free_memory()
         t1 = time.time()
         # each particle's nearest target surface point, shared by the mask, the plasticity's
         # nearest-point map and the Chamfer metric (x is the same for all: plasticity changes only Fp)
@@ -229,6 +233,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             scal.update(loss_dt=res.losses["dt"], loss_iou=res.losses["iou"], loss_depth=res.losses["depth"],
                         loss_render=res.losses["total"], grad_F_norm=float(np.linalg.norm(g_F)),
                         grad_x_norm=float(np.linalg.norm(g_x)))
+            release_free_memory()
         t3 = time.time()
         # C. plasticity
         if cfg.method == "full" and k >= cfg.plasticity.start_frame:
@@ -255,6 +260,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             rebase_to = rebase_reference(cfg.plasticity, absorbing, Fp_from, pl.Fp)
             if rebase_to is not None:
                 solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
+            release_free_memory()
         t4 = time.time()
         m, per_view = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None,
                                   masked_alpha=res.alpha if want_grad and len(views) == V else None,
@@ -283,6 +289,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
                    {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
                     "next_step": step, **solver.optimizer_state(), **monitor.state()})
+        release_free_memory()
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)
