@@ -49,6 +49,8 @@ if TYPE_CHECKING:  # scipy.spatial is imported where it is used: the workflow re
 
 
 UPDATES = ("incremental", "target_rest")
+# rows of the [N, k] neighbour arrays worked on at a time (their temporaries: ~17 MB at k = 64)
+ROW_CHUNK = 32768
 
 
 @dataclass(frozen=True)
@@ -164,7 +166,7 @@ def displacement_jacobian(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, m
     return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
 
 
-def _pair_weights(x: np.ndarray, neighbors: np.ndarray, chunk: int = 65536) -> np.ndarray:  # -> r2 [N, k]
+def _pair_weights(x: np.ndarray, neighbors: np.ndarray, chunk: int = ROW_CHUNK) -> np.ndarray:  # -> r2 [N, k]
     """|x_j - x_i|^2 for every neighbour j of i, by chunks of rows (no [N, k, 3] array)."""
     r2 = np.empty(neighbors.shape)
     for a in range(0, len(x), chunk):
@@ -177,10 +179,10 @@ def _inverse_or_zero(r2: np.ndarray, out: np.ndarray | None = None) -> np.ndarra
     """1 / r2 where r2 > 0, else 0 (the particle itself and coincident neighbours carry no
     information), by chunks of rows so no full-size temporary is made; ``out`` may be ``r2``."""
     out = np.empty(r2.shape) if out is None else out
-    for a in range(0, len(r2), 65536):
-        r = r2[a:a + 65536]
+    for a in range(0, len(r2), ROW_CHUNK):
+        r = r2[a:a + ROW_CHUNK]
         pos = r > 0
-        o = out[a:a + 65536]
+        o = out[a:a + ROW_CHUNK]
         np.divide(1.0, r, out=o, where=pos)
         o[~pos] = 0.0
     return out
@@ -199,7 +201,7 @@ def neighbour_sums(neighbors: np.ndarray, weights: np.ndarray,  # neighbors, wei
 
 
 def knn_smooth_sparse(d: np.ndarray, neighbors: np.ndarray, iters: int, sources: np.ndarray | None = None,
-                      chunk: int = 131072) -> np.ndarray:
+                      chunk: int = ROW_CHUNK) -> np.ndarray:
     """knn_smooth (its reference) by sparse averaging operators: the same means, without the
     [N, k, 3] gather per pass (0.1 s instead of 1.4 s a pass at 471K particles, k = 64). Rows
     go by chunks (no [N, k] weight array); ``sources`` [P]: the only particles any neighbourhood
@@ -424,7 +426,7 @@ def neighbour_pool(x: np.ndarray,  # [N, 3] positions at rest
 
 def nearest_neighbours(x: np.ndarray,  # [N, 3]
                        source: np.ndarray,  # [P] indices into x the neighbours are drawn from
-                       k: int, chunk: int = 32768) -> tuple[np.ndarray, np.ndarray]:  # -> [N, k] indices, [N, k] r2
+                       k: int, chunk: int = ROW_CHUNK) -> tuple[np.ndarray, np.ndarray]:  # -> [N, k] indices, [N, k] r2
     """Each particle's k nearest particles of ``source`` (KD tree) and their squared distances, 0 for
     the particle itself (it carries no information). Queried by chunks of rows into int32 indices
     (at 471K particles, k = 64: 0.36 GB for both instead of 0.96 GB with the query's own arrays)."""
