@@ -3,8 +3,9 @@
 Each surface particle is a 3D Gaussian with mean x_i and covariance Sigma_i = sigma0^2 F_i F_i^T
 (MPM-Gaussian duality). Pipeline and where each piece lives:
 
-- projection.py (torch autograd): F -> Sigma, EWA projection Sigma2D = J W Sigma W^T J^T +
-  low_pass I, its inverse (the conic), culling of Gaussians behind the near plane or off screen.
+- projection.py (torch): F -> Sigma, EWA projection Sigma2D = J W Sigma W^T J^T + low_pass I,
+  its inverse (the conic), culling of Gaussians behind the near plane or off screen; a
+  hand-written reverse, tested against autograd through the forward.
 - tiles.py: duplicate each visible Gaussian once per screen tile its 3-sigma box touches and
   sort by (tile, depth): memory O(pixels + pairs), never O(pixels x Gaussians).
 - rasterizer.py (Taichi): front-to-back compositing of alpha = 1 - T_final and accumulated depth

@@ -1,10 +1,10 @@
 """Public entry points: render_and_grad (losses + dL/dF), render_views (metrics), shade (figures).
 
-Pipeline (paper sections 3.2 and 3.5): F, x --(torch autograd)--> Sigma = sigma0^2 F F^T -->
-EWA projection --> screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written
-backward)--> alpha, D --(torch)--> losses. The rasterizer backward runs once with one channel
-per loss, then the cheap per-Gaussian part is differentiated by torch once per loss, which is
-what adaptive gradient matching needs (each loss's gradient norm separately).
+Pipeline (paper sections 3.2 and 3.5): F, x --> Sigma = sigma0^2 F F^T --> EWA projection -->
+screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D
+--(torch)--> losses. The rasterizer's backward and the projection's (hand-written, view by view,
+no autograd graph) each run once with one channel per loss, which is what adaptive gradient
+matching needs (each loss's gradient norm separately).
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from physmorph.taichi_runtime import resolve_device
 
 from .config import RenderConfig, RenderResult, RenderTarget
 from .losses import alpha_mse, expected_depth, match_gradients, render_losses
-from .projection import CameraTensors, ProjectedGaussians, covariance_from_F, project_gaussians
+from .projection import (CameraTensors, ProjectedGaussians, covariance_from_F, covariance_from_F_backward,
+                         project_gaussians, project_gaussians_backward)
 from .rasterizer import composite_backward, composite_forward
 from .tiles import TileBins, bin_gaussians
 
@@ -104,13 +105,13 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     if target.alpha.shape != (n_views, height, width):
         raise ValueError(f"target images are {target.alpha.shape}, cameras give {(n_views, height, width)}")
     xt, Ft, st, cams = _to_tensors(x, F, s, cameras, cfg)
-    xt.requires_grad_(want_grad_x)
-    Ft.requires_grad_(True)
     dev, dt = xt.device, xt.dtype
     t_alpha, t_depth, t_sdt = (torch.as_tensor(np.asarray(a), dtype=dt, device=dev)
                                for a in (target.alpha, target.depth, target.sdt))
 
-    sp = splat(xt, Ft, st, cams, cfg)
+    # the projection keeps no autograd graph: its reverse is project_gaussians_backward
+    with torch.no_grad():
+        sp = splat(xt, Ft, st, cams, cfg)
     t_final, depth_acc, last = composite_forward(sp.params, sp.bins, n_views, height, width, cfg)
     alpha_leaf = (1.0 - t_final).requires_grad_(True)
     depth_leaf = depth_acc.clone().requires_grad_(True)
@@ -130,20 +131,17 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     loss_values = {k: float(v.detach()) for k, v in losses.items()}
     del losses  # frees the loss graph's pixel-sized buffers before the rasterizer backward
     g_params = composite_backward(sp.params, sp.bins, t_final, last, g_alpha, g_depth, cfg)
-    del g_alpha, g_depth
+    del g_alpha, g_depth, sp
 
-    inputs = (Ft, xt) if want_grad_x else (Ft,)
-    per_loss_F, per_loss_x = {}, {}
-    for c, name in enumerate(LOSS_NAMES):
-        if x.shape[0] == 0:
-            grads = tuple(torch.zeros_like(t) for t in inputs)
-        else:
-            grads = torch.autograd.grad(sp.params, inputs, grad_outputs=g_params[c], retain_graph=True,
-                                        allow_unused=True)
-            grads = tuple(g if g is not None else torch.zeros_like(t) for g, t in zip(grads, inputs))
-        per_loss_F[name] = grads[0]
-        if want_grad_x:
-            per_loss_x[name] = grads[1]
+    # the projection's reverse, all losses at once, view by view
+    n_losses = len(LOSS_NAMES)
+    g_x, g_cov = project_gaussians_backward(xt, covariance_from_F(Ft, st), cams, cfg,
+                                            g_params.reshape(n_losses, n_views, x.shape[0], 6), want_grad_x)
+    del g_params
+    g_F = covariance_from_F_backward(Ft, st, g_cov)
+    del g_cov
+    per_loss_F = {name: g_F[c] for c, name in enumerate(LOSS_NAMES)}
+    per_loss_x = {name: g_x[c] for c, name in enumerate(LOSS_NAMES)} if want_grad_x else {}
     grad_F, weights = match_gradients(per_loss_F, cfg)
     grad_x = None
     all_weights = {f"F_{k}": v for k, v in weights.items()}
