@@ -572,7 +572,8 @@ def test_optimization_reduces_mass_loss_by_half(solver20):
 
 def test_injected_adjoint_alone_is_the_difference(solver3, state):
     """backward(g, include_mass_loss=False) pulls back the injected adjoints alone: by linearity
-    it equals backward(g) - backward(None) (float64)."""
+    it equals backward(g) - backward(None) (float64); backward_pair gives both gradients, and the
+    injected one's initial-state adjoints, in one sweep."""
     s = solver3
     s.load_state(state)
     s.set_control(random_control(s.cfg, s.n))
@@ -587,6 +588,14 @@ def test_injected_adjoint_alone_is_the_difference(solver3, state):
     g_inj = s.control_gradient()
     assert np.linalg.norm(g_inj) > 0 and np.linalg.norm(g_mass) > 0
     np.testing.assert_allclose(g_inj, g_both - g_mass, rtol=1e-8, atol=1e-10 * np.abs(g_both).max())
+    initial_inj = s.initial_state_gradients()
+    # backward_pair: the two in one reverse sweep (mass into the base field, injected into the gradient)
+    n_mass, n_inj = s.backward_pair(gF, gx)
+    np.testing.assert_allclose(s.control_gradient(), g_inj, rtol=1e-10, atol=1e-14 * np.abs(g_inj).max())
+    np.testing.assert_allclose(s.ctrl_base.to_numpy(), g_mass, rtol=1e-10, atol=1e-14 * np.abs(g_mass).max())
+    assert (n_mass, n_inj) == pytest.approx((np.linalg.norm(g_mass), np.linalg.norm(g_inj)), rel=1e-10)
+    for key, ref in initial_inj.items():
+        np.testing.assert_allclose(s.initial_state_gradients()[key], ref, rtol=1e-10, atol=1e-14 * np.abs(ref).max())
 
 
 def test_optimizer_state_round_trip(solver3, state):
@@ -901,12 +910,14 @@ def test_first_gradient_from_the_injection_calibration_skips_nothing_it_should_n
         g_mass = s.control_gradient()
         s.backward(gF, None, include_mass_loss=False)
         g_inj = s.control_gradient()
-        cal = calibrate_injection(s, 0.1, gF, None)
+        cal = calibrate_injection(s, 0.1, gF, None)  # both gradients in one reverse sweep (backward_pair)
         assert cal.scale == pytest.approx(0.1 * np.linalg.norm(g_mass) / np.linalg.norm(g_inj), rel=1e-9)
-        np.testing.assert_allclose(s.control_gradient(), g_inj, rtol=1e-10, atol=1e-14 * np.abs(g_inj).max())
+        pair_inj, pair_mass = s.control_gradient(), s.ctrl_base.to_numpy()
+        np.testing.assert_allclose(pair_inj, g_inj, rtol=1e-10, atol=1e-14 * np.abs(g_inj).max())
+        np.testing.assert_allclose(pair_mass, g_mass, rtol=1e-10, atol=1e-14 * np.abs(g_mass).max())
         if use_first:
             s.combine_calibration(cal.scale)
-            np.testing.assert_allclose(s.control_gradient(), g_mass + cal.scale * g_inj, rtol=1e-14, atol=1e-300)
+            np.testing.assert_allclose(s.control_gradient(), pair_mass + cal.scale * pair_inj, rtol=1e-14, atol=1e-300)
             assert s.grad_norm == pytest.approx(np.linalg.norm(g_mass + cal.scale * g_inj), rel=1e-12)
         stats = s.optimize_control(grad_F_final=cal.scale * gF, iters=2, gradient_ready=use_first)
         runs.append((s.control(), stats["losses"], stats["loss_final"]))

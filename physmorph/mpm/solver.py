@@ -88,6 +88,10 @@ class MPMSolver:
         self.v_adj = vec.field(shape=N)
         self.C_adj = mat.field(shape=N)
         self.F_adj = mat.field(shape=N)
+        # a second set of particle and grid adjoints for backward_pair (two seeds in one reverse
+        # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
+        self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
+        self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
         # grid
         self.grid_mv = vec.field(shape=(R, R, R))
         self.grid_m = ti.field(f, shape=(R, R, R))
@@ -194,9 +198,11 @@ class MPMSolver:
             self.grid_m[I] = 0.0
 
     @ti.kernel
-    def _clear_grid_adj(self):
+    def _clear_grid_adj(self, pair: ti.template()):
         for I in ti.grouped(self.grid_m):
             self.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
+            if ti.static(pair):
+                self.grid_v_adj2[I] = ti.Vector.zero(self.dtype, 3)
 
     @ti.kernel
     def _p2g(self, t: ti.i32):
@@ -261,40 +267,59 @@ class MPMSolver:
             self.gap_s[p] = self.gap_t[t, p]
 
     @ti.kernel
-    def _p2g_backward(self, t: ti.i32):
-        """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t."""
-        dt = self.dtype(self.cfg.dt)
-        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
-        damp = 1.0 - dt * self.dtype(self.cfg.drag)
+    def _p2g_backward(self, t: ti.i32, pair: ti.template()):
+        """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t (pair:
+        also the second set's, sharing the stencil, A and the node loop)."""
+        slot = t if ti.static(self.cfg.control == "per_substep") else 0
+        damp = 1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
             A = self.A_s[p]
-            Fe = self.Fe_s[p]
             mp = self.mass[p]
             mom = mp * damp * self.v[t, p]
             vbar = ti.Vector.zero(self.dtype, 3)
             Abar = ti.Matrix.zero(self.dtype, 3, 3)
             xbar = ti.Vector.zero(self.dtype, 3)
+            vbar2, Abar2, xbar2 = vbar, Abar, xbar
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 gw = self._node_grad(w, dw, i, j, k)
+                mv = mom + A @ dpos
                 mvb = self.grid_mv_adj[base + off]
-                mb = self.grid_m_adj[base + off]
                 vbar += wt * mvb
                 Abar += wt * mvb.outer_product(dpos)
-                xbar += gw * (mvb.dot(mom + A @ dpos) + mb * mp) - wt * (A.transpose() @ mvb)
-            tau_bar = (-dt * self.vol[p] * kq) * Abar
-            P, dP = self._stress_model.stress_and_diff_polar(Fe, self.R_s[p], self.S_s[p], self.gap_s[p],
-                                                             tau_bar @ Fe)  # P_bar = tau_bar Fe
-            Fe_bar = tau_bar.transpose() @ P + dP
-            Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
-            self.x_adj[p] += xbar
-            self.v_adj[p] += mp * damp * vbar
-            self.C_adj[p] += mp * Abar
-            self.F_adj[p] += Fhat_bar
-            slot = t if ti.static(self.cfg.control == "per_substep") else 0
-            self.ctrl_grad[slot, p] += Fhat_bar
+                xbar += gw * (mvb.dot(mv) + self.grid_m_adj[base + off] * mp) - wt * (A.transpose() @ mvb)
+                if ti.static(pair):
+                    mvb2 = self.grid_mv_adj2[base + off]
+                    vbar2 += wt * mvb2
+                    Abar2 += wt * mvb2.outer_product(dpos)
+                    xbar2 += gw * (mvb2.dot(mv) + self.grid_m_adj2[base + off] * mp) - wt * (A.transpose() @ mvb2)
+            self._p2g_adjoint_particle(p, slot, vbar, Abar, xbar, self.x_adj, self.v_adj, self.C_adj, self.F_adj,
+                                       self.ctrl_grad)
+            if ti.static(pair):
+                self._p2g_adjoint_particle(p, slot, vbar2, Abar2, xbar2, self.x_adj2, self.v_adj2, self.C_adj2,
+                                           self.F_adj2, self.ctrl_base)
+
+    @ti.func
+    def _p2g_adjoint_particle(self, p, slot, vbar, Abar, xbar, xa: ti.template(), va: ti.template(),
+                              Ca: ti.template(), Fa: ti.template(), grad: ti.template()):
+        """One adjoint set's particle part of _p2g's reverse: A_bar -> P_bar = tau_bar Fe ->
+        Fe_bar (the stress's self-adjoint differential) -> the F and dFc adjoints."""
+        dt = self.dtype(self.cfg.dt)
+        kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
+        Fe = self.Fe_s[p]
+        mp = self.mass[p]
+        tau_bar = (-dt * self.vol[p] * kq) * Abar
+        P, dP = self._stress_model.stress_and_diff_polar(Fe, self.R_s[p], self.S_s[p], self.gap_s[p],
+                                                         tau_bar @ Fe)  # P_bar = tau_bar Fe
+        Fe_bar = tau_bar.transpose() @ P + dP
+        Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
+        xa[p] += xbar
+        va[p] += mp * (1.0 - dt * self.dtype(self.cfg.drag)) * vbar
+        Ca[p] += mp * Abar
+        Fa[p] += Fhat_bar
+        grad[slot, p] += Fhat_bar
 
     def _frame_pressure(self) -> None:
         """Packing pressure of the frame (MPMConfig.volume_stiffness): m_I = sum_p w_Ip m_p at x_0,
@@ -341,23 +366,33 @@ class MPMSolver:
             self.grid_v[I] = v
 
     @ti.kernel
-    def _grid_backward(self):
+    def _grid_backward(self, pair: ti.template()):
         """Reverse of _grid_update: v_bar -> (mv_bar, m_bar) through the mask and v = mv / m."""
         for I in ti.grouped(self.grid_m):
             m = self.grid_m[I]
-            mvb = ti.Vector.zero(self.dtype, 3)
-            mb = ti.cast(0.0, self.dtype)
+            vfree = ti.Vector.zero(self.dtype, 3)
+            vc = vfree
             if m > 0:
                 vfree = self.grid_mv[I] / m
-                vb = self.grid_v_adj[I]
                 vc = self._boundary(I, vfree)
-                for a in ti.static(range(3)):
-                    if vc[a] == 0.0 and vfree[a] != 0.0:
-                        vb[a] = 0.0
-                mvb = vb / m
-                mb = -vb.dot(vfree) / m
-            self.grid_mv_adj[I] = mvb
-            self.grid_m_adj[I] = mb
+            self._grid_adjoint_node(I, m, vfree, vc, self.grid_v_adj, self.grid_mv_adj, self.grid_m_adj)
+            if ti.static(pair):
+                self._grid_adjoint_node(I, m, vfree, vc, self.grid_v_adj2, self.grid_mv_adj2, self.grid_m_adj2)
+
+    @ti.func
+    def _grid_adjoint_node(self, I, m, vfree, vc, va: ti.template(), mva: ti.template(), ma: ti.template()):
+        """One adjoint set at node I: the boundary's zeroed components pass nothing back."""
+        mvb = ti.Vector.zero(self.dtype, 3)
+        mb = ti.cast(0.0, self.dtype)
+        if m > 0:
+            vb = va[I]
+            for a in ti.static(range(3)):
+                if vc[a] == 0.0 and vfree[a] != 0.0:
+                    vb[a] = 0.0
+            mvb = vb / m
+            mb = -vb.dot(vfree) / m
+        mva[I] = mvb
+        ma[I] = mb
 
     @ti.kernel
     def _g2p(self, t: ti.i32):
@@ -404,51 +439,19 @@ class MPMSolver:
         return r
 
     @ti.kernel
-    def _g2p_backward(self, t: ti.i32):
-        """Reverse of _g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t."""
-        s = self.dtype(self.cfg.smoothing)
-        dt = self.dtype(self.cfg.dt)
+    def _g2p_backward(self, t: ti.i32, pair: ti.template()):
+        """Reverse of _g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t
+        (pair: also the second set's, sharing the stencil and the node loop's grid loads)."""
         kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
-            xn = self.x[t + 1, p]
-            xbar_n = self.x_adj[p]
-            for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
-                if xn[a] <= self.dtype(self._x_min) or xn[a] >= self.dtype(self._x_max):
-                    xbar_n[a] = 0.0
-            slot = t if ti.static(self.cfg.control == "per_substep") else 0
-            Fh = self.F[t, p]
-            if ti.static(self.cfg.control_in_F):
-                Fh += self.ctrl[slot, p]
-            Cn = self.C[t + 1, p]
-            Fbar_n = self.F_adj[p]
-            Fbar_new = (1.0 - s) * Fbar_n
-            Fbar = s * Fbar_n
-            if ti.static(self.cfg.smoothing_mode == "isochoric"):
-                # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
-                # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs> (0 where the floor
-                # J_min holds det F' instead of det Fn)
-                Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
-                Fs = (1.0 - s) * Fn + s * self.F[t, p]
-                r = self._volume_scale(Fn, Fs)
-                Fs_bar = r * Fbar_n
-                Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
-                Jt = self._volume_target(Fn)
-                if (Jt / Fs.determinant()) > 0:
-                    k3 = r * (Fbar_n * Fs).sum() / 3.0
-                    Fs_bar -= k3 * Fs.inverse().transpose()
-                    if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor)
-                        Fbar_new = k3 * Fn.inverse().transpose()
-                Fbar_new += (1.0 - s) * Fs_bar
-                Fbar = s * Fs_bar
-            Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
-            Fbar += Fh_bar
-            if ti.static(self.cfg.control_in_F):
-                self.ctrl_grad[slot, p] += Fh_bar
-            Cbar = self.C_adj[p] + dt * Fbar_new @ Fh.transpose()
-            vbar = self.v_adj[p] + dt * xbar_n
-            xbar = xbar_n
+            xbar, vbar, Cbar = self._g2p_adjoint_particle(t, p, self.x_adj, self.v_adj, self.C_adj, self.F_adj,
+                                                          self.ctrl_grad)
+            xbar2, vbar2, Cbar2 = xbar, vbar, Cbar
+            if ti.static(pair):
+                xbar2, vbar2, Cbar2 = self._g2p_adjoint_particle(t, p, self.x_adj2, self.v_adj2, self.C_adj2,
+                                                                 self.F_adj2, self.ctrl_base)
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 gw = self._node_grad(w, dw, i, j, k)
@@ -456,10 +459,62 @@ class MPMSolver:
                 Cd = Cbar @ dpos
                 self.grid_v_adj[base + off] += wt * (vbar + kq * Cd)
                 xbar += gw * (vbar.dot(gv) + kq * gv.dot(Cd)) - (wt * kq) * (Cbar.transpose() @ gv)
+                if ti.static(pair):
+                    Cd2 = Cbar2 @ dpos
+                    self.grid_v_adj2[base + off] += wt * (vbar2 + kq * Cd2)
+                    xbar2 += gw * (vbar2.dot(gv) + kq * gv.dot(Cd2)) - (wt * kq) * (Cbar2.transpose() @ gv)
             self.x_adj[p] = xbar
-            self.F_adj[p] = Fbar
-            self.v_adj[p] = ti.Vector.zero(self.dtype, 3)
-            self.C_adj[p] = ti.Matrix.zero(self.dtype, 3, 3)
+            if ti.static(pair):
+                self.x_adj2[p] = xbar2
+
+    @ti.func
+    def _g2p_adjoint_particle(self, t, p, xa: ti.template(), va: ti.template(), Ca: ti.template(),
+                              Fa: ti.template(), grad: ti.template()):
+        """One adjoint set's particle part of _g2p's reverse: the adjoints of x, F, v, C of state
+        t+1 -> F's of state t (written), dFc's (added) and the (x_bar, v_bar, C_bar) that the node
+        loop scatters; v and C's adjoints are consumed (zeroed)."""
+        s = self.dtype(self.cfg.smoothing)
+        dt = self.dtype(self.cfg.dt)
+        xn = self.x[t + 1, p]
+        xbar_n = xa[p]
+        for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
+            if xn[a] <= self.dtype(self._x_min) or xn[a] >= self.dtype(self._x_max):
+                xbar_n[a] = 0.0
+        slot = t if ti.static(self.cfg.control == "per_substep") else 0
+        Fh = self.F[t, p]
+        if ti.static(self.cfg.control_in_F):
+            Fh += self.ctrl[slot, p]
+        Cn = self.C[t + 1, p]
+        Fbar_n = Fa[p]
+        Fbar_new = (1.0 - s) * Fbar_n
+        Fbar = s * Fbar_n
+        if ti.static(self.cfg.smoothing_mode == "isochoric"):
+            # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
+            # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs> (0 where the floor
+            # J_min holds det F' instead of det Fn)
+            Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
+            Fs = (1.0 - s) * Fn + s * self.F[t, p]
+            r = self._volume_scale(Fn, Fs)
+            Fs_bar = r * Fbar_n
+            Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
+            Jt = self._volume_target(Fn)
+            if (Jt / Fs.determinant()) > 0:
+                k3 = r * (Fbar_n * Fs).sum() / 3.0
+                Fs_bar -= k3 * Fs.inverse().transpose()
+                if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor)
+                    Fbar_new = k3 * Fn.inverse().transpose()
+            Fbar_new += (1.0 - s) * Fs_bar
+            Fbar = s * Fs_bar
+        Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
+        Fbar += Fh_bar
+        if ti.static(self.cfg.control_in_F):
+            grad[slot, p] += Fh_bar
+        Cbar = Ca[p] + dt * Fbar_new @ Fh.transpose()
+        vbar = va[p] + dt * xbar_n
+        Fa[p] = Fbar
+        va[p] = ti.Vector.zero(self.dtype, 3)
+        Ca[p] = ti.Matrix.zero(self.dtype, 3, 3)
+        return xbar_n, vbar, Cbar
 
     @ti.kernel
     def _splat_mass(self, t: ti.i32):
@@ -558,7 +613,7 @@ class MPMSolver:
             self._pyramid_loss(cm, ct, ca, 1 << lv, self._log_eps * 8.0 ** lv)
 
     @ti.kernel
-    def _loss_backward(self):
+    def _loss_backward(self, xa: ti.template()):
         """Reverse of _splat_mass(T) and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
         of the injected g^x already there)."""
         T = self.cfg.substeps
@@ -569,7 +624,7 @@ class MPMSolver:
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 gw = self._node_grad(w, dw, i, j, k)
                 g += gw * (self.mass[p] * self.grid_m_adj[base + off])
-            self.x_adj[p] += g
+            xa[p] += g
 
     # ------------------------------------------------------------------ kernels: utilities
     @ti.kernel
@@ -595,16 +650,18 @@ class MPMSolver:
                     C[p, a, b] = self.C[t, p][a, b]
 
     @ti.kernel
-    def _zero_ctrl_grad(self):
-        for s, p in self.ctrl_grad:
-            self.ctrl_grad[s, p] = ti.Matrix.zero(self.dtype, 3, 3)
+    def _zero_control_field(self, g: ti.template()):
+        for s, p in g:
+            g[s, p] = ti.Matrix.zero(self.dtype, 3, 3)
 
     @ti.kernel
-    def _grad_norm_sq(self):
+    def _norm_sq(self, g: ti.template()):
         self.norm_acc[None] = 0.0
-        for s, p in self.ctrl_grad:
-            g = self.ctrl_grad[s, p]
-            self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
+        for s, p in g:
+            self.norm_acc[None] += ti.cast((g[s, p] * g[s, p]).sum(), ti.f64)
+
+    def _grad_norm_sq(self) -> None:
+        self._norm_sq(self.ctrl_grad)
 
     @ti.kernel
     def _scale_ctrl(self, factor: ti.f64):
@@ -626,11 +683,6 @@ class MPMSolver:
         """g = g_mass + scale g_inj: ctrl_base holds g_mass, ctrl_grad g_inj (calibration_gradients)."""
         for s, p in self.ctrl_grad:
             self.ctrl_grad[s, p] = self.ctrl_base[s, p] + ti.cast(scale, self.dtype) * self.ctrl_grad[s, p]
-
-    @ti.kernel
-    def _copy_grad_to_base(self):
-        for s, p in self.ctrl_grad:
-            self.ctrl_base[s, p] = self.ctrl_grad[s, p]
 
     @ti.kernel
     def _control_mean(self, out: ti.types.ndarray()):
@@ -790,6 +842,38 @@ class MPMSolver:
         gradient, and the adjoint of the initial state (see initial_state_gradients).
         ``include_mass_loss=False`` pulls back the injected adjoints alone (the morph loop uses
         it to compare their size with the mass loss's without float32 cancellation)."""
+        self._reverse(grad_F_final, grad_x_final, include_mass_loss, pair=False)
+
+    def backward_pair(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
+                      grad_x_final: np.ndarray | None = None) -> tuple[float, float]:  # [N, 3]
+        """One reverse sweep of the last forward carrying two adjoints: the mass loss's dFc
+        gradient into the line search's base field and the injected adjoints' alone, d(<gF, F_T>
+        + <gx, x_T>)/d(dFc), into the control gradient. Equal to backward(None, None) and
+        backward(gF, gx, include_mass_loss=False) run one after the other, for the cost of about
+        one and a half: the restored forward state, the stencils and the grid loads are shared.
+        Returns the two gradients' norms (mass, injected)."""
+        self._ensure_pair()
+        self._reverse(grad_F_final, grad_x_final, include_mass_loss=False, pair=True)
+        self._norm_sq(self.ctrl_base)
+        n_mass = float(self.norm_acc[None])
+        if not np.isfinite(n_mass):
+            raise MPMDivergenceError("the mass loss's dFc gradient became non-finite (NaN/Inf) in the backward pass")
+        return float(np.sqrt(n_mass)), self._grad_norm
+
+    def _ensure_pair(self) -> None:
+        """Allocate the second adjoint set (backward_pair) on first use."""
+        if self.x_adj2 is None:
+            f, N, R = self.dtype, self.n, self.cfg.grid_res
+            vec, mat = ti.types.vector(3, f), ti.types.matrix(3, 3, f)
+            self.x_adj2, self.v_adj2 = vec.field(shape=N), vec.field(shape=N)
+            self.C_adj2, self.F_adj2 = mat.field(shape=N), mat.field(shape=N)
+            self.grid_v_adj2, self.grid_mv_adj2 = vec.field(shape=(R, R, R)), vec.field(shape=(R, R, R))
+            self.grid_m_adj2 = ti.field(f, shape=(R, R, R))
+
+    def _reverse(self, grad_F_final, grad_x_final, include_mass_loss: bool, pair: bool) -> None:
+        """The reverse sweep: the injected adjoints (and the mass loss unless excluded) in the
+        first adjoint set into ctrl_grad; with pair, the mass loss alone in the second into
+        ctrl_base."""
         if not self._forward_current:
             raise RuntimeError("backward needs a forward() of the current state and dFc first")
         self._calibrated_for = self._combined_for = -1  # ctrl_grad is overwritten
@@ -800,19 +884,23 @@ class MPMSolver:
         self.F_adj.from_numpy(gF.astype(self.np_dtype))
         self.v_adj.fill(0.0)
         self.C_adj.fill(0.0)
-        self._zero_ctrl_grad()
-        if self._has_target and include_mass_loss:
+        self._zero_control_field(self.ctrl_grad)
+        if pair:
+            for f in (self.x_adj2, self.v_adj2, self.C_adj2, self.F_adj2):
+                f.fill(0.0)
+            self._zero_control_field(self.ctrl_base)
+        if self._has_target and (include_mass_loss or pair):
             self._clear_grid()
             self._splat_mass(self.cfg.substeps)
             self._loss_with_adjoint()
-            self._loss_backward()
+            self._loss_backward(self.x_adj2 if pair else self.x_adj)
         for t in reversed(range(self.cfg.substeps)):
             self._restore_p2g(t)
             self._grid_update()
-            self._clear_grid_adj()
-            self._g2p_backward(t)
-            self._grid_backward()
-            self._p2g_backward(t)
+            self._clear_grid_adj(pair)
+            self._g2p_backward(t, pair)
+            self._grid_backward(pair)
+            self._p2g_backward(t, pair)
         self._grad_norm_sq()
         gn = float(self.norm_acc[None])
         if not np.isfinite(gn):
@@ -920,13 +1008,11 @@ class MPMSolver:
         dFc (run here): the mass loss's and the injected adjoint's alone. Returns their norms;
         the gradients stay in the solver (no [Tc, N, 3, 3] copies) for combine_calibration."""
         self.forward()
-        self.backward(None, None)
-        n_mass = self._grad_norm
-        self._copy_grad_to_base()
-        # the injected part alone (a difference of the two would drown in float32 round-off)
-        self.backward(grad_F_final, grad_x_final, include_mass_loss=False)
+        # the two in one reverse sweep; the injected part apart from the mass loss's (a
+        # difference of the two would drown in float32 round-off)
+        n_mass, n_inj = self.backward_pair(grad_F_final, grad_x_final)
         self._calibrated_for = self._rollout_id
-        return n_mass, self._grad_norm
+        return n_mass, n_inj
 
     def combine_calibration(self, scale: float) -> None:
         """The dFc gradient of mass loss + scale <g, final state> from calibration_gradients' two
