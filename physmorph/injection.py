@@ -20,7 +20,7 @@ class InjectionCalibration:
 
 
 def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None,
-                        g_x: np.ndarray | None) -> InjectionCalibration:
+                        g_x: np.ndarray | None, pair: bool | None = None) -> InjectionCalibration:
     """Scale c such that the injected adjoint's dFc gradient has norm gamma x the mass loss's.
 
     The paper injects gamma * dL_render/dF with gamma = 0.1 in its own code's loss units, which
@@ -29,8 +29,9 @@ def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None,
     through the same rollout (backward is linear in the injected adjoint) and c = gamma
     |grad_mass| / |grad_inject|. The solver keeps the two gradients: the optimiser's first
     iteration needs exactly mass + c x injected on the rollout this leaves current
-    (MPMSolver.combine_calibration, then optimize_control(gradient_ready=True)).
+    (MPMSolver.combine_calibration, then optimize_control(gradient_ready=True)). pair: see
+    MPMSolver.calibration_gradients (by default chosen by the solver's size).
     """
-    n_mass, n_inj = solver.calibration_gradients(g_F, g_x)
+    n_mass, n_inj = solver.calibration_gradients(g_F, g_x, pair)
     ok = n_inj > 0 and np.isfinite(n_inj) and np.isfinite(n_mass)
     return InjectionCalibration(gamma * n_mass / n_inj if ok else 0.0, n_mass, n_inj)

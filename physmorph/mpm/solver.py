@@ -39,6 +39,9 @@ from .stress import evaluate_stress, make_stress_funcs  # noqa: F401 (evaluate_s
 
 # |F| or |v| entries above this are treated as a divergence (Inf follows soon after).
 _BLOWUP = 1e8
+# the injection calibration's backward_pair from this many particle-substeps on (n x substeps;
+# below, its kernels' compilation costs more than it saves in a run: docs/performance.md)
+PAIR_MIN_PARTICLE_STEPS = 1_000_000
 
 
 @ti.data_oriented
@@ -295,31 +298,42 @@ class MPMSolver:
                     vbar2 += wt * mvb2
                     Abar2 += wt * mvb2.outer_product(dpos)
                     xbar2 += gw * (mvb2.dot(mv) + self.grid_m_adj2[base + off] * mp) - wt * (A.transpose() @ mvb2)
-            self._p2g_adjoint_particle(p, slot, vbar, Abar, xbar, self.x_adj, self.v_adj, self.C_adj, self.F_adj,
-                                       self.ctrl_grad)
-            if ti.static(pair):
-                self._p2g_adjoint_particle(p, slot, vbar2, Abar2, xbar2, self.x_adj2, self.v_adj2, self.C_adj2,
-                                           self.F_adj2, self.ctrl_base)
+            # one call site of the stress's differential for both sets (each inlined copy costs
+            # seconds of compilation): a loop over the sets
+            for which in range(2 if ti.static(pair) else 1):
+                vb, Ab, xb = vbar, Abar, xbar
+                if ti.static(pair):
+                    if which == 1:
+                        vb, Ab, xb = vbar2, Abar2, xbar2
+                Fhat_bar = self._p2g_F_adjoint(p, Ab)
+                if which == 0:
+                    self._add_particle_adjoints(p, slot, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.x_adj,
+                                                self.v_adj, self.C_adj, self.F_adj, self.ctrl_grad)
+                if ti.static(pair):
+                    if which == 1:
+                        self._add_particle_adjoints(p, slot, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.x_adj2,
+                                                    self.v_adj2, self.C_adj2, self.F_adj2, self.ctrl_base)
 
     @ti.func
-    def _p2g_adjoint_particle(self, p, slot, vbar, Abar, xbar, xa: ti.template(), va: ti.template(),
-                              Ca: ti.template(), Fa: ti.template(), grad: ti.template()):
-        """One adjoint set's particle part of _p2g's reverse: A_bar -> P_bar = tau_bar Fe ->
-        Fe_bar (the stress's self-adjoint differential) -> the F and dFc adjoints."""
-        dt = self.dtype(self.cfg.dt)
+    def _p2g_F_adjoint(self, p, Abar):
+        """The particle part of _p2g's reverse for one adjoint set: A_bar -> P_bar = tau_bar Fe ->
+        Fe_bar (the stress's self-adjoint differential) -> the adjoint of F + dFc."""
         kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         Fe = self.Fe_s[p]
-        mp = self.mass[p]
-        tau_bar = (-dt * self.vol[p] * kq) * Abar
+        tau_bar = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * Abar
         P, dP = self._stress_model.stress_and_diff_polar(Fe, self.R_s[p], self.S_s[p], self.gap_s[p],
                                                          tau_bar @ Fe)  # P_bar = tau_bar Fe
         Fe_bar = tau_bar.transpose() @ P + dP
-        Fhat_bar = Fe_bar @ self.Fp_inv[p].transpose()
+        return Fe_bar @ self.Fp_inv[p].transpose()
+
+    @ti.func
+    def _add_particle_adjoints(self, p, slot, xbar, vbar, Cbar, Fbar, xa: ti.template(), va: ti.template(),
+                               Ca: ti.template(), Fa: ti.template(), grad: ti.template()):
         xa[p] += xbar
-        va[p] += mp * (1.0 - dt * self.dtype(self.cfg.drag)) * vbar
-        Ca[p] += mp * Abar
-        Fa[p] += Fhat_bar
-        grad[slot, p] += Fhat_bar
+        va[p] += vbar
+        Ca[p] += Cbar
+        Fa[p] += Fbar
+        grad[slot, p] += Fbar
 
     def _frame_pressure(self) -> None:
         """Packing pressure of the frame (MPMConfig.volume_stiffness): m_I = sum_p w_Ip m_p at x_0,
@@ -446,12 +460,23 @@ class MPMSolver:
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
-            xbar, vbar, Cbar = self._g2p_adjoint_particle(t, p, self.x_adj, self.v_adj, self.C_adj, self.F_adj,
-                                                          self.ctrl_grad)
+            slot = t if ti.static(self.cfg.control == "per_substep") else 0
+            xbar, vbar, Cbar = self.x_adj[p], self.v_adj[p], self.C_adj[p]
             xbar2, vbar2, Cbar2 = xbar, vbar, Cbar
-            if ti.static(pair):
-                xbar2, vbar2, Cbar2 = self._g2p_adjoint_particle(t, p, self.x_adj2, self.v_adj2, self.C_adj2,
-                                                                 self.F_adj2, self.ctrl_base)
+            # one call site of the particle part for both sets (a loop over the sets)
+            for which in range(2 if ti.static(pair) else 1):
+                xa, va, Ca, Fa = self.x_adj[p], self.v_adj[p], self.C_adj[p], self.F_adj[p]
+                if ti.static(pair):
+                    if which == 1:
+                        xa, va, Ca, Fa = self.x_adj2[p], self.v_adj2[p], self.C_adj2[p], self.F_adj2[p]
+                xb, vb, Cb, Fb, Fh_bar = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
+                if which == 0:
+                    xbar, vbar, Cbar = xb, vb, Cb
+                    self._set_F_adjoint(p, slot, Fb, Fh_bar, self.v_adj, self.C_adj, self.F_adj, self.ctrl_grad)
+                if ti.static(pair):
+                    if which == 1:
+                        xbar2, vbar2, Cbar2 = xb, vb, Cb
+                        self._set_F_adjoint(p, slot, Fb, Fh_bar, self.v_adj2, self.C_adj2, self.F_adj2, self.ctrl_base)
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 gw = self._node_grad(w, dw, i, j, k)
@@ -468,15 +493,13 @@ class MPMSolver:
                 self.x_adj2[p] = xbar2
 
     @ti.func
-    def _g2p_adjoint_particle(self, t, p, xa: ti.template(), va: ti.template(), Ca: ti.template(),
-                              Fa: ti.template(), grad: ti.template()):
-        """One adjoint set's particle part of _g2p's reverse: the adjoints of x, F, v, C of state
-        t+1 -> F's of state t (written), dFc's (added) and the (x_bar, v_bar, C_bar) that the node
-        loop scatters; v and C's adjoints are consumed (zeroed)."""
+    def _g2p_particle_adjoint(self, t, p, xbar_n, vbar_n, Cbar_n, Fbar_n):
+        """The particle part of _g2p's reverse for one adjoint set: the adjoints of x, v, C, F of
+        state t+1 -> F's of state t, the adjoint of F + dFc (dFc's share where control_in_F) and
+        the (x_bar, v_bar, C_bar) that the node loop scatters."""
         s = self.dtype(self.cfg.smoothing)
         dt = self.dtype(self.cfg.dt)
         xn = self.x[t + 1, p]
-        xbar_n = xa[p]
         for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
             if xn[a] <= self.dtype(self._x_min) or xn[a] >= self.dtype(self._x_max):
                 xbar_n[a] = 0.0
@@ -485,7 +508,6 @@ class MPMSolver:
         if ti.static(self.cfg.control_in_F):
             Fh += self.ctrl[slot, p]
         Cn = self.C[t + 1, p]
-        Fbar_n = Fa[p]
         Fbar_new = (1.0 - s) * Fbar_n
         Fbar = s * Fbar_n
         if ti.static(self.cfg.smoothing_mode == "isochoric"):
@@ -507,14 +529,20 @@ class MPMSolver:
             Fbar = s * Fs_bar
         Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
         Fbar += Fh_bar
-        if ti.static(self.cfg.control_in_F):
-            grad[slot, p] += Fh_bar
-        Cbar = Ca[p] + dt * Fbar_new @ Fh.transpose()
-        vbar = va[p] + dt * xbar_n
+        Cbar = Cbar_n + dt * Fbar_new @ Fh.transpose()
+        vbar = vbar_n + dt * xbar_n
+        return xbar_n, vbar, Cbar, Fbar, Fh_bar
+
+    @ti.func
+    def _set_F_adjoint(self, p, slot, Fbar, Fh_bar, va: ti.template(), Ca: ti.template(), Fa: ti.template(),
+                       grad: ti.template()):
+        """One set's adjoints of state t after _g2p's particle part: F's written, v's and C's
+        consumed (zeroed), dFc's share added where the control enters F."""
         Fa[p] = Fbar
         va[p] = ti.Vector.zero(self.dtype, 3)
         Ca[p] = ti.Matrix.zero(self.dtype, 3, 3)
-        return xbar_n, vbar, Cbar
+        if ti.static(self.cfg.control_in_F):
+            grad[slot, p] += Fh_bar
 
     @ti.kernel
     def _splat_mass(self, t: ti.i32):
@@ -677,6 +705,11 @@ class MPMSolver:
     def _restore_ctrl_base(self):
         for s, p in self.ctrl:
             self.ctrl[s, p] = self.ctrl_base[s, p]
+
+    @ti.kernel
+    def _copy_grad_to_base(self):
+        for s, p in self.ctrl_grad:
+            self.ctrl_base[s, p] = self.ctrl_grad[s, p]
 
     @ti.kernel
     def _combine_gradients(self, scale: ti.f64):
@@ -1003,14 +1036,27 @@ class MPMSolver:
                 "delta_E_percent": 100.0 * (losses[0] - loss_final) / losses[0] if losses[0] > 0 else 0.0}
 
     def calibration_gradients(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
-                              grad_x_final: np.ndarray | None = None) -> tuple[float, float]:  # [N, 3]
+                              grad_x_final: np.ndarray | None = None,  # [N, 3]
+                              pair: bool | None = None) -> tuple[float, float]:
         """The injection calibration's two dFc gradients on one rollout of the current state and
-        dFc (run here): the mass loss's and the injected adjoint's alone. Returns their norms;
-        the gradients stay in the solver (no [Tc, N, 3, 3] copies) for combine_calibration."""
+        dFc (run here): the mass loss's and the injected adjoint's alone (a difference of two
+        backwards would drown in float32 round-off). Returns their norms; the gradients stay in
+        the solver (no [Tc, N, 3, 3] copies) for combine_calibration.
+
+        pair: one reverse sweep for both (backward_pair) or two backwards; by default the pair
+        from PAIR_MIN_PARTICLE_STEPS particle-substeps on, where its saving a frame pays back its
+        compilation within a few frames."""
+        if pair is None:
+            pair = self.n * self.cfg.substeps >= PAIR_MIN_PARTICLE_STEPS
         self.forward()
-        # the two in one reverse sweep; the injected part apart from the mass loss's (a
-        # difference of the two would drown in float32 round-off)
-        n_mass, n_inj = self.backward_pair(grad_F_final, grad_x_final)
+        if pair:
+            n_mass, n_inj = self.backward_pair(grad_F_final, grad_x_final)
+        else:
+            self.backward(None, None)
+            n_mass = self._grad_norm
+            self._copy_grad_to_base()
+            self.backward(grad_F_final, grad_x_final, include_mass_loss=False)
+            n_inj = self._grad_norm
         self._calibrated_for = self._rollout_id
         return n_mass, n_inj
 
