@@ -1180,3 +1180,30 @@ def test_polar_from_a_nearby_rotation_is_the_svd_polar(precision):
     # inlined copies of the SVD may round differently when Taichi's IR optimisation is off)
     R, _, _ = evaluate_polar(Fe, np.zeros_like(Fe), precision)
     np.testing.assert_allclose(R, R_svd, atol=1e-14 if precision == "float64" else 2e-6)
+
+
+def test_forward_rotations_kept_as_quaternions_round_trip(solver3):
+    """The forward keeps each substep's polar rotation as a unit quaternion for the backward
+    (MPMSolver._quaternion_of / _rotation_of): back to the same rotation to float64 round-off,
+    for random rotations, rotations by pi about an axis (w = 0: every Shepperd branch) and the
+    identity."""
+    import taichi as ti
+    from scipy.spatial.transform import Rotation
+
+    s = solver3
+    rng = np.random.default_rng(4)
+    axes = rng.normal(size=(60, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    half_turns = Rotation.from_rotvec(np.pi * np.vstack([axes, np.eye(3)])).as_matrix()
+    rots = np.concatenate([Rotation.random(400, random_state=3).as_matrix(), half_turns, np.eye(3)[None]])
+    r_in = ti.Matrix.field(3, 3, ti.f64, shape=len(rots))
+    r_out = ti.Matrix.field(3, 3, ti.f64, shape=len(rots))
+    r_in.from_numpy(rots)
+
+    @ti.kernel
+    def round_trip():
+        for i in r_in:
+            r_out[i] = s._rotation_of(s._quaternion_of(r_in[i]))
+
+    round_trip()
+    np.testing.assert_allclose(r_out.to_numpy(), rots, rtol=0, atol=1e-14)
