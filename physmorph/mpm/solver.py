@@ -495,8 +495,8 @@ class MPMSolver:
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
             slot = t if ti.static(self.cfg.control == "per_substep") else 0
-            xbar, vbar, Cbar = self.x_adj[p], self.v_adj[p], self.C_adj[p]
-            xbar2, vbar2, Cbar2 = xbar, vbar, Cbar
+            xbar, vbar, Cbar = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3), ti.Matrix.zero(self.dtype, 3, 3)
+            xbar2, vbar2, Cbar2 = xbar, vbar, Cbar  # set in the loop below
             # one call site of the particle part for both sets (a loop over the sets)
             for which in range(2 if ti.static(pair) else 1):
                 xa, va, Ca, Fa = self.x_adj[p], self.v_adj[p], self.C_adj[p], self.F_adj[p]

@@ -163,6 +163,9 @@ def project_gaussians_backward(x: torch.Tensor,  # [N, 3]
     def times_cov(m: list) -> list:  # Sigma m
         return [cov[i, 0] * m[0] + cov[i, 1] * m[1] + cov[i, 2] * m[2] for i in range(3)]
 
+    def dot(p: list, q: list) -> torch.Tensor:
+        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+
     for view in range(V):
         rot = [[float(r) for r in row] for row in cams.rotation[view]]
         trans = [float(t) for t in cams.translation[view]]
@@ -178,7 +181,6 @@ def project_gaussians_backward(x: torch.Tensor,  # [N, 3]
         m0 = [fx_z * (rot[0][k] - tx_c * rot[2][k]) for k in range(3)]  # rows of J W
         m1 = [fy_z * (rot[1][k] - ty_c * rot[2][k]) for k in range(3)]
         s_m0, s_m1 = times_cov(m0), times_cov(m1)
-        dot = lambda p, q: p[0] * q[0] + p[1] * q[1] + p[2] * q[2]  # noqa: E731
         a = dot(m0, s_m0) + cfg.low_pass
         b = dot(m0, s_m1)
         c = dot(m1, s_m1) + cfg.low_pass
