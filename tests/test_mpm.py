@@ -688,8 +688,8 @@ def test_no_kernel_reads_a_driver_field():
 
 def test_solver_for_reuses_only_an_equal_config_and_size(monkeypatch):
     """Other kernel settings or particle count get their own solver, other driver settings the
-    same one; only the last one is kept (checked
-    with a stand-in class: building real solvers would only add compile time)."""
+    same one; every one built is kept, so alternating settings build each once (checked with a
+    stand-in class: building real solvers would only add compile time)."""
     import physmorph.mpm.solver as solver_module
 
     class Recorder:
@@ -712,7 +712,10 @@ def test_solver_for_reuses_only_an_equal_config_and_size(monkeypatch):
     assert b is not a and (b.cfg.drag, b.n) == (0.5, 10)
     c = solver_module.solver_for(cfg64(drag=0.5), 11)
     assert c is not b and c.n == 11
-    assert solver_module.solver_for(cfg64(), 10) is not a  # only the last one is kept
+    again = solver_module.solver_for(cfg64(), 10)
+    assert again is a and a.cfg == cfg64() and a.resets == 3  # reset and given the caller's settings
+    assert solver_module.solver_for(cfg64(drag=0.5), 11) is c and solver_module.solver_for(cfg64(drag=0.5), 10) is b
+    assert len(solver_module._reusable) == 3
 
 
 # ----------------------------------------------------------------------------- control carried in F

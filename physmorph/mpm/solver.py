@@ -1317,24 +1317,26 @@ class MPMSolver:
                     f"{t - 1} (particle {p})")
 
 
-# The solver last handed out by solver_for, with its config and size.
+# Every solver solver_for built, with its config's kernel settings and size. Taichi does not free a
+# dropped solver's fields, so keeping them costs no memory, and a process that alternates settings
+# (the tests, the study scripts) compiles each set once.
 _reusable: list = []
 
 
 def solver_for(cfg: MPMConfig, n_particles: int) -> MPMSolver:
-    """A reset MPMSolver for (cfg, n_particles): the one built by the previous call when the
-    particle count and the kernel settings (every field but DRIVER_FIELDS: learning rate,
-    optimiser, line search, ...) are equal, given cfg, else a new one. Building a solver compiles
-    its kernels (about 36 Taichi kernels: 18 s on a 2-core CPU with Taichi's offline cache empty,
-    5 s with it filled by an earlier process; a second instance in one process pays again), so
-    several runs in one process (the tests, the study scripts) share it. Not for two runs at
-    once: each call resets the solver."""
+    """A reset MPMSolver for (cfg, n_particles): the one an earlier call built for this particle
+    count and these kernel settings (every field but DRIVER_FIELDS: learning rate, optimiser, line
+    search, ...), given cfg, else a new one. Building a solver compiles its kernels (about 36
+    Taichi kernels: 18 s on a 2-core CPU with Taichi's offline cache empty, 5 s with it filled by
+    an earlier process; a second instance in one process pays again), so several runs in one
+    process share it. Not for two runs of one setting at once: each call resets the solver."""
     n = int(n_particles)
-    if _reusable and _reusable[0] == cfg.kernel_settings() and _reusable[1] == n:
-        solver = _reusable[2]
-        solver.reset()
-        solver.configure(cfg)
-        return solver
+    settings = cfg.kernel_settings()
+    for kept_settings, kept_n, solver in _reusable:
+        if kept_n == n and kept_settings == settings:
+            solver.reset()
+            solver.configure(cfg)
+            return solver
     solver = MPMSolver(cfg, n)
-    _reusable[:] = [cfg.kernel_settings(), n, solver]
+    _reusable.append((settings, n, solver))
     return solver
