@@ -139,6 +139,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "plasticity.neighbour_ppc": ("the neighbours are drawn from at most this many particles per cell per axis, "
                                  "so k_neighbors spans the same cells at every sampling density (0 = every particle)",
                                  "", ">= 0"),
+    "plasticity.transport_blur": ("blur of the transport plan (correspondence: transport), the entropic scale of its "
+                                  "last iterations", "grid cells", "> 0"),
     "plasticity.smooth_iters": ("passes of neighbour averaging of the displacements", "", ">= 0"),
     "plasticity.damping": ("damping d_p of the Fp update", "", R01),
     "plasticity.start_frame": ("k0: first frame with plasticity; experiments set it with `plasticity_start`",

@@ -244,7 +244,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             absorbing = cfg.plasticity.absorbs_at(k, cfg.frames)
             Fp_from = absorbed_rest(st.F, control_mean, st.Fp, cfg.plasticity) if absorbing else st.Fp
             if cfg.plasticity.correspondence == "transport" and destination is None:
-                destination = destinations_in_grid_mass(parts.x, parts.mass, target.grid_mass, target.grid)
+                destination = destinations_in_grid_mass(parts.x, parts.mass, target.grid_mass, target.grid,
+                                                          cfg.plasticity.transport_blur)
             if pool is None:
                 pool = neighbour_pool(parts.x, target.grid.lo, target.grid.dx, cfg.plasticity.neighbour_ppc)
                 pool = np.arange(N) if pool is None else pool

@@ -81,8 +81,11 @@ class PlasticityConfig:
     # where each particle is pulled: "nearest", the nearest target surface point (the paper's);
     # "transport" (the default since 2026-11-24), its destination in an entropic optimal-transport
     # plan from the source at rest to the target's grid mass (physmorph.transport; computed once
-    # per run, blur = one grid cell)
+    # per run, blur = transport_blur grid cells)
     correspondence: Literal["nearest", "transport"] = "transport"
+    # the transport plan's blur, in cells of the simulation grid (its entropic scale sqrt(eps) at
+    # the last iterations): 1 cell is 1 domain unit at the default grid and 0.5 at mid's and the paper's
+    transport_blur: float = 1.0
     continuous_stress: bool = False  # re-base the control so an update leaves Fe unchanged (rebase_control)
     # move the control (or the shape, absorb_target) into Fp at the updates absorb_start_frame
     # picks; the default, the shape at the last update only, commits the final shape to the rest
@@ -121,6 +124,8 @@ class PlasticityConfig:
         lo, hi = self.det_bounds
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"plasticity.det_bounds must satisfy 0 < lo <= 1 <= hi, got {self.det_bounds}")
+        if not self.transport_blur > 0:
+            raise ValueError(f"plasticity.transport_blur must be > 0 (in grid cells), got {self.transport_blur}")
         if self.neighbour_ppc < 0:
             raise ValueError(f"plasticity.neighbour_ppc must be >= 0 (0: every particle), got {self.neighbour_ppc}")
         if self.max_anisotropy < 1:

@@ -202,10 +202,11 @@ _PLANS_KEPT = 4
 def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
                               mass: np.ndarray,  # [N]
                               grid_mass: np.ndarray,  # [R, R, R] the target's grid mass
-                              grid: Grid) -> np.ndarray:  # [N, 3]
+                              grid: Grid,
+                              blur_cells: float = 1.0) -> np.ndarray:  # [N, 3]
     """Each particle's destination in the target's grid mass, from the plan between the two grid
     masses (the source's splatted: m_I = sum_p w_Ip m_p): transport_destinations from the source's
-    non-empty nodes y_I to the target's, blur = one grid cell, gives node displacements
+    non-empty nodes y_I to the target's, blur = blur_cells grid cells, gives node displacements
     D_I = T_I - y_I, and a particle moves by their B-spline interpolation,
     T_p = x_p + sum_I w_Ip D_I m_I / sum_I w_Ip m_I (its stencil's nodes all hold mass).
     Node to node, the plan is ~(N / nodes)^2 times cheaper than particle to node."""
@@ -218,10 +219,11 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
     tgt_idx = np.argwhere(grid_mass > 0)
     y = grid.lo + grid.dx * src_idx
     key = hashlib.sha1(b"".join((np.ascontiguousarray(src).tobytes(), np.ascontiguousarray(grid_mass, np.float64).tobytes(),
-                                 np.array([R, grid.lo, grid.dx], np.float64).tobytes()))).hexdigest()
+                                 np.array([R, grid.lo, grid.dx, blur_cells], np.float64).tobytes()))).hexdigest()
     T = _PLANS.get(key)
     if T is None:
-        T = transport_destinations(y, src[src > 0], grid.lo + grid.dx * tgt_idx, grid_mass[grid_mass > 0], blur=grid.dx)
+        T = transport_destinations(y, src[src > 0], grid.lo + grid.dx * tgt_idx, grid_mass[grid_mass > 0],
+                                   blur=blur_cells * grid.dx)
         if len(_PLANS) >= _PLANS_KEPT:
             _PLANS.pop(next(iter(_PLANS)))
         _PLANS[key] = T

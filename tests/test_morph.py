@@ -180,6 +180,19 @@ def test_absolute_injection_gain_is_used_as_given(tiny):
     assert runs[1e9]["physics_loss"][-1] > 1.01 * runs[1e-3]["physics_loss"][-1]
 
 
+def test_the_transport_blur_setting_reaches_the_plan(tiny, monkeypatch):
+    """plasticity.transport_blur is the blur, in grid cells, of the plan the run's plasticity uses."""
+    seen = []
+    real = morph.destinations_in_grid_mass
+    monkeypatch.setattr(morph, "destinations_in_grid_mass",
+                        lambda *a, **k: seen.append(a[4:] + tuple(k.values())) or real(*a, **k))
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_full")
+    pl = dataclasses.replace(base.plasticity, transport_blur=2.5)
+    _run(tiny, "iso_bunny_full", "blur.h5", frames=base.plasticity.start_frame, plasticity=pl)
+    assert seen == [(2.5,)]
+
+
 def test_camera_subset_for_the_loss_but_every_view_for_the_metric(tiny):
     out = _run(tiny, "iso_bunny_full", "two_cameras.h5", frames=1, cameras=2)
     m = read_metrics(out)

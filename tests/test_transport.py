@@ -152,3 +152,27 @@ def test_coarse_to_fine_plan_equals_the_single_scale_plan(monkeypatch):
     print(f"levels {sizes}; |T_multi - T_single| / dx: mean {err.mean():.4f} max {err.max():.4f}")
     assert err.max() < 0.02
     assert np.linalg.norm(fine - x, axis=1).mean() > 5 * grid.dx  # the plan moves mass far
+
+
+def test_the_plans_blur_is_counted_in_grid_cells(monkeypatch):
+    """plasticity.transport_blur reaches the plan as blur_cells x dx, each blur keeps its own plan,
+    and a wider blur draws the destinations toward the target's mean (the entropic plan's
+    barycentric projection averages over more of the target)."""
+    from physmorph import transport
+
+    grid = Grid(16)  # dx = 2
+    rng = np.random.default_rng(7)
+    src = rng.uniform(-3, 3, size=(300, 3)) + [-4.0, 0.0, 0.0]
+    gm = splat_mass(rng.uniform(-2, 2, size=(300, 3)) * [3.0, 1.0, 1.0] + [5.0, 0.0, 0.0], np.ones(300), grid)
+    blurs = []
+    real = transport.transport_destinations
+    monkeypatch.setattr(transport, "transport_destinations", lambda *a, **k: blurs.append(k["blur"]) or real(*a, **k))
+    monkeypatch.setattr(transport, "_PLANS", {})
+    sharp = destinations_in_grid_mass(src, np.ones(300), gm, grid)
+    wide = destinations_in_grid_mass(src, np.ones(300), gm, grid, blur_cells=4.0)
+    assert blurs == [2.0, 8.0]
+    np.testing.assert_array_equal(destinations_in_grid_mass(src, np.ones(300), gm, grid, blur_cells=1.0), sharp)
+    assert len(blurs) == 2  # the first plan was kept, not overwritten by the second
+    assert wide[:, 0].std() < 0.8 * sharp[:, 0].std()
+    with pytest.raises(ValueError, match="transport_blur must be > 0"):
+        PlasticityConfig(transport_blur=0.0)
