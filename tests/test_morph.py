@@ -184,13 +184,17 @@ def test_the_transport_blur_setting_reaches_the_plan(tiny, monkeypatch):
     """plasticity.transport_blur is the blur, in grid cells, of the plan the run's plasticity uses."""
     seen = []
     real = morph.destinations_in_grid_mass
-    monkeypatch.setattr(morph, "destinations_in_grid_mass",
-                        lambda *a, **k: seen.append(a[4:] + tuple(k.values())) or real(*a, **k))
+
+    def recorded(x, mass, grid_mass, grid, blur_cells=1.0):
+        seen.append(blur_cells)
+        return real(x, mass, grid_mass, grid, blur_cells)
+
+    monkeypatch.setattr(morph, "destinations_in_grid_mass", recorded)
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     pl = dataclasses.replace(base.plasticity, transport_blur=2.5)
     _run(tiny, "iso_bunny_full", "blur.h5", frames=base.plasticity.start_frame, plasticity=pl)
-    assert seen == [(2.5,)]
+    assert seen == [2.5]
 
 
 def test_camera_subset_for_the_loss_but_every_view_for_the_metric(tiny):
