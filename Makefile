@@ -18,19 +18,23 @@ $(STAMP): environment.lock pyproject.toml
 	$(VENV)/bin/python -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
+# Extra Snakemake arguments for the targets below, e.g.
+# make tables ARGS="--configfile config/test.yaml --config mesh_dir=path/to/meshes"
+ARGS ?=
+
 venv: $(STAMP)
 
 tables: $(STAMP)
-	$(VENV)/bin/snakemake --cores $(CORES) tables
+	$(VENV)/bin/snakemake --cores $(CORES) tables $(ARGS)
 
 figures: $(STAMP)
-	$(VENV)/bin/snakemake --cores $(CORES) figures
+	$(VENV)/bin/snakemake --cores $(CORES) figures $(ARGS)
 
 tradeoff: $(STAMP)
-	$(VENV)/bin/snakemake --cores $(CORES) tradeoff
+	$(VENV)/bin/snakemake --cores $(CORES) tradeoff $(ARGS)
 
 report: $(STAMP)
-	$(VENV)/bin/snakemake --cores $(CORES) tables figures tradeoff --report report.html
+	$(VENV)/bin/snakemake --cores $(CORES) tables figures tradeoff --report report.html $(ARGS)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
@@ -46,13 +50,12 @@ slurm-check: $(STAMP)
 	$(VENV)/bin/python -m pytest -m slurm -n 0 -rs tests/test_slurm.py
 
 dag: $(STAMP)
-	$(VENV)/bin/snakemake -n --cores $(CORES) tables
+	$(VENV)/bin/snakemake -n --cores $(CORES) tables $(ARGS)
 
 # After a kill (SIGKILL, power loss, OOM): unlock the directory Snakemake left locked and rerun
 # what was incomplete; a killed morph resumes from its last committed frame. Only while no other
 # Snakemake runs here. E.g. make recover TARGET=figures ARGS="--configfile config/test.yaml"
 TARGET ?= tables
-ARGS ?=
 recover: $(STAMP)
 	$(VENV)/bin/snakemake --unlock $(TARGET) $(ARGS)
 	$(VENV)/bin/snakemake --cores $(CORES) --rerun-incomplete $(TARGET) $(ARGS)
