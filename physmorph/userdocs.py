@@ -426,6 +426,30 @@ def write_captions(outputs_md: str | Path = OUTPUTS_MD, out_dir: str | Path = CA
     return paths
 
 
+def runs_code(tables_dir: str | Path, runs_dir: str | Path) -> str | None:
+    """The commit(s) that made the runs behind ``tables_dir`` (its timing table's experiments, read
+    from each run file's ``git_commit`` in ``runs_dir``), e.g. "commit f3d6064" or "commits a1b2c3d
+    (12 runs), e4f5a6b (6 runs)"; None when no run names one. A page generated from another checkout
+    than the runs' then still names the code that computed its numbers."""
+    import h5py
+
+    counts: dict[str, int] = {}
+    for exp in _read(Path(tables_dir), "timing").get("experiment", []):
+        path = Path(runs_dir) / f"{exp}.h5"
+        if not path.exists():
+            continue
+        with h5py.File(path, "r") as f:
+            rev = str(f.attrs.get("git_commit", "unknown"))
+        if rev != "unknown":
+            counts[rev[:7]] = counts.get(rev[:7], 0) + 1
+    if not counts:
+        return None
+    if len(counts) == 1:
+        return f"commit {next(iter(counts))}"
+    return "commits " + ", ".join(f"{rev} ({n} run{'s' if n != 1 else ''})"
+                                  for rev, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+
+
 def _checkout() -> str | None:
     """This checkout's commit, with "+ local changes" when its tracked files differ (None without git)."""
     try:
@@ -458,12 +482,14 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     if args.what == "results":
         tree = REPO_ROOT / "results" / args.profile
         path = write_results_doc(tree / "tables", args.out, args.profile, tree / "figures", args.images or None,
-                                 command=f"python -m physmorph.userdocs results {args.profile}", code=_checkout())
+                                 command=f"python -m physmorph.userdocs results {args.profile}",
+                                 code=runs_code(tree / "tables", tree / "runs") or _checkout())
     elif args.what == "paper_main":
         tree = REPO_ROOT / "results" / args.profile
         path = write_results_doc(tree / "main_tables", REPO_ROOT / "docs" / "paper_scale.md", args.profile,
                                  tree / "main_figures", REPO_ROOT / "docs" / "images" / args.profile,
-                                 command=f"python -m physmorph.userdocs paper_main {args.profile}", code=_checkout(),
+                                 command=f"python -m physmorph.userdocs paper_main {args.profile}",
+                                 code=runs_code(tree / "main_tables", tree / "runs") or _checkout(),
                                  title=f"The main table at the `{args.profile}` profile's scale")
     elif args.what == "config":
         CONFIG_README.write_text(config_reference())

@@ -8,7 +8,7 @@ import pandas as pd
 from physmorph.config_docs import FIELD_DOCS, SECTIONS
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.userdocs import (CAPTIONS_DIR, CONFIG_README, OUTPUTS_MD, caption_rst, config_reference,
-                                output_captions, results_markdown, schema_keys, write_results_doc)
+                                output_captions, results_markdown, runs_code, schema_keys, write_results_doc)
 
 
 def _fake_tables(d):
@@ -75,6 +75,25 @@ def test_main_table_page_names_its_tables_and_title(tmp_path):
     assert text.startswith("# The main table at the `paper` profile's scale\n")
     assert "from `results/paper/main_tables/`" in text
     assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text
+
+
+def test_results_page_names_the_commits_of_its_runs(tmp_path):
+    import h5py
+
+    tables, runs = tmp_path / "tables", tmp_path / "runs"
+    tables.mkdir()
+    runs.mkdir()
+    commits = {"a": "1234567aaaa", "b": "1234567aaaa", "c": "89abcdefbbb", "d": "unknown", "e": None}
+    pd.DataFrame({"experiment": list(commits) + ["not_run"]}).to_csv(tables / "timing.csv", index=False)
+    for name, rev in commits.items():
+        with h5py.File(runs / f"{name}.h5", "w") as f:
+            if rev is not None:
+                f.attrs["git_commit"] = rev
+    assert runs_code(tables, runs) == "commits 1234567 (2 runs), 89abcde (1 run)"
+    pd.DataFrame({"experiment": ["a", "b"]}).to_csv(tables / "timing.csv", index=False)
+    assert runs_code(tables, runs) == "commit 1234567"
+    pd.DataFrame({"experiment": ["d", "e", "not_run"]}).to_csv(tables / "timing.csv", index=False)
+    assert runs_code(tables, runs) is None
 
 
 def test_config_reference_documents_every_schema_key():
