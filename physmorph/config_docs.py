@@ -95,6 +95,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.step_per_volume": ("normalized_gd: the step direction is the gradient per unit of particle volume "
                             "(a shell-biased sampling's surface particles are driven as hard as its interior ones)",
                             "", ""),
+    "mpm.step_volume_power": ("with step_per_volume: the exponent of the per-volume weight, "
+                              "g_p (V_max / V_p)^power (1: per unit volume; 0: the plain step)", "", "[0, 1]"),
     "mpm.grad_iters": ("optimiser iterations per frame (J); experiments set it with `grad_iters`", "", ">= 1"),
     "mpm.adam_beta1": ("Adam's first-moment decay", "", "[0, 1)"),
     "mpm.adam_beta2": ("Adam's second-moment decay", "", "[0, 1)"),

@@ -646,7 +646,7 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     # every driver field changed; the kernels compiled above (with cfg) are kept
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
                   grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
-                  step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True)
+                  step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5)
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -849,6 +849,25 @@ def test_step_per_volume_is_the_gradient_per_unit_volume_normalised(state, clip)
     plain, g = steps[False, True]
     assert np.abs(plain - step).max() > 1e-6  # the weights change the step
     np.testing.assert_array_equal(steps[True, False][0], steps[False, False][0])  # equal volumes: no change
+
+
+def test_step_volume_power_weights_by_a_power_of_the_volume_ratio(state):
+    """step_volume_power p: the step is -alpha w g / rms(w g) with w_p = (V_max / V_p)^p; p = 1 is
+    the step per unit volume and p = 0 the plain step, bit for bit."""
+    vol = state.volume * np.where(np.arange(state.n) % 3 == 0, 1.0, 0.1)
+    st = dataclasses.replace(state, volume=vol, mass=state.mass * vol / state.volume)
+    steps = {}
+    for per_volume, power in ((True, 0.5), (True, 1.0), (True, 0.0), (False, 0.5)):
+        cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=0.0,
+                    step_per_volume=per_volume, step_volume_power=power)
+        steps[per_volume, power] = _gradient_and_one_step(cfg, st)
+    g, step = steps[True, 0.5]
+    wg = g * ((vol.max() / vol) ** 0.5)[None, :, None, None]
+    np.testing.assert_allclose(step, -1e-4 * 2.0 * wg / np.sqrt(np.mean(wg * wg)), rtol=1e-9, atol=1e-15)
+    assert np.abs(step - steps[True, 1.0][1]).max() > 1e-6  # the power changes the step
+    np.testing.assert_array_equal(steps[True, 0.0][1], steps[False, 0.5][1])  # power 0: the plain step
+    with pytest.raises(ValueError, match="step_volume_power"):
+        cfg64(step_volume_power=1.5)
 
 
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):

@@ -855,7 +855,8 @@ class MPMSolver:
         self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
         self.mass.from_numpy(st.mass.astype(dt_))
         self.vol.from_numpy(st.volume.astype(dt_))
-        weight = st.volume.max() / st.volume if self.cfg.step_per_volume else np.ones(self.n)
+        weight = ((st.volume.max() / st.volume) ** self.cfg.step_volume_power if self.cfg.step_per_volume
+                  else np.ones(self.n))
         self.step_weight.from_numpy(weight.astype(dt_))
         self._weighted_step = bool(self.cfg.step_per_volume and (weight != 1.0).any())
         if self._pressure_on:
