@@ -431,23 +431,21 @@ def runs_code(tables_dir: str | Path, runs_dir: str | Path) -> str | None:
     from each run file's ``git_commit`` in ``runs_dir``), e.g. "commit f3d6064" or "commits a1b2c3d
     (12 runs), e4f5a6b (6 runs)"; None when no run names one. A page generated from another checkout
     than the runs' then still names the code that computed its numbers."""
+    from collections import Counter
+
     import h5py
 
-    counts: dict[str, int] = {}
+    counts: Counter[str] = Counter()
     for exp in _read(Path(tables_dir), "timing").get("experiment", []):
         path = Path(runs_dir) / f"{exp}.h5"
-        if not path.exists():
-            continue
-        with h5py.File(path, "r") as f:
-            rev = str(f.attrs.get("git_commit", "unknown"))
-        if rev != "unknown":
-            counts[rev[:7]] = counts.get(rev[:7], 0) + 1
-    if not counts:
-        return None
-    if len(counts) == 1:
-        return f"commit {next(iter(counts))}"
-    return "commits " + ", ".join(f"{rev} ({n} run{'s' if n != 1 else ''})"
-                                  for rev, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+        if path.exists():
+            with h5py.File(path, "r") as f:
+                rev = str(f.attrs.get("git_commit", "unknown"))
+            if rev != "unknown":
+                counts[rev[:7]] += 1
+    if len(counts) <= 1:
+        return f"commit {next(iter(counts))}" if counts else None
+    return "commits " + ", ".join(f"{rev} ({n} run{'s' if n != 1 else ''})" for rev, n in counts.most_common())
 
 
 def _checkout() -> str | None:
