@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import dataclasses
+import multiprocessing
 import os
 import time
 from pathlib import Path
@@ -36,17 +37,11 @@ REPO = Path(__file__).resolve().parent.parent
 STAGES = ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame")
 
 
-def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path) -> dict:
-    """Prepare the source particles and the target in ``workdir`` (reused when there), run ``frames``
-    frames of ``experiment`` (plasticity from the first frame, no release), and return the mean
-    seconds per stage over the frames after those that compile kernels (timed_from: 2, or 3 where
-    frame 2 runs the first injection calibration), the first frame, the particle count, the mask
-    fraction, the peak RSS (MiB) and the data preparation's seconds."""
+def prepare(cfg, experiment: str, wd: Path, mesh_dir: str | Path) -> None:
+    """The source particles and the target of ``experiment`` in ``wd`` (kept where already there)."""
     s = cfg.sampling
     exp = cfg.experiment(experiment)
-    wd = Path(workdir)
     wd.mkdir(parents=True, exist_ok=True)
-    t_prep = time.time()
     for role, shape in (("source", exp.source), ("target", exp.target)):
         spec = cfg.shape(shape)
         raw = (Path(spec.path) if spec.path else Path(mesh_dir) / spec.file) if spec.kind == "file" else None
@@ -57,6 +52,24 @@ def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path
             sample_particles_stage(mesh, wd / f"p_{shape}.h5", wd / f"p_{shape}.png", s, 0)
         if role == "target" and not (wd / f"t_{shape}.h5").exists():
             rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg.target, 0)
+
+
+def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path) -> dict:
+    """Prepare the source particles and the target in ``workdir`` (reused when there), run ``frames``
+    frames of ``experiment`` (plasticity from the first frame, no release), and return the mean
+    seconds per stage over the frames after those that compile kernels (timed_from: 2, or 3 where
+    frame 2 runs the first injection calibration), the first frame, the particle count, the mask
+    fraction, the peak RSS (MiB) and the data preparation's seconds."""
+    exp = cfg.experiment(experiment)
+    wd = Path(workdir)
+    t_prep = time.time()
+    # In a process of its own: the target's ceiling is rendered on the CPU, and Taichi takes one
+    # arch per process, so a morph on CUDA could not follow it in this one.
+    child = multiprocessing.get_context("spawn").Process(target=prepare, args=(cfg, experiment, wd, mesh_dir))
+    child.start()
+    child.join()
+    if child.exitcode != 0:
+        raise SystemExit(f"data preparation in {wd} failed (exit code {child.exitcode}); its error is above")
     prep = time.time() - t_prep
     mc = morph_config(cfg, experiment)
     mc = dataclasses.replace(mc, frames=frames, save_every=frames, release_frames=0,
