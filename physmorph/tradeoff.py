@@ -211,14 +211,14 @@ def pareto_figure(frames: dict[str, pd.DataFrame], out_png: Path, title: str) ->
     for k in knobs:
         ax.scatter([], [], marker="s", color=colors[k], label=k or "base")
     ax.axhline(100 * QUALITY, color="grey", lw=0.8, ls=":")
-    ax.set_xscale("log")
+    _seconds_axis(ax)
     ax.set_xlabel("morph wall time (s)")
     ax.set_ylabel("gap closed at the last frame (%)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6, ncol=2)
     ax.set_title(title, fontsize=9)
     if any(np.isfinite(df["time_to_90_s"]).any() for df in frames.values()):
-        ax2.set_xscale("log")
+        _seconds_axis(ax2)
     else:
         ax2.text(0.5, 0.5, f"no point reached {100 * QUALITY:.0f} % of the gap", ha="center", transform=ax2.transAxes)
     ax2.set_xlabel(f"wall time to {100 * QUALITY:.0f} % of the gap (s; points that never get there are left out)")
@@ -227,6 +227,17 @@ def pareto_figure(frames: dict[str, pd.DataFrame], out_png: Path, title: str) ->
     fig.tight_layout()
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
+
+
+def _seconds_axis(ax) -> None:
+    """A log x axis labelled in plain seconds at 1-2-5 steps (matplotlib's default labels every
+    minor tick as 2x10^1, 3x10^1, ..., which overlap)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ax.set_xscale("log")
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def tradeoff_markdown(df: pd.DataFrame) -> str:

@@ -426,18 +426,17 @@ def write_captions(outputs_md: str | Path = OUTPUTS_MD, out_dir: str | Path = CA
     return paths
 
 
-def runs_code(tables_dir: str | Path, runs_dir: str | Path) -> str | None:
-    """The commit(s) that made the runs behind ``tables_dir`` (its timing table's experiments, read
-    from each run file's ``git_commit`` in ``runs_dir``), e.g. "commit f3d6064" or "commits a1b2c3d
-    (12 runs), e4f5a6b (6 runs)"; None when no run names one. A page generated from another checkout
-    than the runs' then still names the code that computed its numbers."""
+def commits_of(run_files, noun: str = "run") -> str | None:
+    """The commit(s) that made ``run_files`` (each run file's ``git_commit``; missing files and
+    files naming none are skipped), e.g. "commit f3d6064" or "commits a1b2c3d (12 runs), e4f5a6b
+    (6 runs)"; None when no file names one. A page generated from another checkout than the runs'
+    then still names the code that computed its numbers."""
     from collections import Counter
 
     import h5py
 
     counts: Counter[str] = Counter()
-    for exp in _read(Path(tables_dir), "timing").get("experiment", []):
-        path = Path(runs_dir) / f"{exp}.h5"
+    for path in map(Path, run_files):
         if path.exists():
             with h5py.File(path, "r") as f:
                 rev = str(f.attrs.get("git_commit", "unknown"))
@@ -445,7 +444,22 @@ def runs_code(tables_dir: str | Path, runs_dir: str | Path) -> str | None:
                 counts[rev[:7]] += 1
     if len(counts) <= 1:
         return f"commit {next(iter(counts))}" if counts else None
-    return "commits " + ", ".join(f"{rev} ({n} run{'s' if n != 1 else ''})" for rev, n in counts.most_common())
+    return "commits " + ", ".join(f"{rev} ({n} {noun}{'s' if n != 1 else ''})" for rev, n in counts.most_common())
+
+
+def runs_code(tables_dir: str | Path, runs_dir: str | Path) -> str | None:
+    """:func:`commits_of` the runs behind ``tables_dir`` (its timing table's experiments in ``runs_dir``)."""
+    return commits_of(Path(runs_dir) / f"{exp}.h5" for exp in _read(Path(tables_dir), "timing").get("experiment", []))
+
+
+def tradeoff_code(profiles: list[str], results_root: str | Path) -> str | None:
+    """:func:`commits_of` the speed/accuracy points of ``profiles`` (results/{profile}/tradeoff/runs/)."""
+    files = []
+    for p in profiles:
+        csv = Path(results_root) / p / "tradeoff" / "tradeoff.csv"
+        if csv.exists():
+            files += [csv.parent / "runs" / f"{name}.h5" for name in pd.read_csv(csv)["name"]]
+    return commits_of(files, noun="point")
 
 
 def _checkout() -> str | None:
@@ -494,7 +508,8 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
         path = CONFIG_README
     elif args.what == "tradeoff":
         path = write_tradeoff_doc(args.profiles, REPO_ROOT / "results", TRADEOFF_MD,
-                                  REPO_ROOT / "docs" / "images" / "pareto_scales.png", code=_checkout())
+                                  REPO_ROOT / "docs" / "images" / "pareto_scales.png",
+                                  code=tradeoff_code(args.profiles, REPO_ROOT / "results") or _checkout())
     elif args.what == "stability":
         path = write_stability_doc(args.profile, REPO_ROOT / "results", REPO_ROOT / "docs" / "stability.md",
                                    REPO_ROOT / "docs" / "images" / "stability_map.png", code=_checkout())

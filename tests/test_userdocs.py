@@ -8,7 +8,8 @@ import pandas as pd
 from physmorph.config_docs import FIELD_DOCS, SECTIONS
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.userdocs import (CAPTIONS_DIR, CONFIG_README, OUTPUTS_MD, caption_rst, config_reference,
-                                output_captions, results_markdown, runs_code, schema_keys, write_results_doc)
+                                output_captions, results_markdown, runs_code, schema_keys, tradeoff_code,
+                                write_results_doc)
 
 
 def _fake_tables(d):
@@ -94,6 +95,13 @@ def test_results_page_names_the_commits_of_its_runs(tmp_path):
     assert runs_code(tables, runs) == "commit 1234567"
     pd.DataFrame({"experiment": ["d", "e", "not_run"]}).to_csv(tables / "timing.csv", index=False)
     assert runs_code(tables, runs) is None
+    # the speed/accuracy page: the points of every profile's study
+    for profile, names in (("p1", ["a", "c"]), ("p2", ["b", "d"])):
+        (tmp_path / profile / "tradeoff").mkdir(parents=True)
+        (tmp_path / profile / "tradeoff" / "runs").symlink_to(runs)
+        pd.DataFrame({"name": names}).to_csv(tmp_path / profile / "tradeoff" / "tradeoff.csv", index=False)
+    assert tradeoff_code(["p1", "p2"], tmp_path) == "commits 1234567 (2 points), 89abcde (1 point)"
+    assert tradeoff_code(["p2"], tmp_path) == "commit 1234567"
 
 
 def test_config_reference_documents_every_schema_key():
