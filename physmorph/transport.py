@@ -40,6 +40,11 @@ BLOCK_ENTRIES = 1 << 22
 # COARSE_SWITCH cells; no level with fewer than COARSE_MIN_POINTS cells in either cloud.
 COARSE_SWITCH = 2.0
 COARSE_MIN_POINTS = 64
+# Exponents below this are raised to it before exp: exp(-80) = 1.8e-35 is still a normal float32,
+# and a sum holding exp(0) = 1 cannot see it (n terms add at most n * 1.8e-35, far under float32's
+# ulp of 1), while CPU exp takes a slow path on inputs whose result underflows or is subnormal: at
+# the 64³ grid ~90 % of a block's entries (the kernel at the finest blur), ten times the time.
+EXP_FLOOR = -80.0
 
 
 def _softmin(P: torch.Tensor,  # [K, 3] the points summed over
@@ -58,8 +63,18 @@ def _softmin(P: torch.Tensor,  # [K, 3] the points summed over
     out = torch.empty(len(Q), dtype=Q.dtype)
     for k in range(0, len(Q), rows):
         q = Q[k:k + rows]
-        out[k:k + rows] = 0.5 * (q * q).sum(1) - eps * torch.logsumexp(torch.addmm(h[None, :], q, Pt), dim=1)
+        shifted, top = _exp_shifted(torch.addmm(h[None, :], q, Pt))
+        out[k:k + rows] = 0.5 * (q * q).sum(1) - eps * (shifted.sum(1).log_() + top)
     return out
+
+
+def _exp_shifted(B: torch.Tensor,  # [R, K], overwritten
+                 ) -> tuple[torch.Tensor, torch.Tensor]:  # exp(B - max) [R, K], max [R]
+    """exp(B_rk - max_k B_rk) row by row, in place, each exponent raised to EXP_FLOOR first: the
+    factors of logsumexp_k B = log sum_k exp(B - max) + max and of softmax_k B = exp(B - max) /
+    sum_k exp(B - max), equal to torch's to float rounding (tests/test_transport.py)."""
+    top = B.amax(dim=1)
+    return B.sub_(top[:, None]).clamp_min_(EXP_FLOOR).exp_(), top
 
 
 def sinkhorn_potentials(X: torch.Tensor,  # [N, 3]
@@ -189,7 +204,8 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
     rows = max(1, BLOCK_ENTRIES // len(Y))
     T = torch.empty_like(X)
     for k in range(0, len(X), rows):
-        T[k:k + rows] = torch.softmax(torch.addmm(h[None, :], X[k:k + rows], Yt), dim=1) @ Y
+        weights, _ = _exp_shifted(torch.addmm(h[None, :], X[k:k + rows], Yt))
+        T[k:k + rows] = weights.div_(weights.sum(1, keepdim=True)) @ Y  # the softmax, then its mean of Y
     return T.numpy().astype(np.float64) + centre
 
 

@@ -86,7 +86,7 @@ def test_softmin_equals_the_dense_formula():
     Q = torch.from_numpy(rng.normal(size=(50, 3)) + 0.5)
     log_w = torch.from_numpy(np.log(rng.uniform(0.1, 1.0, size=70)))
     pot = torch.from_numpy(rng.normal(scale=0.3, size=70))
-    for eps in (0.05, 1.0, 30.0):
+    for eps in (0.005, 0.05, 1.0, 30.0):  # at 0.005 most exponents are under EXP_FLOOR
         C = 0.5 * ((Q[:, None, :] - P[None, :, :]) ** 2).sum(-1)
         want = -eps * torch.logsumexp(log_w[None, :] + (pot[None, :] - C) / eps, dim=1)
         old = transport.BLOCK_ENTRIES
@@ -96,6 +96,25 @@ def test_softmin_equals_the_dense_formula():
         finally:
             transport.BLOCK_ENTRIES = old
         np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=1e-12, atol=1e-12 * eps)
+
+
+def test_floored_exponents_give_torchs_logsumexp_and_softmax_in_float32():
+    """The kernel's rows at the finest blur: entries spread over thousands below their row's
+    maximum, most of them under EXP_FLOOR. The floored exp gives torch.logsumexp and torch.softmax
+    to float32 rounding."""
+    import torch
+
+    from physmorph import transport
+
+    g = torch.Generator().manual_seed(0)
+    B = torch.rand(40, 3000, generator=g) * 3000.0 - 2500.0
+    B[:, 7] = B.amax(1) + 50.0  # one dominant entry a row
+    B[::2, 11] = B[::2, 7] - 3.0  # and a second close to it in every other row
+    assert (B - B.amax(1, keepdim=True) < transport.EXP_FLOOR).float().mean() > 0.9
+    shifted, top = transport._exp_shifted(B.clone())
+    np.testing.assert_allclose((shifted.sum(1).log() + top).numpy(), torch.logsumexp(B, 1).numpy(), rtol=1e-7)
+    np.testing.assert_allclose((shifted / shifted.sum(1, keepdim=True)).numpy(), torch.softmax(B, 1).numpy(),
+                               rtol=1e-6, atol=1e-30)
 
 
 def test_the_plan_of_the_same_grid_masses_is_computed_once(monkeypatch):
