@@ -190,6 +190,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.restart_keep": ("share of the velocity a restart keeps", "", R01),
     "morph.step_backoff": ("step multiplier after a frame whose mass loss rose; 1 = fixed step", "", "(0, 1]"),
     "morph.step_growth": ("step multiplier after a frame whose loss fell, up to learning_rate", "", ">= 1"),
+    "morph.step_first": ("the step at the first frame, in learning rates (linear to step_last); 1 = fixed step", "", "> 0"),
+    "morph.step_last": ("the step at the last frame, in learning rates", "", "> 0"),
     "morph.restart_control_keep": ("share of the carried control a restart keeps", "", R01),
     "morph.control_decay": ("share of the control each frame starts with (1: carried whole)", "", R01),
     # experiments

@@ -197,7 +197,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 solver.combine_calibration(c)
             stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
                                             grad_x_final=c * g_x if inject_x else None,
-                                            gradient_ready=calibration is not None, learning_rate=step)
+                                            gradient_ready=calibration is not None,
+                                            learning_rate=step * cfg.step_multiplier(k))
             new = solver.state_at(cfg.mpm.substeps)
             check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:
@@ -222,7 +223,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
-                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": step}
+                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": step * cfg.step_multiplier(k)}
         if want_grad:
             res = render_and_grad(st.x[mask], st.F[mask], parts.sigma0, cams, rtarget, cfg.render, want_grad_x=inject_x)
             g_F = np.zeros((N, 3, 3))

@@ -56,6 +56,11 @@ class MorphConfig:
     # fixed step (the paper's). Not in the paper.
     step_backoff: float = 1.0
     step_growth: float = 1.0
+    # A step that follows the run's course: frame k's step is mpm.learning_rate times
+    # step_first at the first frame and step_last at the last, linear between (the bold driver's
+    # factor on top). 1.0 and 1.0: the same step every frame (the paper's). Not in the paper.
+    step_first: float = 1.0
+    step_last: float = 1.0
     # restart_control_keep: a restart also scales the carried control dFc by this (the control is
     # a stress offset; under the F smoothing a constant one keeps the body flowing; 1 = carried
     # whole). control_decay: every frame starts with dFc scaled by this (a leaky integrator; 1 =
@@ -83,12 +88,22 @@ class MorphConfig:
             raise ValueError(f"step_backoff must be in (0, 1], got {self.step_backoff}")
         if not self.step_growth >= 1.0:
             raise ValueError(f"step_growth must be >= 1, got {self.step_growth}")
+        for key in ("step_first", "step_last"):
+            if not getattr(self, key) > 0.0:
+                raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
         if not 0.0 <= self.restart_control_keep <= 1.0:
             raise ValueError(f"restart_control_keep must be in [0, 1], got {self.restart_control_keep}")
         if not 0.0 <= self.control_decay <= 1.0:
             raise ValueError(f"control_decay must be in [0, 1], got {self.control_decay}")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
+
+    def step_multiplier(self, frame: int) -> float:
+        """The step schedule's factor at ``frame`` (1..frames): step_first to step_last, linear."""
+        if self.frames == 1:
+            return float(self.step_first)
+        t = (frame - 1) / (self.frames - 1)
+        return float(self.step_first + t * (self.step_last - self.step_first))
 
     def to_dict(self) -> dict:
         return asdict(self)

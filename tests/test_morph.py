@@ -303,6 +303,31 @@ def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configu
     assert np.all(m_fixed["step_size"][1:] == lr) and handed == [lr] * (len(m_fixed["step_size"]) - 1)
 
 
+def test_step_schedule_hands_the_optimiser_a_linear_ramp_from_step_first_to_step_last(tiny, monkeypatch):
+    """morph.step_first / step_last: frame k's step is mpm.step_size x (first + (k - 1) / (K - 1) x
+    (last - first)), exactly what the optimiser is handed and what the frame records; the
+    defaults (1, 1) hand it mpm.step_size at every frame."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert (base.step_first, base.step_last) == (1.0, 1.0)
+    assert base.step_multiplier(1) == base.step_multiplier(base.frames) == 1.0
+    handed: list[float] = []
+    real = morph.MPMSolver.optimize_control
+
+    def spy(self, *a, **kw):
+        handed.append(kw.get("learning_rate"))
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "ramp.h5", step_first=1.5, step_last=0.5))
+    K = len(m["step_size"]) - 1
+    expect = base.mpm.step_size * (1.5 - np.arange(K) / (K - 1))
+    np.testing.assert_allclose(handed, expect, rtol=1e-12)
+    np.testing.assert_allclose(m["step_size"][1:], expect, rtol=1e-12)
+    with pytest.raises(ValueError, match="step_last"):
+        dataclasses.replace(base, step_last=0.0)
+
+
 def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
     """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
     morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
