@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--results", default=str(REPO / "results"), help="where results/{profile}/ lives")
     ap.add_argument("--csv", default=str(CSV), help="the record the rows are appended to")
     ap.add_argument("--no-csv", action="store_true")
+    ap.add_argument("--no-release", action="store_true", help="no release frames after the run (the experiment's release_frames set to 0)")
     ap.add_argument("--resume", action="store_true",
                     help="continue a killed call's run from its last committed frame instead of starting again")
     args = ap.parse_args(argv)
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for name in args.experiments:
         exp = cfg.experiment(name)
         mc = morph_config(cfg, name)
-        mc = dataclasses.replace(mc, progress=False)
+        mc = dataclasses.replace(mc, progress=False, **({"release_frames": 0} if args.no_release else {}))
         parts = Path(args.results) / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
         tpath = Path(args.results) / cfg.profile / "targets" / f"{exp.target}_{res}.h5"
         out = Path(args.workdir) / args.tag / f"{name}.h5"

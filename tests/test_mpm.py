@@ -870,6 +870,29 @@ def test_step_volume_power_weights_by_a_power_of_the_volume_ratio(state):
         cfg64(step_volume_power=1.5)
 
 
+@pytest.mark.parametrize("per_volume", [True, False])
+def test_step_rms_by_volume_counts_each_particle_by_its_volume(state, per_volume):
+    """step_rms "volume": the step is -alpha clip(w g / rms_V(w g)) with rms_V^2 = sum_p (V_p / mean V)
+    |w_p g_p|^2 / (T n 9), each particle counted by its volume; with equal volumes it is the
+    particle count's RMS, the default's step."""
+    vol = state.volume * np.where(np.arange(state.n) % 3 == 0, 1.0, 0.1)
+    st = dataclasses.replace(state, volume=vol, mass=state.mass * vol / state.volume)
+    steps = {}
+    for rms, s_state in (("volume", st), ("particles", st), ("volume", state), ("particles", state)):
+        cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=1.5,
+                    step_per_volume=per_volume, step_rms=rms)
+        steps[rms, s_state is st] = _gradient_and_one_step(cfg, s_state)
+    g, step = steps["volume", True]
+    w = (vol.max() / vol) if per_volume else np.ones(state.n)
+    wg = g * w[None, :, None, None]
+    rms_v = np.sqrt(np.mean(wg * wg * (vol / vol.mean())[None, :, None, None]))
+    np.testing.assert_allclose(step, -1e-4 * 2.0 * np.clip(wg / rms_v, -1.5, 1.5), rtol=1e-9, atol=1e-15)
+    assert np.abs(step - steps["particles", True][1]).max() > 1e-6  # the volumes change the step
+    np.testing.assert_allclose(steps["volume", False][1], steps["particles", False][1], rtol=1e-12, atol=1e-18)
+    with pytest.raises(ValueError, match="step_rms"):
+        cfg64(step_rms="mass")
+
+
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):
     """With the Armijo constant c the accepted step lowers the objective by at least
     c alpha <g, d> (d = clip(g / rms)); a larger c never accepts a longer step than c = 0."""

@@ -45,7 +45,7 @@ BARRIER_J_LINEAR = 0.05
 # kernel bakes them in, so a built solver takes new values without compiling again
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
-                           "step_per_volume", "step_volume_power",
+                           "step_per_volume", "step_volume_power", "step_rms",
                            "sufficient_decrease", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
@@ -122,6 +122,11 @@ class MPMConfig:
         g_p (V_max / V_p)^power. 1 (the default): the gradient per unit volume; 0: the plain step;
         in between, a light particle is driven harder than the plain step drives it but less than a
         heavy one under the same stress.
+    step_rms: normalized_gd only: the mean the step's RMS is taken over. "particles": every particle
+        counts once, so the particles of the densest sampling set the step (at the paper's PPC 5/1 the
+        surface shell holds 99 % of the particles and 40 % of the volume). "volume": each particle
+        counts by its volume, V_p / mean V, so the step's RMS is that of the body's volume whatever
+        its sampling.
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -184,6 +189,7 @@ class MPMConfig:
     step_clip: float = 3.0
     step_per_volume: bool = True  # history: docs/study/CHANGELOG.md
     step_volume_power: float = 1.0
+    step_rms: Literal["particles", "volume"] = "particles"
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
@@ -241,6 +247,7 @@ class MPMConfig:
              f"{self.adam_beta2}, {self.adam_eps}")
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
+        need(self.step_rms in ("particles", "volume"), f"step_rms must be particles or volume, got {self.step_rms!r}")
         need(0 <= self.step_volume_power <= 1, f"step_volume_power must be in [0, 1], got {self.step_volume_power!r}")
         need(math.isfinite(self.sufficient_decrease) and 0.0 <= self.sufficient_decrease < 1.0,
              f"sufficient_decrease must be in [0, 1), got {self.sufficient_decrease}")

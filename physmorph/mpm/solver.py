@@ -805,6 +805,15 @@ class MPMSolver:
             self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
 
     @ti.kernel
+    def _volume_weighted_grad_norm_sq(self, inv_mean_volume: ti.f64):
+        """norm_acc = sum_p (V_p / mean V) |w_p g_p|^2: the squared norm of the weighted gradient
+        with each particle counted by its volume (MPMConfig.step_rms = "volume")."""
+        self.norm_acc[None] = 0.0
+        for s, p in self.ctrl_grad:
+            g = self.ctrl_grad[s, p] * self.step_weight[p]
+            self.norm_acc[None] += ti.cast((g * g).sum() * self.vol[p], ti.f64) * inv_mean_volume
+
+    @ti.kernel
     def _adam(self, lr_t: ti.f64):
         """Adam (Kingma & Ba) on dFc; lr_t already carries the bias corrections."""
         b1 = self.dtype(self.cfg.adam_beta1)
@@ -859,6 +868,7 @@ class MPMSolver:
                   else np.ones(self.n))
         self.step_weight.from_numpy(weight.astype(dt_))
         self._weighted_step = bool(self.cfg.step_per_volume and (weight != 1.0).any())
+        self._inv_mean_volume = float(1.0 / st.volume.mean())
         if self._pressure_on:
             self._frame_pressure()
         self._Fp = st.Fp.copy()
@@ -1139,7 +1149,10 @@ class MPMSolver:
             # the norm was accumulated in float64 by the kernel; the step is taken in place
             # (_normalized_step), from the control saved at the iteration's start
             norm = self._grad_norm
-            if self._weighted_step:
+            if self.cfg.step_rms == "volume":
+                self._volume_weighted_grad_norm_sq(self._inv_mean_volume)
+                norm = float(np.sqrt(self.norm_acc[None]))
+            elif self._weighted_step:
                 self._weighted_grad_norm_sq()
                 norm = float(np.sqrt(self.norm_acc[None]))
             rms = norm / np.sqrt(self.cfg.n_control_slots * self.n * 9)
