@@ -99,6 +99,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                               "g_p (V_max / V_p)^power (1: per unit volume; 0: the plain step)", "", "[0, 1]"),
     "mpm.step_rms": ("what the normalised step's RMS is taken over: every particle once (particles) or each "
                      "by its volume (volume: the same for every sampling of a body)", "", "particles | volume"),
+    "mpm.step_smoothing": ("grid: the weighted gradient replaced by its share on the MPM grid (P2G, then G2P) "
+                           "before the step is normalised; none: each particle's own", "", "none | grid"),
     "mpm.grad_iters": ("optimiser iterations per frame (J); experiments set it with `grad_iters`", "", ">= 1"),
     "mpm.adam_beta1": ("Adam's first-moment decay", "", "[0, 1)"),
     "mpm.adam_beta2": ("Adam's second-moment decay", "", "[0, 1)"),

@@ -324,6 +324,11 @@ def test_step_schedule_hands_the_optimiser_a_linear_ramp_from_step_first_to_step
     expect = base.mpm.step_size * (1.5 - np.arange(K) / (K - 1))
     np.testing.assert_allclose(handed, expect, rtol=1e-12)
     np.testing.assert_allclose(m["step_size"][1:], expect, rtol=1e-12)
+    # the line search keeps the handed step or a halving of it, or none (0)
+    acc = m["step_accepted"][1:]
+    halvings = np.log2(expect / np.where(acc > 0, acc, 1.0))
+    assert np.all((acc == 0) | (np.abs(halvings - np.round(halvings)) < 1e-9) & (halvings > -1e-9))
+    assert (acc == expect).any()
     with pytest.raises(ValueError, match="step_last"):
         dataclasses.replace(base, step_last=0.0)
 

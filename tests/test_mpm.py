@@ -893,6 +893,53 @@ def test_step_rms_by_volume_counts_each_particle_by_its_volume(state, per_volume
         cfg64(step_rms="mass")
 
 
+def _grid_share(x, vol, wg, grid):  # x [N, 3], vol [N], wg [T, N, 3, 3] -> [T, N, 3, 3]
+    """The NumPy reference of MPMSolver._smooth_step_slot: volume-weighted P2G of wg on the
+    B-spline stencils, each node's mean, and G2P back over the nodes that hold material."""
+    from physmorph.grid import bspline_weights, scatter_add
+    base, w = bspline_weights(x, grid)
+    w27 = w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]  # [N, 3, 3, 3]
+    off = np.stack(np.meshgrid(*(np.arange(3),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    nodes = base[:, None, :] + off[None]  # [N, 27, 3]
+    wsum = np.zeros((grid.res,) * 3)
+    scatter_add(wsum, base, w27 * vol[:, None, None, None])
+    out = np.empty_like(wg)
+    for t in range(len(wg)):
+        G = np.zeros((grid.res,) * 3 + (9,))
+        for c in range(9):
+            g = np.zeros((grid.res,) * 3)
+            scatter_add(g, base, w27 * (vol * wg[t].reshape(-1, 9)[:, c])[:, None, None, None])
+            G[..., c] = np.divide(g, wsum, out=np.zeros_like(g), where=wsum > 0)
+        Gn = G[nodes[..., 0], nodes[..., 1], nodes[..., 2]]  # [N, 27, 9]
+        out[t] = np.einsum("nk,nkc->nc", w27.reshape(len(x), 27), Gn).reshape(-1, 3, 3)
+    return out
+
+
+@pytest.mark.parametrize("per_volume", [True, False])
+def test_step_smoothing_steps_along_the_grids_share_of_the_direction(state, per_volume):
+    """step_smoothing "grid": the step is -alpha clip(d / rms(d)) with d the weighted gradient w g
+    carried to the grid (volume-weighted B-spline P2G, each node's mean) and back (G2P): the NumPy
+    reference. A direction that is already the same for every particle of a node's stencils is
+    kept; the smoothed step differs from the particles' own."""
+    vol = state.volume * np.where(np.arange(state.n) % 3 == 0, 1.0, 0.1)
+    st = dataclasses.replace(state, volume=vol, mass=state.mass * vol / state.volume)
+    cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=1.5,
+                step_per_volume=per_volume, step_smoothing="grid")
+    g, step = _gradient_and_one_step(cfg, st)
+    w = (vol.max() / vol) if per_volume else np.ones(st.n)
+    d = _grid_share(st.x, vol, g * w[None, :, None, None], Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi))
+    rms = np.sqrt(np.mean(d * d))
+    np.testing.assert_allclose(step, -1e-4 * 2.0 * np.clip(d / rms, -1.5, 1.5), rtol=1e-8, atol=1e-14)
+    _, plain = _gradient_and_one_step(dataclasses.replace(cfg, step_smoothing="none"), st)
+    assert np.abs(plain - step).max() > 1e-6
+    # the reference itself: a uniform direction comes back unchanged
+    u = np.broadcast_to(np.arange(9.0).reshape(1, 1, 3, 3), (1, st.n, 3, 3)).copy()
+    np.testing.assert_allclose(_grid_share(st.x, vol, u, Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi)), u,
+                               rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="sufficient_decrease"):
+        cfg64(optimizer="normalized_gd", step_smoothing="grid", sufficient_decrease=0.1)
+
+
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):
     """With the Armijo constant c the accepted step lowers the objective by at least
     c alpha <g, d> (d = clip(g / rms)); a larger c never accepts a longer step than c = 0."""

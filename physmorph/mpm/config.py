@@ -46,6 +46,7 @@ BARRIER_J_LINEAR = 0.05
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume_power", "step_rms",
+                           "step_smoothing",
                            "sufficient_decrease", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
@@ -127,6 +128,10 @@ class MPMConfig:
         surface shell holds 99 % of the particles and 40 % of the volume). "volume": each particle
         counts by its volume, V_p / mean V, so the step's RMS is that of the body's volume whatever
         its sampling.
+    step_smoothing: normalized_gd only: "grid" replaces the weighted gradient by its share on the
+        MPM grid before the step is normalised (volume-weighted P2G of w_p g_p, then G2P): the part
+        that varies from particle to particle within a cell moves no grid node, and only sprays
+        particles; "none" (the default) steps along the particles' own gradients.
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -190,6 +195,7 @@ class MPMConfig:
     step_per_volume: bool = True  # history: docs/study/CHANGELOG.md
     step_volume_power: float = 1.0
     step_rms: Literal["particles", "volume"] = "particles"
+    step_smoothing: Literal["none", "grid"] = "none"
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
@@ -247,6 +253,10 @@ class MPMConfig:
              f"{self.adam_beta2}, {self.adam_eps}")
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
+        need(self.step_smoothing in ("none", "grid"), f"step_smoothing must be none or grid, got {self.step_smoothing!r}")
+        need(self.step_smoothing == "none" or self.sufficient_decrease == 0,
+             "step_smoothing: grid steps along a smoothed direction, so its Armijo test (sufficient_decrease > 0) "
+             "would not hold; set sufficient_decrease: 0")
         need(self.step_rms in ("particles", "volume"), f"step_rms must be particles or volume, got {self.step_rms!r}")
         need(0 <= self.step_volume_power <= 1, f"step_volume_power must be in [0, 1], got {self.step_volume_power!r}")
         need(math.isfinite(self.sufficient_decrease) and 0.0 <= self.sufficient_decrease < 1.0,

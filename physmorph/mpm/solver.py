@@ -94,6 +94,8 @@ class MPMSolver:
         # a second set of particle and grid adjoints for backward_pair (two seeds in one reverse
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
+        # the step smoothing's grid (step_smoothing = "grid"), allocated on first use
+        self.step_grid = self.step_grid_w = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
         # grid
         self.grid_mv = vec.field(shape=(R, R, R))
@@ -774,12 +776,14 @@ class MPMSolver:
             self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
 
     @ti.kernel
-    def _normalized_step(self, alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64):
+    def _normalized_step(self, alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32):
         """dFc = base - alpha clip(w g / rms(w g), -clip, clip) (clip <= 0: unclipped; w the
-        particle's step weight, 1 unless step_per_volume): the normalised gradient step of
+        particle's step weight, 1 unless step_per_volume; use_weight 0: the gradient field already
+        holds the weighted direction, _smooth_step_slot): the normalised gradient step of
         DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
         for s, p in self.ctrl:
-            d = self.ctrl_grad[s, p] * (self.step_weight[p] * ti.cast(inv_rms, self.dtype))
+            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
+            d = self.ctrl_grad[s, p] * (wp * ti.cast(inv_rms, self.dtype))
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.ctrl[s, p] = self.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
@@ -805,13 +809,50 @@ class MPMSolver:
             self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
 
     @ti.kernel
-    def _volume_weighted_grad_norm_sq(self, inv_mean_volume: ti.f64):
+    def _volume_weighted_grad_norm_sq(self, inv_mean_volume: ti.f64, use_weight: ti.i32):
         """norm_acc = sum_p (V_p / mean V) |w_p g_p|^2: the squared norm of the weighted gradient
-        with each particle counted by its volume (MPMConfig.step_rms = "volume")."""
+        with each particle counted by its volume (MPMConfig.step_rms = "volume"; use_weight 0: w = 1)."""
         self.norm_acc[None] = 0.0
         for s, p in self.ctrl_grad:
-            g = self.ctrl_grad[s, p] * self.step_weight[p]
+            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
+            g = self.ctrl_grad[s, p] * wp
             self.norm_acc[None] += ti.cast((g * g).sum() * self.vol[p], ti.f64) * inv_mean_volume
+
+    def _ensure_step_grid(self) -> None:
+        """Allocate the step smoothing's grid (MPMConfig.step_smoothing) on first use."""
+        if self.step_grid is None:
+            R = self.cfg.grid_res
+            self.step_grid = ti.types.matrix(3, 3, self.dtype).field(shape=(R, R, R))
+            self.step_grid_w = ti.field(self.dtype, shape=(R, R, R))
+
+    @ti.kernel
+    def _smooth_step_slot(self, s: ti.i32):
+        """Slot s of the gradient field replaced by the grid's share of the weighted direction
+        (MPMConfig.step_smoothing = "grid"): G_I = sum_p w_Ip V_p w_p g_p / sum_p w_Ip V_p on the
+        MPM grid, with the B-spline weights w_Ip of x at the frame's start, then back to the
+        particles, d_p = sum_I w_Ip G_I over the nodes that hold material (a partition of unity
+        there). What varies from particle to particle within a cell, which the grid the body
+        moves on does not see, is removed."""
+        for I in ti.grouped(self.step_grid_w):
+            self.step_grid[I] = ti.Matrix.zero(self.dtype, 3, 3)
+            self.step_grid_w[I] = 0.0
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[0, p])
+            g = self.ctrl_grad[s, p] * self.step_weight[p]
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wip = self._node(fx, w, i, j, k)
+                wv = wip * self.vol[p]
+                self.step_grid[base + off] += wv * g
+                self.step_grid_w[base + off] += wv
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[0, p])
+            acc = ti.Matrix.zero(self.dtype, 3, 3)
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wip = self._node(fx, w, i, j, k)
+                m = self.step_grid_w[base + off]
+                if m > 0:
+                    acc += wip * self.step_grid[base + off] / m
+            self.ctrl_grad[s, p] = acc
 
     @ti.kernel
     def _adam(self, lr_t: ti.f64):
@@ -1149,10 +1190,18 @@ class MPMSolver:
             # the norm was accumulated in float64 by the kernel; the step is taken in place
             # (_normalized_step), from the control saved at the iteration's start
             norm = self._grad_norm
-            if self.cfg.step_rms == "volume":
-                self._volume_weighted_grad_norm_sq(self._inv_mean_volume)
+            use_weight = 1
+            if self.cfg.step_smoothing == "grid":
+                self._ensure_step_grid()
+                for slot in range(self.cfg.n_control_slots):
+                    self._smooth_step_slot(slot)
+                use_weight = 0  # the field holds the smoothed weighted direction now
+                self._grad_norm_sq()
                 norm = float(np.sqrt(self.norm_acc[None]))
-            elif self._weighted_step:
+            if self.cfg.step_rms == "volume":
+                self._volume_weighted_grad_norm_sq(self._inv_mean_volume, use_weight)
+                norm = float(np.sqrt(self.norm_acc[None]))
+            elif self._weighted_step and use_weight:
                 self._weighted_grad_norm_sq()
                 norm = float(np.sqrt(self.norm_acc[None]))
             rms = norm / np.sqrt(self.cfg.n_control_slots * self.n * 9)
@@ -1165,7 +1214,7 @@ class MPMSolver:
                 rate = self.cfg.sufficient_decrease * float(self.norm_acc[None])
             found = False
             for _ in range(self.cfg.line_search_iters):
-                self._normalized_step(alpha, 1.0 / rms, self.cfg.step_clip)
+                self._normalized_step(alpha, 1.0 / rms, self.cfg.step_clip, use_weight)
                 self._forward_current = False
                 try:
                     trial = self._objective(grad_F_final, grad_x_final)
