@@ -646,7 +646,8 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     # every driver field changed; the kernels compiled above (with cfg) are kept
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
                   grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
-                  step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5)
+                  step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5,
+                  step_rms="volume", step_smoothing="grid")
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -936,8 +937,8 @@ def test_step_smoothing_steps_along_the_grids_share_of_the_direction(state, per_
     u = np.broadcast_to(np.arange(9.0).reshape(1, 1, 3, 3), (1, st.n, 3, 3)).copy()
     np.testing.assert_allclose(_grid_share(st.x, vol, u, Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi)), u,
                                rtol=1e-12, atol=1e-12)
-    with pytest.raises(ValueError, match="sufficient_decrease"):
-        cfg64(optimizer="normalized_gd", step_smoothing="grid", sufficient_decrease=0.1)
+    with pytest.raises(ValueError, match="step_smoothing"):
+        cfg64(step_smoothing="particles")
 
 
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):

@@ -254,9 +254,6 @@ class MPMConfig:
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
         need(self.step_smoothing in ("none", "grid"), f"step_smoothing must be none or grid, got {self.step_smoothing!r}")
-        need(self.step_smoothing == "none" or self.sufficient_decrease == 0,
-             "step_smoothing: grid steps along a smoothed direction, so its Armijo test (sufficient_decrease > 0) "
-             "would not hold; set sufficient_decrease: 0")
         need(self.step_rms in ("particles", "volume"), f"step_rms must be particles or volume, got {self.step_rms!r}")
         need(0 <= self.step_volume_power <= 1, f"step_volume_power must be in [0, 1], got {self.step_volume_power!r}")
         need(math.isfinite(self.sufficient_decrease) and 0.0 <= self.sufficient_decrease < 1.0,

@@ -95,7 +95,7 @@ class MPMSolver:
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
         # the step smoothing's grid (step_smoothing = "grid"), allocated on first use
-        self.step_grid = self.step_grid_w = None
+        self.step_grid = self.step_grid_w = self.step_dir = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
         # grid
         self.grid_mv = vec.field(shape=(R, R, R))
@@ -776,26 +776,29 @@ class MPMSolver:
             self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
 
     @ti.kernel
-    def _normalized_step(self, alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32):
+    def _normalized_step(self, direction: ti.template(), alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64,
+                         use_weight: ti.i32):
         """dFc = base - alpha clip(w g / rms(w g), -clip, clip) (clip <= 0: unclipped; w the
-        particle's step weight, 1 unless step_per_volume; use_weight 0: the gradient field already
-        holds the weighted direction, _smooth_step_slot): the normalised gradient step of
-        DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
+        particle's step weight, 1 unless step_per_volume): the normalised gradient step of
+        DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm). direction: the
+        gradient field, or the smoothed weighted direction (_smooth_step_slot, use_weight 0)."""
         for s, p in self.ctrl:
             wp = self.step_weight[p] if use_weight else self.dtype(1.0)
-            d = self.ctrl_grad[s, p] * (wp * ti.cast(inv_rms, self.dtype))
+            d = direction[s, p] * (wp * ti.cast(inv_rms, self.dtype))
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.ctrl[s, p] = self.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
 
     @ti.kernel
-    def _direction_dot_gradient(self, inv_rms: ti.f64, clip: ti.f64):
-        """norm_acc = <g, d>, d = clip(w g / rms(w g), -clip, clip): the objective's first-order fall per
-        unit alpha along the normalised step (the Armijo test's rate)."""
+    def _direction_dot_gradient(self, direction: ti.template(), inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32):
+        """norm_acc = <g, d>, d = clip(w g / rms(w g), -clip, clip) (or the smoothed direction's, as
+        _normalized_step): the objective's first-order fall per unit alpha along the normalised
+        step (the Armijo test's rate)."""
         self.norm_acc[None] = 0.0
         for s, p in self.ctrl_grad:
             g = self.ctrl_grad[s, p]
-            d = g * (self.step_weight[p] * ti.cast(inv_rms, self.dtype))
+            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
+            d = direction[s, p] * (wp * ti.cast(inv_rms, self.dtype))
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.norm_acc[None] += ti.cast((g * d).sum(), ti.f64)
@@ -809,25 +812,28 @@ class MPMSolver:
             self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
 
     @ti.kernel
-    def _volume_weighted_grad_norm_sq(self, inv_mean_volume: ti.f64, use_weight: ti.i32):
+    def _volume_weighted_grad_norm_sq(self, direction: ti.template(), inv_mean_volume: ti.f64, use_weight: ti.i32):
         """norm_acc = sum_p (V_p / mean V) |w_p g_p|^2: the squared norm of the weighted gradient
-        with each particle counted by its volume (MPMConfig.step_rms = "volume"; use_weight 0: w = 1)."""
+        (or of the smoothed direction, use_weight 0) with each particle counted by its volume
+        (MPMConfig.step_rms = "volume")."""
         self.norm_acc[None] = 0.0
-        for s, p in self.ctrl_grad:
+        for s, p in direction:
             wp = self.step_weight[p] if use_weight else self.dtype(1.0)
-            g = self.ctrl_grad[s, p] * wp
+            g = direction[s, p] * wp
             self.norm_acc[None] += ti.cast((g * g).sum() * self.vol[p], ti.f64) * inv_mean_volume
 
     def _ensure_step_grid(self) -> None:
-        """Allocate the step smoothing's grid (MPMConfig.step_smoothing) on first use."""
+        """Allocate the step smoothing's grid and direction (MPMConfig.step_smoothing) on first use."""
         if self.step_grid is None:
             R = self.cfg.grid_res
-            self.step_grid = ti.types.matrix(3, 3, self.dtype).field(shape=(R, R, R))
+            mat = ti.types.matrix(3, 3, self.dtype)
+            self.step_grid = mat.field(shape=(R, R, R))
             self.step_grid_w = ti.field(self.dtype, shape=(R, R, R))
+            self.step_dir = mat.field(shape=(self.cfg.n_control_slots, self.n))
 
     @ti.kernel
     def _smooth_step_slot(self, s: ti.i32):
-        """Slot s of the gradient field replaced by the grid's share of the weighted direction
+        """Slot s of step_dir: the grid's share of the weighted gradient
         (MPMConfig.step_smoothing = "grid"): G_I = sum_p w_Ip V_p w_p g_p / sum_p w_Ip V_p on the
         MPM grid, with the B-spline weights w_Ip of x at the frame's start, then back to the
         particles, d_p = sum_I w_Ip G_I over the nodes that hold material (a partition of unity
@@ -852,7 +858,7 @@ class MPMSolver:
                 m = self.step_grid_w[base + off]
                 if m > 0:
                     acc += wip * self.step_grid[base + off] / m
-            self.ctrl_grad[s, p] = acc
+            self.step_dir[s, p] = acc
 
     @ti.kernel
     def _adam(self, lr_t: ti.f64):
@@ -1190,16 +1196,16 @@ class MPMSolver:
             # the norm was accumulated in float64 by the kernel; the step is taken in place
             # (_normalized_step), from the control saved at the iteration's start
             norm = self._grad_norm
-            use_weight = 1
+            direction, use_weight = self.ctrl_grad, 1
             if self.cfg.step_smoothing == "grid":
                 self._ensure_step_grid()
                 for slot in range(self.cfg.n_control_slots):
                     self._smooth_step_slot(slot)
-                use_weight = 0  # the field holds the smoothed weighted direction now
-                self._grad_norm_sq()
+                direction, use_weight = self.step_dir, 0  # the weights are in the smoothed direction
+                self._norm_sq(self.step_dir)
                 norm = float(np.sqrt(self.norm_acc[None]))
             if self.cfg.step_rms == "volume":
-                self._volume_weighted_grad_norm_sq(self._inv_mean_volume, use_weight)
+                self._volume_weighted_grad_norm_sq(direction, self._inv_mean_volume, use_weight)
                 norm = float(np.sqrt(self.norm_acc[None]))
             elif self._weighted_step and use_weight:
                 self._weighted_grad_norm_sq()
@@ -1210,11 +1216,11 @@ class MPMSolver:
             self._save_ctrl_base()
             rate = 0.0
             if self.cfg.sufficient_decrease > 0:
-                self._direction_dot_gradient(1.0 / rms, self.cfg.step_clip)
+                self._direction_dot_gradient(direction, 1.0 / rms, self.cfg.step_clip, use_weight)
                 rate = self.cfg.sufficient_decrease * float(self.norm_acc[None])
             found = False
             for _ in range(self.cfg.line_search_iters):
-                self._normalized_step(alpha, 1.0 / rms, self.cfg.step_clip, use_weight)
+                self._normalized_step(direction, alpha, 1.0 / rms, self.cfg.step_clip, use_weight)
                 self._forward_current = False
                 try:
                     trial = self._objective(grad_F_final, grad_x_final)
