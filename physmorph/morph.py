@@ -191,6 +191,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 if cfg.injection_calibration == "first_frame":
                     log(f"[{name}] injection scale calibrated at frame {k}: {scale:.4g}")
             c = 0.0 if np.isnan(scale) else scale
+            frame_step = step * cfg.step_multiplier(k)  # the bold driver's step on the run's schedule
             # the calibration's rollout is current and its two gradients sum to the first
             # iteration's: the optimiser skips that forward and backward (a third of a frame)
             if calibration is not None:
@@ -198,7 +199,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             stats = solver.optimize_control(grad_F_final=c * g_F if inject_F else None,
                                             grad_x_final=c * g_x if inject_x else None,
                                             gradient_ready=calibration is not None,
-                                            learning_rate=step * cfg.step_multiplier(k))
+                                            learning_rate=frame_step)
             new = solver.state_at(cfg.mpm.substeps)
             check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:
@@ -223,7 +224,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
-                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": step * cfg.step_multiplier(k),
+                "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": frame_step,
                 # the normalised step the line search kept (0: none lowered the objective; Adam: NaN)
                 "step_accepted": (stats["step"] if stats["iters"] > 0 else 0.0) if "step" in stats else np.nan}
         if want_grad:

@@ -272,14 +272,8 @@ def test_momentum_restart_starts_the_next_frame_at_rest_when_the_mass_loss_rose(
     assert np.isnan(m_off["momentum_restart"]).all() and np.all(start_off[1:] > 0)
 
 
-def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configured_step(tiny, monkeypatch):
-    """morph.step_backoff / step_growth: frame 1 uses mpm.learning_rate; after a frame whose mass
-    loss rose the next step is step x backoff, after one whose loss fell step x growth capped at
-    mpm.learning_rate; the optimiser is handed exactly that step. The fixed-step default hands it
-    mpm.learning_rate at every frame."""
-    cfg, _ = tiny
-    base = morph_config(cfg, "iso_bunny_physics_only")
-    assert (base.step_backoff, base.step_growth) == (1.0, 1.0)
+def _spy_learning_rates(monkeypatch) -> list[float]:
+    """The learning rate the morph loop hands MPMSolver.optimize_control, one entry a call."""
     handed: list[float] = []
     real = morph.MPMSolver.optimize_control
 
@@ -288,6 +282,18 @@ def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configu
         return real(self, *a, **kw)
 
     monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    return handed
+
+
+def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configured_step(tiny, monkeypatch):
+    """morph.step_backoff / step_growth: frame 1 uses mpm.learning_rate; after a frame whose mass
+    loss rose the next step is step x backoff, after one whose loss fell step x growth capped at
+    mpm.learning_rate; the optimiser is handed exactly that step. The fixed-step default hands it
+    mpm.learning_rate at every frame."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert (base.step_backoff, base.step_growth) == (1.0, 1.0)
+    handed = _spy_learning_rates(monkeypatch)
     lr = 3 * base.mpm.learning_rate  # overshoots on the tiny run, so the mass loss rises
     mpm = dataclasses.replace(base.mpm, learning_rate=lr)
     m = read_metrics(_run(tiny, "iso_bunny_physics_only", "backoff.h5", mpm=mpm, step_backoff=0.5, step_growth=1.5))
@@ -311,14 +317,7 @@ def test_step_schedule_hands_the_optimiser_a_linear_ramp_from_step_first_to_step
     base = morph_config(cfg, "iso_bunny_physics_only")
     assert (base.step_first, base.step_last) == (1.0, 1.0)
     assert base.step_multiplier(1) == base.step_multiplier(base.frames) == 1.0
-    handed: list[float] = []
-    real = morph.MPMSolver.optimize_control
-
-    def spy(self, *a, **kw):
-        handed.append(kw.get("learning_rate"))
-        return real(self, *a, **kw)
-
-    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    handed = _spy_learning_rates(monkeypatch)
     m = read_metrics(_run(tiny, "iso_bunny_physics_only", "ramp.h5", step_first=1.5, step_last=0.5))
     K = len(m["step_size"]) - 1
     expect = base.mpm.step_size * (1.5 - np.arange(K) / (K - 1))

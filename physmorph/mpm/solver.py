@@ -94,9 +94,9 @@ class MPMSolver:
         # a second set of particle and grid adjoints for backward_pair (two seeds in one reverse
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
-        # the step smoothing's grid (step_smoothing = "grid"), allocated on first use
-        self.step_grid = self.step_grid_w = self.step_dir = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
+        # the step smoothing's grid and direction (step_smoothing = "grid"), allocated on first use
+        self.step_grid = self.step_grid_w = self.step_dir = None
         # grid
         self.grid_mv = vec.field(shape=(R, R, R))
         self.grid_m = ti.field(f, shape=(R, R, R))
@@ -1178,6 +1178,19 @@ class MPMSolver:
                 J += float((np.asarray(grad_x_final) * x).sum())
         return J
 
+    def _step_norm(self, direction, use_weight: int) -> float:
+        """|w g| of the step's direction (the smoothed direction already carries w), each particle
+        counted once or by its volume (MPMConfig.step_rms)."""
+        if self.cfg.step_rms == "volume":
+            self._volume_weighted_grad_norm_sq(direction, self._inv_mean_volume, use_weight)
+        elif not use_weight:
+            self._norm_sq(direction)
+        elif self._weighted_step:
+            self._weighted_grad_norm_sq()
+        else:
+            return self._grad_norm  # the backward's own |g|
+        return float(np.sqrt(self.norm_acc[None]))
+
     def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
                                 gradient_ready: bool, learning_rate: float) -> dict:
         """Normalised gradient descent with backtracking (DiffMPMLib3D's optimiser): per
@@ -1195,22 +1208,13 @@ class MPMSolver:
                 self.backward(grad_F_final, grad_x_final)
             # the norm was accumulated in float64 by the kernel; the step is taken in place
             # (_normalized_step), from the control saved at the iteration's start
-            norm = self._grad_norm
             direction, use_weight = self.ctrl_grad, 1
             if self.cfg.step_smoothing == "grid":
                 self._ensure_step_grid()
                 for slot in range(self.cfg.n_control_slots):
                     self._smooth_step_slot(slot)
                 direction, use_weight = self.step_dir, 0  # the weights are in the smoothed direction
-                self._norm_sq(self.step_dir)
-                norm = float(np.sqrt(self.norm_acc[None]))
-            if self.cfg.step_rms == "volume":
-                self._volume_weighted_grad_norm_sq(direction, self._inv_mean_volume, use_weight)
-                norm = float(np.sqrt(self.norm_acc[None]))
-            elif self._weighted_step and use_weight:
-                self._weighted_grad_norm_sq()
-                norm = float(np.sqrt(self.norm_acc[None]))
-            rms = norm / np.sqrt(self.cfg.n_control_slots * self.n * 9)
+            rms = self._step_norm(direction, use_weight) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
             self._save_ctrl_base()
