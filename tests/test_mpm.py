@@ -647,7 +647,7 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
                   grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
                   step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5,
-                  step_rms="volume", step_smoothing="grid")
+                  step_rms="volume", step_smoothing="grid", step_deviatoric=True)
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -939,6 +939,31 @@ def test_step_smoothing_steps_along_the_grids_share_of_the_direction(state, per_
                                rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="step_smoothing"):
         cfg64(step_smoothing="particles")
+
+
+@pytest.mark.parametrize("smoothing", ["none", "grid"])
+def test_step_deviatoric_removes_the_steps_first_order_volume_change(state, smoothing):
+    """step_deviatoric: the step is -alpha clip(d / rms(d)) with d the weighted (and, where asked,
+    smoothed) gradient less its component along n = (F_0 + dFc)^-T (dFc = 0 here): the NumPy
+    formula. Unclipped, each particle's step is orthogonal to n, so det(F_0 + dFc) is unchanged
+    to first order; the projected step differs from the full one."""
+    vol = state.volume * np.where(np.arange(state.n) % 3 == 0, 1.0, 0.1)
+    st = dataclasses.replace(state, volume=vol, mass=state.mass * vol / state.volume)
+    n = np.linalg.inv(st.F).transpose(0, 2, 1)[None]  # [1, N, 3, 3]
+    w = vol.max() / vol
+    for clip in (1.5, 0.0):
+        cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=clip,
+                    step_per_volume=True, step_smoothing=smoothing, step_deviatoric=True)
+        g, step = _gradient_and_one_step(cfg, st)
+        d = g * w[None, :, None, None]
+        if smoothing == "grid":
+            d = _grid_share(st.x, vol, d, Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi))
+        d = d - ((d * n).sum(axis=(-2, -1), keepdims=True) / (n * n).sum(axis=(-2, -1), keepdims=True)) * n
+        d = d / np.sqrt(np.mean(d * d))
+        np.testing.assert_allclose(step, -1e-4 * 2.0 * (np.clip(d, -clip, clip) if clip else d), rtol=1e-8, atol=1e-14)
+    assert np.abs((step * n).sum(axis=(-2, -1))).max() < 1e-12 * np.abs(step).max()
+    _, full = _gradient_and_one_step(dataclasses.replace(cfg, step_deviatoric=False), st)
+    assert np.abs(full - step).max() > 1e-6
 
 
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):

@@ -46,7 +46,7 @@ BARRIER_J_LINEAR = 0.05
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume_power", "step_rms",
-                           "step_smoothing",
+                           "step_smoothing", "step_deviatoric",
                            "sufficient_decrease", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
@@ -132,6 +132,11 @@ class MPMConfig:
         MPM grid before the step is normalised (volume-weighted P2G of w_p g_p, then G2P): the part
         that varies from particle to particle within a cell moves no grid node, and only sprays
         particles; "none" (the default) steps along the particles' own gradients.
+    step_deviatoric: normalized_gd only: True removes from each particle's step direction d
+        (after any smoothing) its first-order change of the stress's volume, the component along
+        n = (F + dFc)^-T at the frame's start: d - (<d, n> / <n, n>) n. The control then
+        changes the body's shape and not its volume (the target's mass is rescaled to the
+        source's, so a matched shape has the source's volume). False (the default): the full step.
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -196,6 +201,7 @@ class MPMConfig:
     step_volume_power: float = 1.0
     step_rms: Literal["particles", "volume"] = "particles"
     step_smoothing: Literal["none", "grid"] = "none"
+    step_deviatoric: bool = False
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999

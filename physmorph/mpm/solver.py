@@ -95,7 +95,8 @@ class MPMSolver:
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
-        # the step smoothing's grid and direction (step_smoothing = "grid"), allocated on first use
+        # the step's own direction (step_smoothing, step_deviatoric) and the smoothing's grid,
+        # allocated on first use
         self.step_grid = self.step_grid_w = self.step_dir = None
         # grid
         self.grid_mv = vec.field(shape=(R, R, R))
@@ -822,14 +823,30 @@ class MPMSolver:
             g = direction[s, p] * wp
             self.norm_acc[None] += ti.cast((g * g).sum() * self.vol[p], ti.f64) * inv_mean_volume
 
+    def _ensure_step_dir(self) -> None:
+        """Allocate the step's own direction (step_smoothing, step_deviatoric) on first use."""
+        if self.step_dir is None:
+            self.step_dir = ti.types.matrix(3, 3, self.dtype).field(shape=(self.cfg.n_control_slots, self.n))
+
     def _ensure_step_grid(self) -> None:
         """Allocate the step smoothing's grid and direction (MPMConfig.step_smoothing) on first use."""
+        self._ensure_step_dir()
         if self.step_grid is None:
             R = self.cfg.grid_res
-            mat = ti.types.matrix(3, 3, self.dtype)
-            self.step_grid = mat.field(shape=(R, R, R))
+            self.step_grid = ti.types.matrix(3, 3, self.dtype).field(shape=(R, R, R))
             self.step_grid_w = ti.field(self.dtype, shape=(R, R, R))
-            self.step_dir = mat.field(shape=(self.cfg.n_control_slots, self.n))
+
+    @ti.kernel
+    def _deviatoric_direction(self, direction: ti.template(), use_weight: ti.i32):
+        """step_dir = d - (<d, n> / <n, n>) n, d = w g (or the smoothed direction, use_weight 0),
+        n = (F_0 + dFc)^-T: the step without its first-order change of det(F_0 + dFc), the
+        volume the stress sees at the frame's start (MPMConfig.step_deviatoric). In place when
+        direction is step_dir."""
+        for s, p in self.ctrl:
+            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
+            d = direction[s, p] * wp
+            n = (self.F[0, p] + self.ctrl[s, p]).inverse().transpose()
+            self.step_dir[s, p] = d - ((d * n).sum() / (n * n).sum()) * n
 
     @ti.kernel
     def _smooth_step_slot(self, s: ti.i32):
@@ -1214,6 +1231,10 @@ class MPMSolver:
                 for slot in range(self.cfg.n_control_slots):
                     self._smooth_step_slot(slot)
                 direction, use_weight = self.step_dir, 0  # the weights are in the smoothed direction
+            if self.cfg.step_deviatoric:
+                self._ensure_step_dir()
+                self._deviatoric_direction(direction, use_weight)
+                direction, use_weight = self.step_dir, 0
             rms = self._step_norm(direction, use_weight) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
