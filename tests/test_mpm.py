@@ -59,11 +59,11 @@ def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = F
 
 
 def cfg64(**kw) -> MPMConfig:
-    # The solver tests are written for the squared mass loss and Adam, without the step clip, and
-    # the paper's F smoothing (the workflow's defaults are the log loss, clipped normalised GD and
-    # isochoric smoothing, tested where a test names them).
+    # The solver tests are written for the squared mass loss and Adam, without the step clip, the
+    # full (not deviatoric) step and the paper's F smoothing (the workflow's defaults are the log
+    # loss, clipped deviatoric normalised GD and isochoric smoothing, tested where a test names them).
     base = dict(grid_res=RES, precision="float64", substeps=3, mass_loss="squared", log_mass_eps=1e-3,
-                optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full")
+                optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_deviatoric=False)
     base.update(kw)
     return MPMConfig(**base)
 

@@ -136,7 +136,8 @@ class MPMConfig:
         (after any smoothing) its first-order change of the stress's volume, the component along
         n = (F + dFc)^-T at the frame's start: d - (<d, n> / <n, n>) n. The control then
         changes the body's shape and not its volume (the target's mass is rescaled to the
-        source's, so a matched shape has the source's volume). False (the default): the full step.
+        source's, so a matched shape has the source's volume). The default since 2026-11-26 (not
+        in the paper; docs/study/log.md finding 156); False: the authors' full step.
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -176,7 +177,8 @@ class MPMConfig:
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
-                                                             "step_scales_with_dx", "step_per_volume"})
+                                                             "step_scales_with_dx", "step_per_volume",
+                                                             "step_deviatoric"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -201,7 +203,7 @@ class MPMConfig:
     step_volume_power: float = 1.0
     step_rms: Literal["particles", "volume"] = "particles"
     step_smoothing: Literal["none", "grid"] = "none"
-    step_deviatoric: bool = False
+    step_deviatoric: bool = True  # history: docs/study/CHANGELOG.md
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999

@@ -95,8 +95,7 @@ class MPMSolver:
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
-        # the step's own direction (step_smoothing, step_deviatoric) and the smoothing's grid,
-        # allocated on first use
+        # the step smoothing's grid and direction (step_smoothing = "grid"), allocated on first use
         self.step_grid = self.step_grid_w = self.step_dir = None
         # grid
         self.grid_mv = vec.field(shape=(R, R, R))
@@ -776,77 +775,65 @@ class MPMSolver:
                 Mp[a, b] = M[p, a, b]
             self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
 
+    @ti.func
+    def _step_direction(self, direction: ti.template(), s, p, use_weight: ti.i32, deviatoric: ti.i32):
+        """w_p d_sp (w the particle's step weight, 1 unless step_per_volume or use_weight 0), less
+        its component along n = (F_0 + dFc)^-T, the first-order change of det(F_0 + dFc), where
+        deviatoric (MPMConfig.step_deviatoric; dFc: the iteration's base control, F_0: the frame's
+        start): d - (<d, n> / <n, n>) n."""
+        wp = self.step_weight[p] if use_weight else self.dtype(1.0)
+        d = direction[s, p] * wp
+        if deviatoric:
+            n = (self.F[0, p] + self.ctrl_base[s, p]).inverse().transpose()
+            d -= ((d * n).sum() / (n * n).sum()) * n
+        return d
+
     @ti.kernel
     def _normalized_step(self, direction: ti.template(), alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64,
-                         use_weight: ti.i32):
-        """dFc = base - alpha clip(w g / rms(w g), -clip, clip) (clip <= 0: unclipped; w the
-        particle's step weight, 1 unless step_per_volume): the normalised gradient step of
-        DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm). direction: the
-        gradient field, or the smoothed weighted direction (_smooth_step_slot, use_weight 0)."""
+                         use_weight: ti.i32, deviatoric: ti.i32):
+        """dFc = base - alpha clip(d / rms(d), -clip, clip) (clip <= 0: unclipped), d the step's
+        direction (_step_direction: the weighted gradient w g, or the smoothed direction with
+        use_weight 0, made deviatoric where asked): the normalised gradient step of
+        DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
         for s, p in self.ctrl:
-            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
-            d = direction[s, p] * (wp * ti.cast(inv_rms, self.dtype))
+            d = self._step_direction(direction, s, p, use_weight, deviatoric) * ti.cast(inv_rms, self.dtype)
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.ctrl[s, p] = self.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
 
     @ti.kernel
-    def _direction_dot_gradient(self, direction: ti.template(), inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32):
-        """norm_acc = <g, d>, d = clip(w g / rms(w g), -clip, clip) (or the smoothed direction's, as
-        _normalized_step): the objective's first-order fall per unit alpha along the normalised
-        step (the Armijo test's rate)."""
+    def _direction_dot_gradient(self, direction: ti.template(), inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32,
+                                deviatoric: ti.i32):
+        """norm_acc = <g, d>, d = clip(d / rms(d), -clip, clip) as in _normalized_step: the
+        objective's first-order fall per unit alpha along the normalised step (the Armijo test's
+        rate)."""
         self.norm_acc[None] = 0.0
         for s, p in self.ctrl_grad:
             g = self.ctrl_grad[s, p]
-            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
-            d = direction[s, p] * (wp * ti.cast(inv_rms, self.dtype))
+            d = self._step_direction(direction, s, p, use_weight, deviatoric) * ti.cast(inv_rms, self.dtype)
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.norm_acc[None] += ti.cast((g * d).sum(), ti.f64)
 
     @ti.kernel
-    def _weighted_grad_norm_sq(self):
-        """norm_acc = |w g|^2, the squared norm of the step weights times the gradient."""
-        self.norm_acc[None] = 0.0
-        for s, p in self.ctrl_grad:
-            g = self.ctrl_grad[s, p] * self.step_weight[p]
-            self.norm_acc[None] += ti.cast((g * g).sum(), ti.f64)
-
-    @ti.kernel
-    def _volume_weighted_grad_norm_sq(self, direction: ti.template(), inv_mean_volume: ti.f64, use_weight: ti.i32):
-        """norm_acc = sum_p (V_p / mean V) |w_p g_p|^2: the squared norm of the weighted gradient
-        (or of the smoothed direction, use_weight 0) with each particle counted by its volume
-        (MPMConfig.step_rms = "volume")."""
+    def _direction_norm_sq(self, direction: ti.template(), use_weight: ti.i32, deviatoric: ti.i32,
+                           by_volume: ti.i32, inv_mean_volume: ti.f64):
+        """norm_acc = sum_sp c_p |d_sp|^2, d the step's direction (_step_direction), c_p = 1 or,
+        by_volume (MPMConfig.step_rms = "volume"), V_p / mean V: each particle counted by its volume."""
         self.norm_acc[None] = 0.0
         for s, p in direction:
-            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
-            g = direction[s, p] * wp
-            self.norm_acc[None] += ti.cast((g * g).sum() * self.vol[p], ti.f64) * inv_mean_volume
-
-    def _ensure_step_dir(self) -> None:
-        """Allocate the step's own direction (step_smoothing, step_deviatoric) on first use."""
-        if self.step_dir is None:
-            self.step_dir = ti.types.matrix(3, 3, self.dtype).field(shape=(self.cfg.n_control_slots, self.n))
+            d = self._step_direction(direction, s, p, use_weight, deviatoric)
+            c = ti.cast(self.vol[p], ti.f64) * inv_mean_volume if by_volume else 1.0
+            self.norm_acc[None] += ti.cast((d * d).sum(), ti.f64) * c
 
     def _ensure_step_grid(self) -> None:
         """Allocate the step smoothing's grid and direction (MPMConfig.step_smoothing) on first use."""
-        self._ensure_step_dir()
         if self.step_grid is None:
             R = self.cfg.grid_res
-            self.step_grid = ti.types.matrix(3, 3, self.dtype).field(shape=(R, R, R))
+            mat = ti.types.matrix(3, 3, self.dtype)
+            self.step_grid = mat.field(shape=(R, R, R))
             self.step_grid_w = ti.field(self.dtype, shape=(R, R, R))
-
-    @ti.kernel
-    def _deviatoric_direction(self, direction: ti.template(), use_weight: ti.i32):
-        """step_dir = d - (<d, n> / <n, n>) n, d = w g (or the smoothed direction, use_weight 0),
-        n = (F_0 + dFc)^-T: the step without its first-order change of det(F_0 + dFc), the
-        volume the stress sees at the frame's start (MPMConfig.step_deviatoric). In place when
-        direction is step_dir."""
-        for s, p in self.ctrl:
-            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
-            d = direction[s, p] * wp
-            n = (self.F[0, p] + self.ctrl[s, p]).inverse().transpose()
-            self.step_dir[s, p] = d - ((d * n).sum() / (n * n).sum()) * n
+            self.step_dir = mat.field(shape=(self.cfg.n_control_slots, self.n))
 
     @ti.kernel
     def _smooth_step_slot(self, s: ti.i32):
@@ -1195,17 +1182,13 @@ class MPMSolver:
                 J += float((np.asarray(grad_x_final) * x).sum())
         return J
 
-    def _step_norm(self, direction, use_weight: int) -> float:
-        """|w g| of the step's direction (the smoothed direction already carries w), each particle
-        counted once or by its volume (MPMConfig.step_rms)."""
-        if self.cfg.step_rms == "volume":
-            self._volume_weighted_grad_norm_sq(direction, self._inv_mean_volume, use_weight)
-        elif not use_weight:
-            self._norm_sq(direction)
-        elif self._weighted_step:
-            self._weighted_grad_norm_sq()
-        else:
+    def _step_norm(self, direction, use_weight: int, deviatoric: int) -> float:
+        """|d| of the step's direction (_step_direction; the smoothed direction already carries w),
+        each particle counted once or by its volume (MPMConfig.step_rms)."""
+        by_volume = self.cfg.step_rms == "volume"
+        if use_weight and not (self._weighted_step or deviatoric or by_volume):
             return self._grad_norm  # the backward's own |g|
+        self._direction_norm_sq(direction, use_weight, deviatoric, int(by_volume), self._inv_mean_volume)
         return float(np.sqrt(self.norm_acc[None]))
 
     def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
@@ -1231,21 +1214,19 @@ class MPMSolver:
                 for slot in range(self.cfg.n_control_slots):
                     self._smooth_step_slot(slot)
                 direction, use_weight = self.step_dir, 0  # the weights are in the smoothed direction
-            if self.cfg.step_deviatoric:
-                self._ensure_step_dir()
-                self._deviatoric_direction(direction, use_weight)
-                direction, use_weight = self.step_dir, 0
-            rms = self._step_norm(direction, use_weight) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
+            deviatoric = int(self.cfg.step_deviatoric)
+            # the base first: the deviatoric direction is taken at the iteration's control
+            self._save_ctrl_base()
+            rms = self._step_norm(direction, use_weight, deviatoric) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
-            self._save_ctrl_base()
             rate = 0.0
             if self.cfg.sufficient_decrease > 0:
-                self._direction_dot_gradient(direction, 1.0 / rms, self.cfg.step_clip, use_weight)
+                self._direction_dot_gradient(direction, 1.0 / rms, self.cfg.step_clip, use_weight, deviatoric)
                 rate = self.cfg.sufficient_decrease * float(self.norm_acc[None])
             found = False
             for _ in range(self.cfg.line_search_iters):
-                self._normalized_step(direction, alpha, 1.0 / rms, self.cfg.step_clip, use_weight)
+                self._normalized_step(direction, alpha, 1.0 / rms, self.cfg.step_clip, use_weight, deviatoric)
                 self._forward_current = False
                 try:
                     trial = self._objective(grad_F_final, grad_x_final)
