@@ -101,9 +101,9 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                      "by its volume (volume: the same for every sampling of a body)", "", "particles | volume"),
     "mpm.step_smoothing": ("grid: the weighted gradient replaced by its share on the MPM grid (P2G, then G2P) "
                            "before the step is normalised; none: each particle's own", "", "none | grid"),
-    "mpm.step_deviatoric": ("true: each particle's step direction loses its component that changes the "
-                            "stress's volume (along (F + dFc)^-T at the frame's start): the control shapes, "
-                            "it does not compress", "", "true | false"),
+    "mpm.step_volume": ("what the step may do to the volume the stress sees: particle (each particle's step "
+                        "loses its change of volume), body (only the body's total change is removed), full "
+                        "(the authors' step)", "", "particle | body | full"),
     "mpm.grad_iters": ("optimiser iterations per frame (J); experiments set it with `grad_iters`", "", ">= 1"),
     "mpm.adam_beta1": ("Adam's first-moment decay", "", "[0, 1)"),
     "mpm.adam_beta2": ("Adam's second-moment decay", "", "[0, 1)"),

@@ -60,10 +60,11 @@ def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = F
 
 def cfg64(**kw) -> MPMConfig:
     # The solver tests are written for the squared mass loss and Adam, without the step clip, the
-    # full (not deviatoric) step and the paper's F smoothing (the workflow's defaults are the log
-    # loss, clipped deviatoric normalised GD and isochoric smoothing, tested where a test names them).
+    # authors' full step (no volume projection) and the paper's F smoothing (the workflow's defaults
+    # are the log loss, clipped volume-projected normalised GD and isochoric smoothing, tested where a
+    # test names them).
     base = dict(grid_res=RES, precision="float64", substeps=3, mass_loss="squared", log_mass_eps=1e-3,
-                optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_deviatoric=False)
+                optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_volume="full")
     base.update(kw)
     return MPMConfig(**base)
 
@@ -647,7 +648,7 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
                   grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
                   step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5,
-                  step_rms="volume", step_smoothing="grid", step_deviatoric=True)
+                  step_rms="volume", step_smoothing="grid", step_volume="body")
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -941,29 +942,55 @@ def test_step_smoothing_steps_along_the_grids_share_of_the_direction(state, per_
         cfg64(step_smoothing="particles")
 
 
+def _volume_projection(d, F, C, vol, mode):  # d [T, N, 3, 3], F [N, 3, 3], C [T, N, 3, 3], vol [N]
+    """The NumPy reference of the step's volume projection (MPMSolver._step_direction): with
+    A = F + C and n = A^-T, "particle" removes each particle's component along n, "body" each
+    slot's component along N = V det(A) n over all particles together."""
+    A = F[None] + C
+    n = np.linalg.inv(A).transpose(0, 1, 3, 2)
+    if mode == "particle":
+        return d - ((d * n).sum(axis=(-2, -1), keepdims=True) / (n * n).sum(axis=(-2, -1), keepdims=True)) * n
+    N = (vol * np.linalg.det(A))[..., None, None] * n
+    lam = (d * N).sum(axis=(1, 2, 3)) / (N * N).sum(axis=(1, 2, 3))  # [T]
+    return d - lam[:, None, None, None] * N
+
+
 @pytest.mark.parametrize("smoothing", ["none", "grid"])
-def test_step_deviatoric_removes_the_steps_first_order_volume_change(state, smoothing):
-    """step_deviatoric: the step is -alpha clip(d / rms(d)) with d the weighted (and, where asked,
-    smoothed) gradient less its component along n = (F_0 + dFc)^-T (dFc = 0 here): the NumPy
-    formula. Unclipped, each particle's step is orthogonal to n, so det(F_0 + dFc) is unchanged
-    to first order; the projected step differs from the full one."""
+@pytest.mark.parametrize("mode", ["particle", "body"])
+def test_step_volume_removes_the_steps_first_order_volume_change(state, smoothing, mode):
+    """step_volume: the step is -alpha clip(d / rms(d)) with d the weighted (and, where asked,
+    smoothed) gradient less its first-order change of volume, each particle's ("particle") or the
+    body's ("body"): the NumPy projection. Unclipped, the step leaves each particle's det(F_0 + dFc),
+    or sum_p V_p det(F_0 + dFc)_p, unchanged to first order; the projected step differs from the full one."""
     vol = state.volume * np.where(np.arange(state.n) % 3 == 0, 1.0, 0.1)
     st = dataclasses.replace(state, volume=vol, mass=state.mass * vol / state.volume)
-    n = np.linalg.inv(st.F).transpose(0, 2, 1)[None]  # [1, N, 3, 3]
     w = vol.max() / vol
-    for clip in (1.5, 0.0):
+    C = np.zeros((3, st.n, 3, 3))  # the control the direction is taken at (zero: from rest)
+    # the stretched ball's gradient is mostly a change of volume: what is left of it after the
+    # smoothing and the body's projection, clipped, is no descent direction, and the line search
+    # rightly takes no step, so that case is checked unclipped only
+    for clip in (0.0,) if (smoothing, mode) == ("grid", "body") else (1.5, 0.0):
         cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=clip,
-                    step_per_volume=True, step_smoothing=smoothing, step_deviatoric=True)
+                    step_per_volume=True, step_smoothing=smoothing, step_volume=mode)
         g, step = _gradient_and_one_step(cfg, st)
         d = g * w[None, :, None, None]
         if smoothing == "grid":
             d = _grid_share(st.x, vol, d, Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi))
-        d = d - ((d * n).sum(axis=(-2, -1), keepdims=True) / (n * n).sum(axis=(-2, -1), keepdims=True)) * n
+        d = _volume_projection(d, st.F, C, vol, mode)
         d = d / np.sqrt(np.mean(d * d))
         np.testing.assert_allclose(step, -1e-4 * 2.0 * (np.clip(d, -clip, clip) if clip else d), rtol=1e-8, atol=1e-14)
-    assert np.abs((step * n).sum(axis=(-2, -1))).max() < 1e-12 * np.abs(step).max()
-    _, full = _gradient_and_one_step(dataclasses.replace(cfg, step_deviatoric=False), st)
+    n = np.linalg.inv(st.F).transpose(0, 2, 1)[None]
+    change = (step * n).sum(axis=(-2, -1))  # [T, N]: each particle's first-order d(log det)
+    if mode == "particle":
+        assert np.abs(change).max() < 1e-12 * np.abs(step).max()
+    else:
+        body = (change * vol * np.linalg.det(st.F)).sum(axis=1)  # [T]: the body's first-order dV
+        assert np.abs(body).max() < 1e-12 * np.abs(step).max() * vol.sum()
+        assert np.abs(change).max() > 1e-3 * np.abs(step).max()  # particles still trade volume
+    _, full = _gradient_and_one_step(dataclasses.replace(cfg, step_volume="full"), st)
     assert np.abs(full - step).max() > 1e-6
+    with pytest.raises(ValueError, match="step_volume"):
+        cfg64(step_volume="none")
 
 
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):

@@ -38,6 +38,8 @@ CONTROL_MODES = ("per_substep", "per_frame")
 SMOOTHING_MODES = ("full", "isochoric")
 MASS_LOSSES = ("squared", "log", "sqrt", "log_bounded")
 OPTIMIZERS = ("adam", "normalized_gd")
+# MPMConfig.step_volume, in the order of the step kernels' volume_mode
+STEP_VOLUME_MODES = ("full", "particle", "body")
 VOLUME_LAWS = ("fixed_corotated", "barrier")
 # Below this J the barrier law's g(J) = lam (1 - 1/J) is continued by its tangent (finite for J <= 0).
 BARRIER_J_LINEAR = 0.05
@@ -46,7 +48,7 @@ BARRIER_J_LINEAR = 0.05
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume_power", "step_rms",
-                           "step_smoothing", "step_deviatoric",
+                           "step_smoothing", "step_volume",
                            "sufficient_decrease", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
@@ -132,12 +134,14 @@ class MPMConfig:
         MPM grid before the step is normalised (volume-weighted P2G of w_p g_p, then G2P): the part
         that varies from particle to particle within a cell moves no grid node, and only sprays
         particles; "none" (the default) steps along the particles' own gradients.
-    step_deviatoric: normalized_gd only: True removes from each particle's step direction d
-        (after any smoothing) its first-order change of the stress's volume, the component along
-        n = (F + dFc)^-T at the frame's start: d - (<d, n> / <n, n>) n. The control then
-        changes the body's shape and not its volume (the target's mass is rescaled to the
-        source's, so a matched shape has the source's volume). The default since 2026-11-26 (not
-        in the paper; docs/study/log.md finding 156); False: the authors' full step.
+    step_volume: normalized_gd only: what the step may do to the volume the stress sees (the control
+        enters the stress as F + dFc, A = F + dFc at the frame's start, n = A^-T). "particle": each
+        particle's step direction d loses its first-order change of det A, d - (<d, n> / <n, n>) n,
+        so the control shapes each particle and compresses none. "body": the step loses only its
+        first-order change of the body's volume sum_p V_p det A_p (one direction per control slot,
+        N_p = V_p det(A_p) n_p), so particles may trade volume and the body keeps its own. The
+        target's mass is rescaled to the source's, so a matched shape has the source's volume.
+        "full": the authors' step (docs/study/log.md findings 156-157 measure the three).
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -178,7 +182,7 @@ class MPMConfig:
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
                                                              "step_scales_with_dx", "step_per_volume",
-                                                             "step_deviatoric"})
+                                                             "step_volume"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -203,7 +207,7 @@ class MPMConfig:
     step_volume_power: float = 1.0
     step_rms: Literal["particles", "volume"] = "particles"
     step_smoothing: Literal["none", "grid"] = "none"
-    step_deviatoric: bool = True  # history: docs/study/CHANGELOG.md
+    step_volume: Literal["full", "particle", "body"] = "particle"  # history: docs/study/CHANGELOG.md
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
@@ -262,6 +266,8 @@ class MPMConfig:
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
         need(self.step_smoothing in ("none", "grid"), f"step_smoothing must be none or grid, got {self.step_smoothing!r}")
+        need(self.step_volume in STEP_VOLUME_MODES,
+             f"step_volume must be one of {', '.join(STEP_VOLUME_MODES)}, got {self.step_volume!r}")
         need(self.step_rms in ("particles", "volume"), f"step_rms must be particles or volume, got {self.step_rms!r}")
         need(0 <= self.step_volume_power <= 1, f"step_volume_power must be in [0, 1], got {self.step_volume_power!r}")
         need(math.isfinite(self.sufficient_decrease) and 0.0 <= self.sufficient_decrease < 1.0,

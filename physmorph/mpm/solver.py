@@ -33,7 +33,7 @@ import taichi as ti
 
 from ..grid import BOUNDARY_CELLS, Grid
 from ..taichi_runtime import init_taichi
-from .config import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
+from .config import STEP_VOLUME_MODES, MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
 from .state import ParticleState
 from .stress import evaluate_stress, make_stress_funcs  # noqa: F401 (evaluate_stress re-exported)
 
@@ -95,6 +95,9 @@ class MPMSolver:
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
+        # the body-volume projection's coefficient per control slot (step_volume = "body")
+        self.step_volume_acc = ti.Vector.field(2, ti.f64, shape=cfg.n_control_slots)
+        self.step_volume_coef = ti.field(ti.f64, shape=cfg.n_control_slots)
         # the step smoothing's grid and direction (step_smoothing = "grid"), allocated on first use
         self.step_grid = self.step_grid_w = self.step_dir = None
         # grid
@@ -776,53 +779,75 @@ class MPMSolver:
             self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
 
     @ti.func
-    def _step_direction(self, direction: ti.template(), s, p, use_weight: ti.i32, deviatoric: ti.i32):
+    def _step_direction(self, direction: ti.template(), s, p, use_weight: ti.i32, volume_mode: ti.i32):
         """w_p d_sp (w the particle's step weight, 1 unless step_per_volume or use_weight 0), less
-        its component along n = (F_0 + dFc)^-T, the first-order change of det(F_0 + dFc), where
-        deviatoric (MPMConfig.step_deviatoric; dFc: the iteration's base control, F_0: the frame's
-        start): d - (<d, n> / <n, n>) n."""
+        its first-order change of volume (MPMConfig.step_volume; A = F_0 + dFc with dFc the
+        iteration's base control and F_0 the frame's start, n = A^-T): volume_mode 1 ("particle"),
+        each particle's, d - (<d, n> / <n, n>) n; 2 ("body"), the body's, d - lambda_s N with
+        N = V_p det(A) n, the gradient of sum_p V_p det(A_p), and lambda_s from
+        _body_volume_coefficients."""
         wp = self.step_weight[p] if use_weight else self.dtype(1.0)
         d = direction[s, p] * wp
-        if deviatoric:
-            n = (self.F[0, p] + self.ctrl_base[s, p]).inverse().transpose()
-            d -= ((d * n).sum() / (n * n).sum()) * n
+        if volume_mode != 0:
+            A = self.F[0, p] + self.ctrl_base[s, p]
+            n = A.inverse().transpose()
+            if volume_mode == 1:
+                d -= ((d * n).sum() / (n * n).sum()) * n
+            else:
+                d -= ti.cast(self.step_volume_coef[s], self.dtype) * (self.vol[p] * A.determinant()) * n
         return d
 
     @ti.kernel
+    def _body_volume_coefficients(self, direction: ti.template(), use_weight: ti.i32):
+        """lambda_s = <d_s, N_s> / <N_s, N_s> over every particle of slot s (d = w g, N as in
+        _step_direction): the step's component that changes the body's volume to first order."""
+        for s in self.step_volume_acc:
+            self.step_volume_acc[s] = ti.Vector([0.0, 0.0], ti.f64)
+        for s, p in self.ctrl:
+            wp = self.step_weight[p] if use_weight else self.dtype(1.0)
+            d = direction[s, p] * wp
+            A = self.F[0, p] + self.ctrl_base[s, p]
+            N = (self.vol[p] * A.determinant()) * A.inverse().transpose()
+            self.step_volume_acc[s] += ti.Vector([ti.cast((d * N).sum(), ti.f64), ti.cast((N * N).sum(), ti.f64)])
+        for s in self.step_volume_coef:
+            acc = self.step_volume_acc[s]
+            self.step_volume_coef[s] = acc[0] / acc[1] if acc[1] > 0 else 0.0
+
+    @ti.kernel
     def _normalized_step(self, direction: ti.template(), alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64,
-                         use_weight: ti.i32, deviatoric: ti.i32):
+                         use_weight: ti.i32, volume_mode: ti.i32):
         """dFc = base - alpha clip(d / rms(d), -clip, clip) (clip <= 0: unclipped), d the step's
         direction (_step_direction: the weighted gradient w g, or the smoothed direction with
-        use_weight 0, made deviatoric where asked): the normalised gradient step of
+        use_weight 0, less its change of volume where asked): the normalised gradient step of
         DiffMPMLib3D's optimiser, in place (tests: the NumPy formula, test_mpm)."""
         for s, p in self.ctrl:
-            d = self._step_direction(direction, s, p, use_weight, deviatoric) * ti.cast(inv_rms, self.dtype)
+            d = self._step_direction(direction, s, p, use_weight, volume_mode) * ti.cast(inv_rms, self.dtype)
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.ctrl[s, p] = self.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
 
     @ti.kernel
     def _direction_dot_gradient(self, direction: ti.template(), inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32,
-                                deviatoric: ti.i32):
+                                volume_mode: ti.i32):
         """norm_acc = <g, d>, d = clip(d / rms(d), -clip, clip) as in _normalized_step: the
         objective's first-order fall per unit alpha along the normalised step (the Armijo test's
         rate)."""
         self.norm_acc[None] = 0.0
         for s, p in self.ctrl_grad:
             g = self.ctrl_grad[s, p]
-            d = self._step_direction(direction, s, p, use_weight, deviatoric) * ti.cast(inv_rms, self.dtype)
+            d = self._step_direction(direction, s, p, use_weight, volume_mode) * ti.cast(inv_rms, self.dtype)
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.norm_acc[None] += ti.cast((g * d).sum(), ti.f64)
 
     @ti.kernel
-    def _direction_norm_sq(self, direction: ti.template(), use_weight: ti.i32, deviatoric: ti.i32,
+    def _direction_norm_sq(self, direction: ti.template(), use_weight: ti.i32, volume_mode: ti.i32,
                            by_volume: ti.i32, inv_mean_volume: ti.f64):
         """norm_acc = sum_sp c_p |d_sp|^2, d the step's direction (_step_direction), c_p = 1 or,
         by_volume (MPMConfig.step_rms = "volume"), V_p / mean V: each particle counted by its volume."""
         self.norm_acc[None] = 0.0
         for s, p in direction:
-            d = self._step_direction(direction, s, p, use_weight, deviatoric)
+            d = self._step_direction(direction, s, p, use_weight, volume_mode)
             c = ti.cast(self.vol[p], ti.f64) * inv_mean_volume if by_volume else 1.0
             self.norm_acc[None] += ti.cast((d * d).sum(), ti.f64) * c
 
@@ -1182,13 +1207,13 @@ class MPMSolver:
                 J += float((np.asarray(grad_x_final) * x).sum())
         return J
 
-    def _step_norm(self, direction, use_weight: int, deviatoric: int) -> float:
+    def _step_norm(self, direction, use_weight: int, volume_mode: int) -> float:
         """|d| of the step's direction (_step_direction; the smoothed direction already carries w),
         each particle counted once or by its volume (MPMConfig.step_rms)."""
         by_volume = self.cfg.step_rms == "volume"
-        if use_weight and not (self._weighted_step or deviatoric or by_volume):
+        if use_weight and not (self._weighted_step or volume_mode or by_volume):
             return self._grad_norm  # the backward's own |g|
-        self._direction_norm_sq(direction, use_weight, deviatoric, int(by_volume), self._inv_mean_volume)
+        self._direction_norm_sq(direction, use_weight, volume_mode, int(by_volume), self._inv_mean_volume)
         return float(np.sqrt(self.norm_acc[None]))
 
     def _optimize_normalized_gd(self, grad_F_final, grad_x_final, iters: int,
@@ -1214,19 +1239,21 @@ class MPMSolver:
                 for slot in range(self.cfg.n_control_slots):
                     self._smooth_step_slot(slot)
                 direction, use_weight = self.step_dir, 0  # the weights are in the smoothed direction
-            deviatoric = int(self.cfg.step_deviatoric)
-            # the base first: the deviatoric direction is taken at the iteration's control
+            volume_mode = STEP_VOLUME_MODES.index(self.cfg.step_volume)
+            # the base first: the step's change of volume is taken at the iteration's control
             self._save_ctrl_base()
-            rms = self._step_norm(direction, use_weight, deviatoric) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
+            if self.cfg.step_volume == "body":
+                self._body_volume_coefficients(direction, use_weight)
+            rms = self._step_norm(direction, use_weight, volume_mode) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
             rate = 0.0
             if self.cfg.sufficient_decrease > 0:
-                self._direction_dot_gradient(direction, 1.0 / rms, self.cfg.step_clip, use_weight, deviatoric)
+                self._direction_dot_gradient(direction, 1.0 / rms, self.cfg.step_clip, use_weight, volume_mode)
                 rate = self.cfg.sufficient_decrease * float(self.norm_acc[None])
             found = False
             for _ in range(self.cfg.line_search_iters):
-                self._normalized_step(direction, alpha, 1.0 / rms, self.cfg.step_clip, use_weight, deviatoric)
+                self._normalized_step(direction, alpha, 1.0 / rms, self.cfg.step_clip, use_weight, volume_mode)
                 self._forward_current = False
                 try:
                     trial = self._objective(grad_F_final, grad_x_final)
