@@ -141,7 +141,9 @@ class MPMConfig:
         first-order change of the body's volume sum_p V_p det A_p (one direction per control slot,
         N_p = V_p det(A_p) n_p), so particles may trade volume and the body keeps its own. The
         target's mass is rescaled to the source's, so a matched shape has the source's volume.
-        "full": the authors' step (docs/study/log.md findings 156-157 measure the three).
+        "full" (the default): the authors' step. Measured in docs/study/log.md findings 156-157:
+        "particle" lifts mid's runs and costs the default profile's far and letter morphs; "body"
+        changes nothing.
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -181,8 +183,7 @@ class MPMConfig:
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
-                                                             "step_scales_with_dx", "step_per_volume",
-                                                             "step_volume"})
+                                                             "step_scales_with_dx", "step_per_volume"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -207,7 +208,7 @@ class MPMConfig:
     step_volume_power: float = 1.0
     step_rms: Literal["particles", "volume"] = "particles"
     step_smoothing: Literal["none", "grid"] = "none"
-    step_volume: Literal["full", "particle", "body"] = "particle"  # history: docs/study/CHANGELOG.md
+    step_volume: Literal["full", "particle", "body"] = "full"
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
