@@ -104,6 +104,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.step_volume": ("what the step may do to the volume the stress sees: particle (each particle's step "
                         "loses its change of volume), body (only the body's total change is removed), full "
                         "(the authors' step)", "", "particle | body | full"),
+    "mpm.step_volume_share": ("with step_volume particle: the share of each particle's change of volume removed "
+                              "from its step (1: all, 0: the full step)", "", "[0, 1]"),
     "mpm.grad_iters": ("optimiser iterations per frame (J); experiments set it with `grad_iters`", "", ">= 1"),
     "mpm.adam_beta1": ("Adam's first-moment decay", "", "[0, 1)"),
     "mpm.adam_beta2": ("Adam's second-moment decay", "", "[0, 1)"),

@@ -648,7 +648,8 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
                   grad_iters=2, log_mass_eps=0.05, warm_start=False, cfl=0.6, cfl_warn_fraction=0.9,
                   step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5,
-                  step_rms="volume", step_smoothing="grid", step_volume="body")
+                  step_rms="volume", step_smoothing="grid", step_volume="body",
+                  step_volume_share=0.5)
     from physmorph.mpm.config import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
@@ -991,6 +992,15 @@ def test_step_volume_removes_the_steps_first_order_volume_change(state, smoothin
     assert np.abs(full - step).max() > 1e-6
     with pytest.raises(ValueError, match="step_volume"):
         cfg64(step_volume="none")
+    if mode == "particle" and smoothing == "none":
+        # a share beta of the projection: d - beta (<d, n> / <n, n>) n, between the two steps
+        cfg = dataclasses.replace(cfg, step_volume_share=0.25)
+        g, step = _gradient_and_one_step(cfg, st)
+        d = g * w[None, :, None, None]
+        d = d - 0.25 * (d - _volume_projection(d, st.F, C, vol, mode))
+        np.testing.assert_allclose(step, -1e-4 * 2.0 * d / np.sqrt(np.mean(d * d)), rtol=1e-8, atol=1e-14)
+        with pytest.raises(ValueError, match="step_volume_share"):
+            cfg64(step_volume_share=1.5)
 
 
 def test_sufficient_decrease_accepts_only_steps_that_fall_as_promised(state):

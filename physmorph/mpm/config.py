@@ -48,7 +48,7 @@ BARRIER_J_LINEAR = 0.05
 # (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume_power", "step_rms",
-                           "step_smoothing", "step_volume",
+                           "step_smoothing", "step_volume", "step_volume_share",
                            "sufficient_decrease", "grad_iters",
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
@@ -144,6 +144,8 @@ class MPMConfig:
         "full" (the default): the authors' step. Measured in docs/study/log.md findings 156-157:
         "particle" lifts mid's runs and costs the default profile's far and letter morphs; "body"
         changes nothing.
+    step_volume_share: with step_volume "particle", the share beta of each particle's change of
+        volume removed, d - beta (<d, n> / <n, n>) n: 1 removes all of it, 0 is the full step.
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -209,6 +211,7 @@ class MPMConfig:
     step_rms: Literal["particles", "volume"] = "particles"
     step_smoothing: Literal["none", "grid"] = "none"
     step_volume: Literal["full", "particle", "body"] = "full"
+    step_volume_share: float = 1.0
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
@@ -267,6 +270,7 @@ class MPMConfig:
         need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
         need(self.step_smoothing in ("none", "grid"), f"step_smoothing must be none or grid, got {self.step_smoothing!r}")
+        need(0.0 <= self.step_volume_share <= 1.0, f"step_volume_share must be in [0, 1], got {self.step_volume_share}")
         need(self.step_volume in STEP_VOLUME_MODES,
              f"step_volume must be one of {', '.join(STEP_VOLUME_MODES)}, got {self.step_volume!r}")
         need(self.step_rms in ("particles", "volume"), f"step_rms must be particles or volume, got {self.step_rms!r}")

@@ -98,6 +98,7 @@ class MPMSolver:
         # the body-volume projection's coefficient per control slot (step_volume = "body")
         self.step_volume_acc = ti.Vector.field(2, ti.f64, shape=cfg.n_control_slots)
         self.step_volume_coef = ti.field(ti.f64, shape=cfg.n_control_slots)
+        self.step_volume_share = ti.field(ti.f64, shape=())  # MPMConfig.step_volume_share, set per step
         # the step smoothing's grid and direction (step_smoothing = "grid"), allocated on first use
         self.step_grid = self.step_grid_w = self.step_dir = None
         # grid
@@ -783,7 +784,7 @@ class MPMSolver:
         """w_p d_sp (w the particle's step weight, 1 unless step_per_volume or use_weight 0), less
         its first-order change of volume (MPMConfig.step_volume; A = F_0 + dFc with dFc the
         iteration's base control and F_0 the frame's start, n = A^-T): volume_mode 1 ("particle"),
-        each particle's, d - (<d, n> / <n, n>) n; 2 ("body"), the body's, d - lambda_s N with
+        a share beta (step_volume_share) of each particle's, d - beta (<d, n> / <n, n>) n; 2 ("body"), the body's, d - lambda_s N with
         N = V_p det(A) n, the gradient of sum_p V_p det(A_p), and lambda_s from
         _body_volume_coefficients."""
         wp = self.step_weight[p] if use_weight else self.dtype(1.0)
@@ -792,7 +793,7 @@ class MPMSolver:
             A = self.F[0, p] + self.ctrl_base[s, p]
             n = A.inverse().transpose()
             if volume_mode == 1:
-                d -= ((d * n).sum() / (n * n).sum()) * n
+                d -= (ti.cast(self.step_volume_share[None], self.dtype) * (d * n).sum() / (n * n).sum()) * n
             else:
                 d -= ti.cast(self.step_volume_coef[s], self.dtype) * (self.vol[p] * A.determinant()) * n
         return d
@@ -1244,6 +1245,7 @@ class MPMSolver:
             self._save_ctrl_base()
             if self.cfg.step_volume == "body":
                 self._body_volume_coefficients(direction, use_weight)
+            self.step_volume_share[None] = self.cfg.step_volume_share
             rms = self._step_norm(direction, use_weight, volume_mode) / np.sqrt(self.cfg.n_control_slots * self.n * 9)
             if not rms > 0:
                 break
