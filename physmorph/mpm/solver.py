@@ -783,10 +783,10 @@ class MPMSolver:
     def _step_direction(self, direction: ti.template(), s, p, use_weight: ti.i32, volume_mode: ti.i32):
         """w_p d_sp (w the particle's step weight, 1 unless step_per_volume or use_weight 0), less
         its first-order change of volume (MPMConfig.step_volume; A = F_0 + dFc with dFc the
-        iteration's base control and F_0 the frame's start, n = A^-T): volume_mode 1 ("particle"),
-        a share beta (step_volume_share) of each particle's, d - beta (<d, n> / <n, n>) n; 2 ("body"), the body's, d - lambda_s N with
-        N = V_p det(A) n, the gradient of sum_p V_p det(A_p), and lambda_s from
-        _body_volume_coefficients."""
+        iteration's base control and F_0 the frame's start, n = A^-T). volume_mode 1 ("particle"):
+        the share beta (step_volume_share) of each particle's, d - beta (<d, n> / <n, n>) n;
+        2 ("body"): the body's, d - lambda_s N with N = V_p det(A) n, the gradient of
+        sum_p V_p det(A_p), and lambda_s from _body_volume_coefficients."""
         wp = self.step_weight[p] if use_weight else self.dtype(1.0)
         d = direction[s, p] * wp
         if volume_mode != 0:
