@@ -780,7 +780,7 @@ class MPMSolver:
             self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
 
     @ti.func
-    def _step_direction(self, direction: ti.template(), s, p, use_weight: ti.i32, volume_mode: ti.i32):
+    def _step_direction(self, direction: ti.template(), s, p, use_weight: ti.i32, volume_mode: ti.template()):
         """w_p d_sp (w the particle's step weight, 1 unless step_per_volume or use_weight 0), less
         its first-order change of volume (MPMConfig.step_volume; A = F_0 + dFc with dFc the
         iteration's base control and F_0 the frame's start, n = A^-T). volume_mode 1 ("particle"):
@@ -789,10 +789,11 @@ class MPMSolver:
         sum_p V_p det(A_p), and lambda_s from _body_volume_coefficients."""
         wp = self.step_weight[p] if use_weight else self.dtype(1.0)
         d = direction[s, p] * wp
-        if volume_mode != 0:
+        # volume_mode is a compile-time constant: the full step's kernels carry no 3x3 inverse
+        if ti.static(volume_mode != 0):
             A = self.F[0, p] + self.ctrl_base[s, p]
             n = A.inverse().transpose()
-            if volume_mode == 1:
+            if ti.static(volume_mode == 1):
                 d -= (ti.cast(self.step_volume_share[None], self.dtype) * (d * n).sum() / (n * n).sum()) * n
             else:
                 d -= ti.cast(self.step_volume_coef[s], self.dtype) * (self.vol[p] * A.determinant()) * n
@@ -816,7 +817,7 @@ class MPMSolver:
 
     @ti.kernel
     def _normalized_step(self, direction: ti.template(), alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64,
-                         use_weight: ti.i32, volume_mode: ti.i32):
+                         use_weight: ti.i32, volume_mode: ti.template()):
         """dFc = base - alpha clip(d / rms(d), -clip, clip) (clip <= 0: unclipped), d the step's
         direction (_step_direction: the weighted gradient w g, or the smoothed direction with
         use_weight 0, less its change of volume where asked): the normalised gradient step of
@@ -829,7 +830,7 @@ class MPMSolver:
 
     @ti.kernel
     def _direction_dot_gradient(self, direction: ti.template(), inv_rms: ti.f64, clip: ti.f64, use_weight: ti.i32,
-                                volume_mode: ti.i32):
+                                volume_mode: ti.template()):
         """norm_acc = <g, d>, d = clip(d / rms(d), -clip, clip) as in _normalized_step: the
         objective's first-order fall per unit alpha along the normalised step (the Armijo test's
         rate)."""
@@ -842,7 +843,7 @@ class MPMSolver:
             self.norm_acc[None] += ti.cast((g * d).sum(), ti.f64)
 
     @ti.kernel
-    def _direction_norm_sq(self, direction: ti.template(), use_weight: ti.i32, volume_mode: ti.i32,
+    def _direction_norm_sq(self, direction: ti.template(), use_weight: ti.i32, volume_mode: ti.template(),
                            by_volume: ti.i32, inv_mean_volume: ti.f64):
         """norm_acc = sum_sp c_p |d_sp|^2, d the step's direction (_step_direction), c_p = 1 or,
         by_volume (MPMConfig.step_rms = "volume"), V_p / mean V: each particle counted by its volume."""
