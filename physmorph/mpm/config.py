@@ -141,11 +141,12 @@ class MPMConfig:
         first-order change of the body's volume sum_p V_p det A_p (one direction per control slot,
         N_p = V_p det(A_p) n_p), so particles may trade volume and the body keeps its own. The
         target's mass is rescaled to the source's, so a matched shape has the source's volume.
-        "full" (the default): the authors' step. Measured in docs/study/log.md findings 156-157:
-        "particle" lifts mid's runs and costs the default profile's far and letter morphs; "body"
-        changes nothing.
+        "full": the authors' step. Measured in docs/study/log.md findings 156-158: "particle"
+        lifts mid's runs and, removing all of each particle's change, costs the default profile's
+        far and letter morphs; "body" changes nothing. The default: "particle" with a share 0.75.
     step_volume_share: with step_volume "particle", the share beta of each particle's change of
-        volume removed, d - beta (<d, n> / <n, n>) n: 1 removes all of it, 0 is the full step.
+        volume removed, d - beta (<d, n> / <n, n>) n: 1 removes all of it, 0 is the full step
+        (default 0.75: mid keeps its gain and the default profile's far morphs their bars).
     smoothing_mode: "full" (the paper): F' = (1 - s) F_new + s F, every part of F follows 1 - s of
         each substep's motion. "isochoric" (the default since 2026-11-24; not in the
         paper): that blend rescaled to the determinant of F_new, F' = (det F_new / det F_s)^(1/3)
@@ -185,7 +186,8 @@ class MPMConfig:
     # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
-                                                             "step_scales_with_dx", "step_per_volume"})
+                                                             "step_scales_with_dx", "step_per_volume",
+                                                             "step_volume", "step_volume_share"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -210,8 +212,8 @@ class MPMConfig:
     step_volume_power: float = 1.0
     step_rms: Literal["particles", "volume"] = "particles"
     step_smoothing: Literal["none", "grid"] = "none"
-    step_volume: Literal["full", "particle", "body"] = "full"
-    step_volume_share: float = 1.0
+    step_volume: Literal["full", "particle", "body"] = "particle"  # history: docs/study/CHANGELOG.md
+    step_volume_share: float = 0.75
     grad_iters: int = 1
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
