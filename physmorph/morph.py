@@ -37,12 +37,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from physmorph.frame_measures import DeformationMeasures, deformation_measures, grid_mass
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
-from physmorph.linalg3 import det3
 from physmorph.memory import release_free_memory
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
-from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, elastic_energy, kinetic_energy, total_volume
+from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, kinetic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou, volume_metrics
 from physmorph.plasticity import absorbed_rest, chamfer_plasticity_step, neighbour_pool, rebase_reference
@@ -106,7 +106,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
 
     def metrics_for(st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
                     target_distance: np.ndarray | None = None,
-                    masked_alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray]:  # [V, H, W]
+                    masked_alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray, DeformationMeasures]:  # per_view [V]
         sel = slice(None) if cfg.metric_all_particles else mask
         if alpha is None and masked_alpha is not None and cfg.metric_all_particles:
             # The loss rendered the masked particles from every view; coverage composes, 1 - alpha =
@@ -119,16 +119,17 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             alpha, _ = render_views(st.x[sel], st.F[sel], parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
         iou = silhouette_iou(alpha, target.alpha)
-        det = det3(st.Fp)
+        dm = deformation_measures(st.F, st.Fp)
         d = tree.query(st.x, k=1, workers=-1)[0] if target_distance is None else target_distance
-        return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()), "fp_det_min": float(det.min()), "fp_det_max": float(det.max()),
-                "fp_anisotropy_max": float(anisotropy(st.Fp).max()),
-                "elastic_energy": float(elastic_energy(st, cfg.mpm)), "kinetic_energy": kinetic_energy(st),
+        return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()),
+                "fp_det_min": float(dm.det_plastic.min()), "fp_det_max": float(dm.det_plastic.max()),
+                "fp_anisotropy_max": float(dm.anisotropy_plastic.max()),
+                "elastic_energy": dm.elastic_energy(st.volume, cfg.mpm), "kinetic_energy": kinetic_energy(st),
                 "total_volume": float(total_volume(st)),
                 "mask_size": int(mask.sum()) if need_mask else np.nan,
                 "mask_fraction": float(mask.mean()) if need_mask else np.nan,
                 "chamfer": float(d.mean()),
-                **volume_metrics(st.x, parts.mass, target.grid_mass, target.grid)}, per_view
+                **volume_metrics(st.x, parts.mass, target.grid_mass, target.grid, splat=grid_mass)}, per_view, dm
 
     destination = None  # correspondence="transport": computed at the first update (a function of the inputs alone)
     pool = None  # the plasticity's neighbour pool, chosen at the first update from the positions at rest
@@ -144,7 +145,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         run.set_meta({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "n_particles": N,
                       "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames,
                       "ceiling_alpha_mse": ceiling, "ceiling_iou": float(getattr(target, "ceiling_iou", np.nan))})
-        m, per_view = metrics_for(st, mask)
+        m, per_view, _ = metrics_for(st, mask)
         a0 = m["alpha_mse"]
         m["gap_closed"] = 0.0
         # Frame 0 is the unmoved source: it has metrics but no physics step (its losses are NaN).
@@ -267,7 +268,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
             release_free_memory()
         t4 = time.time()
-        m, per_view = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None,
+        m, per_view, dm = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None,
                                   masked_alpha=res.alpha if want_grad and len(views) == V else None,
                                   target_distance=nearest_d)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
@@ -288,7 +289,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             rose = scal["physics_loss"] > loss_before
             step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.step_size)
         loss_before = scal["physics_loss"]
-        new_warnings = monitor.update(k, st.Fp, m["alpha_mse"])
+        new_warnings = monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic, fp_anisotropy=dm.anisotropy_plastic)
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,

@@ -25,7 +25,7 @@ fills, and the share of the mass packed above twice the target's density.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -60,7 +60,8 @@ def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
 def volume_metrics(x: np.ndarray,  # [N, 3] particle positions
                    mass: np.ndarray,  # [N]
                    target_grid_mass: np.ndarray,  # [R, R, R] the target's own particles splatted (Target.grid_mass)
-                   grid: Grid) -> dict[str, float]:
+                   grid: Grid,
+                   splat: Callable[[np.ndarray, np.ndarray, Grid], np.ndarray] = splat_mass) -> dict[str, float]:
     """The 3D checks, from the particles' grid mass m_I = sum_p w_Ip m_p (the MPM P2G transfer)
     and the target's m*_I rescaled to the particles' total mass, with m_int the target's interior
     node mass (the INTERIOR_PERCENTILE of its non-empty nodes):
@@ -74,7 +75,8 @@ def volume_metrics(x: np.ndarray,  # [N, 3] particle positions
     loose cloud of particles) does not count as filling its cells, and one collapsed into clumps
     fills few. The target's own sampling scores volume_iou 1 and overfilled_mass 0. A source of
     another volume at the same density cannot reach 1 (it has too little or too much material
-    to fill the target's cells), so compare methods on the same experiment.
+    to fill the target's cells), so compare methods on the same experiment. ``splat`` computes m_I
+    (physmorph.frame_measures.grid_mass is the morph loop's one-pass form).
     """
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     mass = np.asarray(mass, dtype=np.float64).reshape(-1)
@@ -87,7 +89,7 @@ def volume_metrics(x: np.ndarray,  # [N, 3] particle positions
     scale = mass.sum() / filled.sum()
     target = target * scale
     interior = float(np.percentile(filled, INTERIOR_PERCENTILE)) * scale
-    m = splat_mass(x, mass, grid)
+    m = splat(x, mass, grid)
     a, b = m > VOLUME_FILL * interior, target > VOLUME_FILL * interior
     return {"volume_iou": float((a & b).sum() / max(int((a | b).sum()), 1)),
             "overfilled_mass": float(m[m > OVERFILL * interior].sum() / m.sum())}

@@ -46,12 +46,15 @@ class StabilityMonitor:
         self.pinned_streak = self.rising_streak = 0
         self.last_alpha = None
 
-    def update(self, frame: int, Fp: np.ndarray, alpha_mse: float) -> list[str]:  # Fp [N, 3, 3]
+    def update(self, frame: int, Fp: np.ndarray, alpha_mse: float,  # Fp [N, 3, 3]
+               det: np.ndarray | None = None,  # [N] det Fp, where the caller has it
+               fp_anisotropy: np.ndarray | None = None) -> list[str]:  # [N] anisotropy(Fp), the same
         out = []
         lo, hi = self.cfg.det_bounds
-        det = det3(Fp)
+        det = det3(Fp) if det is None else det
+        aniso = anisotropy(Fp) if fp_anisotropy is None else fp_anisotropy
         tol = 1e-3
-        pinned = (det <= lo * (1 + tol)) | (det >= hi * (1 - tol)) | (anisotropy(Fp) >= self.cfg.max_anisotropy * (1 - tol))
+        pinned = (det <= lo * (1 + tol)) | (det >= hi * (1 - tol)) | (aniso >= self.cfg.max_anisotropy * (1 - tol))
         share = float(pinned.mean())
         self.pinned_streak = self.pinned_streak + 1 if share >= self.pinned_share else 0
         if self.pinned_streak == self.pinned_frames:

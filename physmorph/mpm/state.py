@@ -80,16 +80,21 @@ def fixed_corotated_energy_density(Fe: np.ndarray, mu: float, lam: float,  # [N,
     """Psi(Fe) = mu ||Fe - R||_F^2 + Psi_vol(J) (Stomakhin et al. 2012): Psi_vol = lam/2 (J - 1)^2
     (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued quadratically below BARRIER_J_LINEAR)."""
     # ||Fe - R||_F^2 = sum_i (s_i - 1)^2 over the signed singular values (R = U V^T, both rotations)
-    J = det3(Fe)
     shear = mu * ((signed_singular_values(Fe) - 1.0) ** 2).sum(axis=1)
+    return shear + volume_energy_density(det3(Fe), lam, volume_law)
+
+
+def volume_energy_density(J: np.ndarray, lam: float, volume_law: str = "fixed_corotated") -> np.ndarray:  # [N] -> [N]
+    """Psi_vol(J): lam/2 (J - 1)^2 (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued
+    quadratically below BARRIER_J_LINEAR)."""
     if volume_law == "fixed_corotated":
-        return shear + 0.5 * lam * (J - 1.0) ** 2
+        return 0.5 * lam * (J - 1.0) ** 2
     jl = BARRIER_J_LINEAR
     Jc = np.maximum(J, jl)
     vol = lam * (Jc - 1.0 - np.log(Jc))
     d = np.minimum(J - jl, 0.0)  # the tangent continuation's integral below jl
     vol += lam * (1.0 - 1.0 / jl) * d + 0.5 * lam / jl ** 2 * d ** 2
-    return shear + vol
+    return vol
 
 
 def elastic_energy(state: ParticleState, cfg: MPMConfig) -> float:

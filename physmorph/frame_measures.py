@@ -1,0 +1,149 @@
+"""The morph loop's per-frame measures of the particle state, each in one Taichi pass.
+
+At the paper's scale (471K particles) the NumPy forms of these measures took ~1.5 s of every
+frame: F Fp^-1 and its singular values for the elastic energy, Fp's singular values twice (the
+metric's anisotropy and the stability monitor's clamp check), and the particles' grid mass for the
+volume IoU. Here each is one pass over the particles with the same formulas; the NumPy forms stay
+the reference the tests compare against (physmorph.linalg3, physmorph.mpm.state,
+physmorph.grid.splat_mass).
+
+- :func:`deformation_measures`: for each particle, with Fe = F Fp^-1 (the elastic part, paper
+  section 4 "Physics rollout", no control field), the shear term sum_i (s_i - 1)^2 = ||Fe - R||_F^2
+  over Fe's signed singular values (the smallest negated where det Fe < 0), J = det Fe, det Fp and
+  Fp's anisotropy s_max / s_min. Singular values as in linalg3.singular_values: the eigenvalues of
+  M^T M by the trigonometric formula, the smallest taken from |det M| / (s1 s2).
+- :func:`grid_mass`: m_I = sum_p w_Ip m_p with the quadratic B-spline of physmorph.grid (the MPM
+  P2G mass transfer), stencil entries outside the grid dropped.
+"""
+
+# No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
+
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from physmorph.grid import Grid
+from physmorph.mpm.config import MPMConfig
+from physmorph.mpm.state import volume_energy_density
+from physmorph.taichi_runtime import init_taichi
+
+
+@ti.func
+def _det(M):
+    return (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1])
+            - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+            + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
+
+
+@ti.func
+def _singular_values(M):
+    """Descending singular values of a 3x3 f64 matrix (linalg3.singular_values): with A = M^T M,
+    q = tr A / 3, p = sqrt(tr((A - q I)^2) / 6), phi = acos(det((A - q I) / p) / 2) / 3, the
+    eigenvalues are q + 2 p cos(phi + 2 pi k / 3); s3 = min(|det M| / (s1 s2), s2)."""
+    A = M.transpose() @ M
+    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
+    C = A - q * ti.Matrix.identity(ti.f64, 3)
+    p = ti.sqrt((C * C).sum() / 6.0)
+    safe = p if p > 0.0 else 1.0
+    r = ti.min(ti.max(_det(C / safe) / 2.0, -1.0), 1.0)
+    phi = ti.acos(r) / 3.0
+    e1 = q + 2.0 * p * ti.cos(phi)
+    # 2 pi / 3 from f64 operations: a Python float in a kernel is an f32 literal
+    e3 = q + 2.0 * p * ti.cos(phi + ti.acos(ti.cast(-0.5, ti.f64)))
+    e2 = 3.0 * q - e1 - e3
+    s1 = ti.sqrt(ti.max(e1, 0.0))
+    s2 = ti.sqrt(ti.max(e2, 0.0))
+    s3 = ti.sqrt(ti.max(e3, 0.0))
+    if s1 * s2 > 0.0:
+        s3 = ti.min(ti.abs(_det(M)) / (s1 * s2), s2)
+    return ti.Vector([s1, s2, s3])
+
+
+@ti.kernel
+def _deformation_kernel(F: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
+                        Fp: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
+                        shear: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N] out
+                        det_elastic: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N] out
+                        det_plastic: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N] out
+                        anisotropy_plastic: ti.types.ndarray(dtype=ti.f64, ndim=1)):  # [N] out
+    for p in range(F.shape[0]):
+        Fm = ti.Matrix.zero(ti.f64, 3, 3)
+        P = ti.Matrix.zero(ti.f64, 3, 3)
+        for i, j in ti.static(ti.ndrange(3, 3)):
+            Fm[i, j] = F[p, i, j]
+            P[i, j] = Fp[p, i, j]
+        Fe = Fm @ P.inverse()
+        s = _singular_values(Fe)
+        J = _det(Fe)
+        if J < 0.0:
+            s[2] = -s[2]
+        shear[p] = ((s - 1.0) ** 2).sum()
+        det_elastic[p] = J
+        det_plastic[p] = _det(P)
+        sp = _singular_values(P)
+        anisotropy_plastic[p] = sp[0] / ti.max(sp[2], 1e-12)
+
+
+@ti.kernel
+def _grid_mass_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
+                      mass: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N]
+                      out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [R, R, R], zeroed, added to
+                      lo: ti.f64, inv_dx: ti.f64):
+    R = out.shape[0]
+    for p in range(x.shape[0]):
+        xg = ti.Vector([x[p, 0] - lo, x[p, 1] - lo, x[p, 2] - lo]) * inv_dx
+        base = ti.floor(xg - 0.5, ti.i32)
+        f = xg - ti.cast(base, ti.f64)
+        w = [0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2]
+        for a, b, c in ti.static(ti.ndrange(3, 3, 3)):
+            I = base + ti.Vector([a, b, c])
+            if 0 <= I[0] < R and 0 <= I[1] < R and 0 <= I[2] < R:
+                out[I[0], I[1], I[2]] += w[a][0] * w[b][1] * w[c][2] * mass[p]
+
+
+@dataclass(frozen=True)
+class DeformationMeasures:
+    """Per particle, from F and Fp (module docstring)."""
+
+    shear: np.ndarray  # [N] sum_i (s_i(Fe) - 1)^2, Fe = F Fp^-1, signed singular values
+    det_elastic: np.ndarray  # [N] det Fe
+    det_plastic: np.ndarray  # [N] det Fp
+    anisotropy_plastic: np.ndarray  # [N] largest over smallest singular value of Fp
+
+    def elastic_energy(self, volume: np.ndarray,  # [N] rest volumes V0_p
+                       cfg: MPMConfig) -> float:
+        """sum_p V0_p Psi(Fe_p), Psi = mu ||Fe - R||^2 + Psi_vol(J) (physmorph.mpm.elastic_energy)."""
+        psi = cfg.mu * self.shear + volume_energy_density(self.det_elastic, cfg.lam, cfg.volume_law)
+        return float((np.asarray(volume) * psi).sum())
+
+
+def deformation_measures(F: np.ndarray,  # [N, 3, 3]
+                         Fp: np.ndarray) -> DeformationMeasures:  # [N, 3, 3]
+    """The shear term and determinant of Fe = F Fp^-1 and Fp's determinant and anisotropy, in
+    float64, one Taichi pass (module docstring)."""
+    init_taichi()
+    F = np.ascontiguousarray(F, dtype=np.float64).reshape(-1, 3, 3)
+    Fp = np.ascontiguousarray(Fp, dtype=np.float64).reshape(-1, 3, 3)
+    if F.shape != Fp.shape:
+        raise ValueError(f"F has shape {F.shape} and Fp {Fp.shape}; they must match")
+    out = [np.empty(len(F)) for _ in range(4)]
+    if len(F):
+        _deformation_kernel(F, Fp, *out)
+    return DeformationMeasures(*out)
+
+
+def grid_mass(x: np.ndarray,  # [N, 3]
+              mass: np.ndarray,  # [N]
+              grid: Grid) -> np.ndarray:  # [res, res, res]
+    """Particle mass on the grid's nodes, m_I = sum_p w_Ip m_p (physmorph.grid.splat_mass in one
+    Taichi pass; summation order aside, the same numbers)."""
+    init_taichi()
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
+    mass = np.ascontiguousarray(mass, dtype=np.float64).reshape(-1)
+    if len(x) != len(mass):
+        raise ValueError(f"{len(x)} positions and {len(mass)} masses; they must match")
+    out = np.zeros((grid.res,) * 3)
+    if len(x):
+        _grid_mass_kernel(x, mass, out, float(grid.lo), 1.0 / grid.dx)
+    return out
