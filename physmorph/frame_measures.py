@@ -2,8 +2,8 @@
 
 At the paper's scale (471K particles) the NumPy forms of these measures took ~1.5 s of every
 frame: F Fp^-1 and its singular values for the elastic energy, Fp's singular values twice (the
-metric's anisotropy and the stability monitor's clamp check), and the particles' grid mass for the
-volume IoU. Here each is one pass over the particles with the same formulas; the NumPy forms stay
+metric's anisotropy and the stability monitor's clamp check), the particles' grid mass for the
+volume IoU, and the surface mask's voxel density. Here each is one pass over the particles with the same formulas; the NumPy forms stay
 the reference the tests compare against (physmorph.linalg3, physmorph.mpm.state,
 physmorph.grid.splat_mass).
 
@@ -14,6 +14,8 @@ physmorph.grid.splat_mass).
   M^T M by the trigonometric formula, the smallest taken from |det M| / (s1 s2).
 - :func:`grid_mass`: m_I = sum_p w_Ip m_p with the quadratic B-spline of physmorph.grid (the MPM
   P2G mass transfer), stencil entries outside the grid dropped.
+- :func:`voxel_density`: the surface mask's trilinear splat onto voxel centres
+  (physmorph.surface.density_grid).
 """
 
 # No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
@@ -26,7 +28,7 @@ import taichi as ti
 from physmorph.grid import Grid
 from physmorph.mpm.config import MPMConfig
 from physmorph.mpm.state import volume_energy_density
-from physmorph.taichi_runtime import init_taichi
+from physmorph.taichi_runtime import init_taichi, taichi_state
 
 
 @ti.func
@@ -102,6 +104,30 @@ def _grid_mass_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
                 out[I[0], I[1], I[2]] += w[a][0] * w[b][1] * w[c][2] * mass[p]
 
 
+@ti.kernel
+def _voxel_density_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
+                          weight: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N]
+                          out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [M, M, M], zeroed, added to
+                          lo: ti.f64, inv_h: ti.f64):
+    M = out.shape[0]
+    for p in range(x.shape[0]):
+        g = ti.Vector([x[p, 0] - lo, x[p, 1] - lo, x[p, 2] - lo]) * inv_h - 0.5
+        base = ti.floor(g, ti.i32)
+        f = g - ti.cast(base, ti.f64)
+        w = [1.0 - f, f]
+        for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+            I = base + ti.Vector([a, b, c])
+            if 0 <= I[0] < M and 0 <= I[1] < M and 0 <= I[2] < M:
+                out[I[0], I[1], I[2]] += w[a][0] * w[b][1] * w[c][2] * weight[p]
+
+
+def _runtime() -> None:
+    """The process's Taichi runtime, whichever device a run started it on (a CUDA run's kernels
+    take these NumPy arrays too); the CPU where nothing has started one."""
+    if not taichi_state():
+        init_taichi("cpu")
+
+
 @dataclass(frozen=True)
 class DeformationMeasures:
     """Per particle, from F and Fp (module docstring)."""
@@ -122,7 +148,7 @@ def deformation_measures(F: np.ndarray,  # [N, 3, 3]
                          Fp: np.ndarray) -> DeformationMeasures:  # [N, 3, 3]
     """The shear term and determinant of Fe = F Fp^-1 and Fp's determinant and anisotropy, in
     float64, one Taichi pass (module docstring)."""
-    init_taichi()
+    _runtime()
     F = np.ascontiguousarray(F, dtype=np.float64).reshape(-1, 3, 3)
     Fp = np.ascontiguousarray(Fp, dtype=np.float64).reshape(-1, 3, 3)
     if F.shape != Fp.shape:
@@ -138,7 +164,7 @@ def grid_mass(x: np.ndarray,  # [N, 3]
               grid: Grid) -> np.ndarray:  # [res, res, res]
     """Particle mass on the grid's nodes, m_I = sum_p w_Ip m_p (physmorph.grid.splat_mass in one
     Taichi pass; summation order aside, the same numbers)."""
-    init_taichi()
+    _runtime()
     x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
     mass = np.ascontiguousarray(mass, dtype=np.float64).reshape(-1)
     if len(x) != len(mass):
@@ -146,4 +172,20 @@ def grid_mass(x: np.ndarray,  # [N, 3]
     out = np.zeros((grid.res,) * 3)
     if len(x):
         _grid_mass_kernel(x, mass, out, float(grid.lo), 1.0 / grid.dx)
+    return out
+
+
+def voxel_density(x: np.ndarray,  # [N, 3]
+                  weight: np.ndarray,  # [N]
+                  voxels: int, lo: float, hi: float) -> np.ndarray:  # [voxels, voxels, voxels]
+    """Trilinear splat of ``weight`` onto the centres of voxels x voxels x voxels cells of
+    [lo, hi]^3 (physmorph.surface.density_grid in one Taichi pass)."""
+    _runtime()
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
+    weight = np.ascontiguousarray(weight, dtype=np.float64).reshape(-1)
+    if len(x) != len(weight):
+        raise ValueError(f"{len(x)} positions and {len(weight)} weights; they must match")
+    out = np.zeros((voxels,) * 3)
+    if len(x):
+        _voxel_density_kernel(x, weight, out, float(lo), voxels / (hi - lo))
     return out

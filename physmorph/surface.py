@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from physmorph.frame_measures import voxel_density
 from physmorph.grid import scatter_add
 
 if TYPE_CHECKING:  # scipy and scikit-image are imported where they are used (the workflow reads
@@ -51,7 +52,7 @@ def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConf
     from skimage import measure
 
     h = (hi - lo) / cfg.voxels
-    rho = ndimage.gaussian_filter(density_grid(x, volume, cfg.voxels, lo, hi), cfg.blur_sigma)
+    rho = ndimage.gaussian_filter(voxel_density(x, volume, cfg.voxels, lo, hi), cfg.blur_sigma)
     positive = rho[rho > 0]
     if positive.size == 0:
         return np.zeros(len(x), bool)

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
-from physmorph.frame_measures import deformation_measures, grid_mass
+from physmorph.frame_measures import deformation_measures, grid_mass, voxel_density
 from physmorph.grid import Grid, splat_mass
 from physmorph.linalg3 import det3, singular_values, signed_singular_values
 from physmorph.mpm import MPMConfig, ParticleState, elastic_energy
 from physmorph.stability import anisotropy
+from physmorph.surface import density_grid
 
 
 def _matrices(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:  # F, Fp [n, 3, 3]
@@ -66,6 +67,16 @@ def test_grid_mass_is_the_splat():
     np.testing.assert_allclose(got, splat_mass(x, mass, grid), rtol=1e-12, atol=1e-14)
     inside = slice(10, None)  # every stencil on the grid: all of the mass arrives
     assert grid_mass(x[inside], mass[inside], grid).sum() == pytest.approx(mass[inside].sum(), rel=1e-12)
+
+
+def test_voxel_density_is_the_trilinear_splat():
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-1.0, 1.0, (3000, 3))
+    x[:10] = rng.uniform(-1.0, -0.95, (10, 3))  # half a voxel from the face: some corners off the grid
+    w = rng.uniform(0.1, 2.0, len(x))
+    got = voxel_density(x, w, 20, -1.0, 1.0)
+    np.testing.assert_allclose(got, density_grid(x, w, 20, -1.0, 1.0), rtol=1e-12, atol=1e-14)
+    assert got.sum() < w.sum() - 1e-6  # the dropped corners carried weight
 
 
 def test_measures_name_mismatched_inputs():
