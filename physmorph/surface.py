@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from physmorph.frame_measures import voxel_density
 from physmorph.grid import scatter_add
 
 if TYPE_CHECKING:  # scipy and scikit-image are imported where they are used (the workflow reads
@@ -50,6 +49,8 @@ def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConf
     from scipy import ndimage
     from scipy.spatial import cKDTree
     from skimage import measure
+
+    from physmorph.frame_measures import voxel_density  # Taichi: only where a mask is built
 
     h = (hi - lo) / cfg.voxels
     rho = ndimage.gaussian_filter(voxel_density(x, volume, cfg.voxels, lo, hi), cfg.blur_sigma)
