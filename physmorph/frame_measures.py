@@ -28,7 +28,7 @@ import taichi as ti
 from physmorph.grid import Grid
 from physmorph.mpm.config import MPMConfig
 from physmorph.mpm.state import volume_energy_density
-from physmorph.taichi_runtime import init_taichi, taichi_state
+from physmorph.taichi_runtime import ensure_taichi
 
 
 @ti.func
@@ -121,13 +121,6 @@ def _voxel_density_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
                 out[I[0], I[1], I[2]] += w[a][0] * w[b][1] * w[c][2] * weight[p]
 
 
-def _runtime() -> None:
-    """The process's Taichi runtime, whichever device a run started it on (a CUDA run's kernels
-    take these NumPy arrays too); the CPU where nothing has started one."""
-    if not taichi_state():
-        init_taichi("cpu")
-
-
 @dataclass(frozen=True)
 class DeformationMeasures:
     """Per particle, from F and Fp (module docstring)."""
@@ -148,7 +141,7 @@ def deformation_measures(F: np.ndarray,  # [N, 3, 3]
                          Fp: np.ndarray) -> DeformationMeasures:  # [N, 3, 3]
     """The shear term and determinant of Fe = F Fp^-1 and Fp's determinant and anisotropy, in
     float64, one Taichi pass (module docstring)."""
-    _runtime()
+    ensure_taichi()
     F = np.ascontiguousarray(F, dtype=np.float64).reshape(-1, 3, 3)
     Fp = np.ascontiguousarray(Fp, dtype=np.float64).reshape(-1, 3, 3)
     if F.shape != Fp.shape:
@@ -164,7 +157,7 @@ def grid_mass(x: np.ndarray,  # [N, 3]
               grid: Grid) -> np.ndarray:  # [res, res, res]
     """Particle mass on the grid's nodes, m_I = sum_p w_Ip m_p (physmorph.grid.splat_mass in one
     Taichi pass; summation order aside, the same numbers)."""
-    _runtime()
+    ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
     mass = np.ascontiguousarray(mass, dtype=np.float64).reshape(-1)
     if len(x) != len(mass):
@@ -180,7 +173,7 @@ def voxel_density(x: np.ndarray,  # [N, 3]
                   voxels: int, lo: float, hi: float) -> np.ndarray:  # [voxels, voxels, voxels]
     """Trilinear splat of ``weight`` onto the centres of voxels x voxels x voxels cells of
     [lo, hi]^3 (physmorph.surface.density_grid in one Taichi pass)."""
-    _runtime()
+    ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
     weight = np.ascontiguousarray(weight, dtype=np.float64).reshape(-1)
     if len(x) != len(weight):

@@ -171,95 +171,6 @@ def displacement_jacobian(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, m
     return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
 
 
-def _pair_weights(x: np.ndarray, neighbors: np.ndarray, chunk: int = ROW_CHUNK) -> np.ndarray:  # -> r2 [N, k]
-    """|x_j - x_i|^2 for every neighbour j of i, by chunks of rows (no [N, k, 3] array)."""
-    r2 = np.empty(neighbors.shape)
-    for a in range(0, len(x), chunk):
-        e = x[neighbors[a:a + chunk]] - x[a:a + chunk, None, :]
-        r2[a:a + chunk] = np.einsum("nki,nki->nk", e, e)
-    return r2
-
-
-def _inverse_or_zero(r2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:  # [N, k] -> [N, k]
-    """1 / r2 where r2 > 0, else 0 (the particle itself and coincident neighbours carry no
-    information), by chunks of rows so no full-size temporary is made; ``out`` may be ``r2``."""
-    out = np.empty(r2.shape) if out is None else out
-    for a in range(0, len(r2), ROW_CHUNK):
-        r = r2[a:a + ROW_CHUNK]
-        pos = r > 0
-        o = out[a:a + ROW_CHUNK]
-        np.divide(1.0, r, out=o, where=pos)
-        o[~pos] = 0.0
-    return out
-
-
-def neighbour_sums(neighbors: np.ndarray, weights: np.ndarray,  # neighbors, weights [R, k]
-                   n_columns: int | None = None):
-    """The sparse operator (W f)_i = sum_k weights_ik f_{neighbors_ik}, R rows of n_columns (R x R
-    by default). With int32 neighbours and float64 weights it holds views of both (no copy of the
-    [R, k] arrays)."""
-    from scipy.sparse import csr_matrix
-    n, k = neighbors.shape
-    index = np.int32 if max(n * k, n_columns or 0) < np.iinfo(np.int32).max else np.int64
-    return csr_matrix((weights.ravel(), neighbors.ravel().astype(index, copy=False),
-                       np.arange(0, n * k + 1, k, dtype=index)), shape=(n, n if n_columns is None else n_columns))
-
-
-def knn_smooth_sparse(d: np.ndarray, neighbors: np.ndarray, iters: int, sources: np.ndarray | None = None,
-                      chunk: int = ROW_CHUNK) -> np.ndarray:
-    """knn_smooth (its reference) by sparse averaging operators: the same means, without the
-    [N, k, 3] gather per pass (0.1 s instead of 1.4 s a pass at 471K particles, k = 64). Rows
-    go by chunks (no [N, k] weight array); ``sources`` [P]: the only particles any neighbourhood
-    holds (the neighbour pool), so every pass but the last updates those rows alone."""
-    d = np.asarray(d, dtype=np.float64)
-    n = len(d)
-    pool_rows = None if sources is None or len(sources) == n else np.asarray(sources)
-    for it in range(iters):
-        rows = pool_rows if it + 1 < iters and pool_rows is not None else None
-        out = d.copy() if rows is not None else np.empty_like(d)
-        nb = neighbors if rows is None else neighbors[rows]
-        for a in range(0, len(nb), chunk):
-            part = nb[a:a + chunk]
-            mean = neighbour_sums(part, np.full(part.shape, 1.0 / part.shape[1]), n_columns=n) @ d
-            if rows is None:
-                out[a:a + len(part)] = mean
-            else:
-                out[rows[a:a + len(part)]] = mean
-        d = out
-    return d
-
-
-def displacement_jacobian_sparse(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, mode: str = "least_squares",
-                                 r2: np.ndarray | None = None, overwrite_r2: bool = False) -> np.ndarray:  # -> [N, 3, 3]
-    """displacement_jacobian (its reference) from neighbour sums: with w_ij = 1 / |x_j - x_i|^2
-    (0 for j = i or a coincident j),
-    sum_j w_ij (d_j - d_i)(x_j - x_i)^T = S[d x^T] - S[d] x_i^T - d_i S[x]^T + S[1] d_i x_i^T,
-    S[f]_i = sum_j w_ij f_j, and the same for M with x in place of d. r2 [N, k]: the squared
-    neighbour distances when the caller has them (the KD tree's query), else computed;
-    ``overwrite_r2``: the weights are written over them (no second [N, k] array)."""
-    n = len(x)
-    if r2 is None:
-        r2, overwrite_r2 = _pair_weights(x, neighbors), True
-    w = _inverse_or_zero(r2, out=r2 if overwrite_r2 else None)
-    count = np.maximum(np.count_nonzero(w, axis=1), 1)[:, None, None]
-    W = neighbour_sums(neighbors, w)
-    s1 = np.asarray(W.sum(axis=1)).reshape(n, 1, 1)
-    Sx = W @ x
-
-    def moment(f: np.ndarray) -> np.ndarray:  # sum_j w_ij (f_j - f_i)(x_j - x_i)^T / count
-        Sf = W @ f
-        Sfx = (W @ np.einsum("ni,nj->nij", f, x).reshape(n, 9)).reshape(n, 3, 3)
-        return (Sfx - Sf[:, :, None] * x[:, None, :] - f[:, :, None] * Sx[:, None, :]
-                + s1 * f[:, :, None] * x[:, None, :]) / count
-
-    J = moment(d)
-    if mode == "paper":
-        return J
-    M = moment(x)
-    M = M + 1e-9 * np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3)
-    return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
-
-
 def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:
     """Isochoric projection of Fp [N, 3, 3]: clamp its stretches' anisotropy and determinant.
 
@@ -466,6 +377,8 @@ def chamfer_plasticity_step(
     are taken from the pool's particles, whose displacements the smoothing passes update as well."""
     from scipy.spatial import cKDTree
 
+    from physmorph.neighbourhood import displacement_jacobian_pairs, smooth_displacement  # Taichi
+
     if destination is not None:
         d_raw = np.asarray(destination, dtype=np.float64) - x
     else:
@@ -474,8 +387,8 @@ def chamfer_plasticity_step(
                  else target_points[nearest_index] - x)
     source = np.arange(len(x)) if pool is None else np.asarray(pool)
     neighbors, r2 = nearest_neighbours(x, source, min(cfg.k_neighbors, len(source)))
-    d = knn_smooth_sparse(d_raw, neighbors, cfg.smooth_iters, sources=source)
-    J = displacement_jacobian_sparse(x, d, neighbors, cfg.jacobian, r2=r2, overwrite_r2=True)
+    d = smooth_displacement(d_raw, neighbors, cfg.smooth_iters, sources=source)
+    J = displacement_jacobian_pairs(x, d, neighbors, r2, cfg.jacobian)
     del neighbors, r2
     dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
     mag = np.linalg.norm(d, axis=1)

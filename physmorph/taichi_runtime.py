@@ -81,6 +81,13 @@ def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = F
     return arch
 
 
+def ensure_taichi() -> None:
+    """The process's Taichi runtime, whichever device a run started it on (kernels with NumPy
+    array arguments run on either); the CPU where nothing has started one."""
+    if not _state:
+        init_taichi("cpu")
+
+
 def taichi_state() -> dict:
     """What the runtime was initialised with (empty before :func:`init_taichi`)."""
     return dict(_state)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from physmorph.neighbourhood import displacement_jacobian_pairs, smooth_displacement
 from physmorph.plasticity import (
     absorb_control,
     absorb_shape,
@@ -13,9 +14,7 @@ from physmorph.plasticity import (
     PlasticityConfig,
     chamfer_plasticity_step,
     displacement_jacobian,
-    displacement_jacobian_sparse,
     knn_smooth,
-    knn_smooth_sparse,
     nearest_neighbours,
     project_plastic,
     rebase_control,
@@ -47,26 +46,32 @@ def test_jacobian_recovers_affine_map():
 
 @pytest.mark.parametrize("mode", ["paper", "least_squares"])
 def test_neighbour_sum_jacobian_and_smoothing_equal_their_gather_references(mode):
-    """The fast paths (sparse neighbour sums, the chamfer step's) against the per-pair gather
-    references, on an irregular cloud with a non-affine field, a duplicated particle and the
-    KD tree's own distances."""
+    """The fast paths (the chamfer step's Taichi pair sums, physmorph.neighbourhood) against the
+    per-pair gather references, on an irregular cloud with a non-affine field, a duplicated
+    particle and the KD tree's own distances."""
     rng = np.random.default_rng(4)
     x = 10.0 + _lattice() + 0.1 * rng.standard_normal((512, 3))  # off the origin: tests cancellation
     x[7] = x[3]  # a coincident pair carries no weight in either path
     d = np.sin(x) + 0.1 * x ** 2
     dist, nb = cKDTree(x).query(x, k=20)
     ref = displacement_jacobian(x, d, nb, mode)
-    np.testing.assert_allclose(displacement_jacobian_sparse(x, d, nb, mode), ref, rtol=1e-9, atol=1e-9)
+    r2 = ((x[nb] - x[:, None]) ** 2).sum(-1)
+    np.testing.assert_allclose(displacement_jacobian_pairs(x, d, nb, r2, mode), ref, rtol=1e-10, atol=1e-10)
     r2 = dist ** 2
     r2[nb == np.arange(len(x))[:, None]] = 0.0
-    np.testing.assert_allclose(displacement_jacobian_sparse(x, d, nb, mode, r2=r2), ref, rtol=1e-7, atol=1e-7)
-    np.testing.assert_allclose(knn_smooth_sparse(d, nb, 3), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
-    # by chunks of rows, and with neighbourhoods drawn from a pool (its rows alone until the last pass)
-    np.testing.assert_allclose(knn_smooth_sparse(d, nb, 3, chunk=100), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(displacement_jacobian_pairs(x, d, nb.astype(np.int32), r2, mode), ref,
+                               rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(smooth_displacement(d, nb, 3), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
+    # with neighbourhoods drawn from a pool (its rows alone until the last pass)
     pool = np.arange(0, len(x), 3)
-    nbp = pool[cKDTree(x[pool]).query(x, k=9)[1]]
-    np.testing.assert_allclose(knn_smooth_sparse(d, nbp, 3, sources=pool, chunk=70), knn_smooth(d, nbp, 3),
+    nbp = pool[cKDTree(x[pool]).query(x, k=9)[1]].astype(np.int32)
+    np.testing.assert_allclose(smooth_displacement(d, nbp, 3, sources=pool), knn_smooth(d, nbp, 3),
                                rtol=1e-12, atol=1e-12)
+    # the pool's passes leave the other rows alone: one pass of two over the pool only
+    one = smooth_displacement(d, nbp, 2, sources=pool)
+    first = d.copy()
+    first[pool] = d[nbp[pool]].mean(axis=1)
+    np.testing.assert_allclose(one, first[nbp].mean(axis=1), rtol=1e-12, atol=1e-12)
 
 
 def test_nearest_neighbours_by_chunks_equal_a_brute_force_search():
