@@ -2,9 +2,10 @@
 
 Pipeline (paper sections 3.2 and 3.5): F, x --> Sigma = sigma0^2 F F^T --> EWA projection -->
 screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D
---(torch)--> losses. The rasterizer's backward and the projection's (hand-written, view by view,
-no autograd graph) each run once with one channel per loss, which is what adaptive gradient
-matching needs (each loss's gradient norm separately).
+--(torch)--> losses. The projection and its reverse are Taichi kernels (projection_kernels, no
+autograd graph); the rasterizer's backward and the projection's reverse each run once with one
+channel per loss, which is what adaptive gradient matching needs (each loss's gradient norm
+separately).
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ from physmorph.taichi_runtime import resolve_device
 
 from .config import RenderConfig, RenderResult, RenderTarget
 from .losses import alpha_mse, expected_depth, match_gradients, render_losses
-from .projection import (CameraTensors, ProjectedGaussians, covariance_from_F, covariance_from_F_backward,
-                         project_gaussians, project_gaussians_backward)
+from .projection import CameraTensors, ProjectedGaussians
+from .projection_kernels import project_backward, project_forward
 from .rasterizer import composite_backward, composite_forward
 from .tiles import TileBins, bin_gaussians
 
@@ -55,16 +56,17 @@ def _check_inputs(x: np.ndarray, F: np.ndarray, sigma0) -> tuple[np.ndarray, np.
 
 @dataclass
 class Splats:
-    """One forward pass: the differentiable screen-space params and their tile bins."""
+    """One forward pass: the screen-space params and their tile bins."""
 
     projected: ProjectedGaussians
-    params: torch.Tensor  # [V*N, 6] differentiable
+    params: torch.Tensor  # [V*N, 6], no graph (the reverse is projection_kernels.project_backward)
     bins: TileBins
 
 
 def splat(x: torch.Tensor, F: torch.Tensor, sigma0: torch.Tensor, cams: CameraTensors, cfg: RenderConfig) -> Splats:
-    """x: [N, 3], F: [N, 3, 3] tensors (may require grad); sigma0 scalar or [N] tensor."""
-    projected = project_gaussians(x, covariance_from_F(F, sigma0), cams, cfg)
+    """x: [N, 3], F: [N, 3, 3] tensors; sigma0 scalar or [N] tensor. The projection is the Taichi
+    kernel's (projection.project_gaussians, differentiable by autograd, is its reference)."""
+    projected = ProjectedGaussians(*project_forward(x, F, sigma0, cams, cfg))
     params = projected.params.reshape(-1, 6)
     bins = bin_gaussians(projected.params[..., :2].detach(), projected.half_extent, projected.params[..., 5].detach(),
                          projected.visible, cams.width, cams.height, cfg.tile_size)
@@ -109,7 +111,7 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     t_alpha, t_depth, t_sdt = (torch.as_tensor(np.asarray(a), dtype=dt, device=dev)
                                for a in (target.alpha, target.depth, target.sdt))
 
-    # the projection keeps no autograd graph: its reverse is project_gaussians_backward
+    # the projection keeps no autograd graph: its reverse is project_backward
     with torch.no_grad():
         sp = splat(xt, Ft, st, cams, cfg)
     t_final, depth_acc, last = composite_forward(sp.params, sp.bins, n_views, height, width, cfg)
@@ -135,11 +137,9 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
 
     # the projection's reverse, all losses at once, view by view
     n_losses = len(LOSS_NAMES)
-    g_x, g_cov = project_gaussians_backward(xt, covariance_from_F(Ft, st), cams, cfg,
-                                            g_params.reshape(n_losses, n_views, x.shape[0], 6), want_grad_x)
+    g_x, g_F = project_backward(xt, Ft, st, cams, cfg, g_params.reshape(n_losses, n_views, x.shape[0], 6),
+                                want_grad_x)
     del g_params
-    g_F = covariance_from_F_backward(Ft, st, g_cov)
-    del g_cov
     per_loss_F = {name: g_F[c] for c, name in enumerate(LOSS_NAMES)}
     per_loss_x = {name: g_x[c] for c, name in enumerate(LOSS_NAMES)} if want_grad_x else {}
     grad_F, weights = match_gradients(per_loss_F, cfg)

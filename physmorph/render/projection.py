@@ -1,9 +1,9 @@
-"""Per-Gaussian preprocessing in torch: F -> Sigma, EWA projection, 2D conic, and their reverse.
+"""Per-Gaussian preprocessing in torch: F -> Sigma, EWA projection, 2D conic (the reference).
 
 Paper section 3.2 (MPM-Gaussian duality) and the EWA splatting of 3DGS (Zwicker et al. 2002,
 Kerbl et al. 2023). Everything here is O(V N). The forward is differentiable by torch autograd
-(the reference); render_and_grad uses the hand-written reverse (project_gaussians_backward,
-covariance_from_F_backward), which takes every loss's gradient in one pass and keeps no graph.
+(the reference); render_and_grad uses the Taichi kernels of projection_kernels, forward and
+reverse, which take every loss's gradient in one pass and keep no graph.
 """
 
 from __future__ import annotations
@@ -110,102 +110,3 @@ def project_gaussians(x: torch.Tensor, cov3d: torch.Tensor, cams: CameraTensors,
         on_screen = (u + half[..., 0] > 0) & (u - half[..., 0] < w) & (v + half[..., 1] > 0) & (v - half[..., 1] < h)
         visible = in_front & on_screen & finite
     return ProjectedGaussians(params=params, half_extent=half, visible=visible)
-
-
-def covariance_from_F_backward(F: torch.Tensor,  # [N, 3, 3]
-                               sigma0: float | torch.Tensor,  # scalar or [N]
-                               grad_cov: torch.Tensor) -> torch.Tensor:  # [L, N, 6] symmetric
-    """Reverse of :func:`covariance_from_F` for L upstream gradients at once: with G the
-    symmetric gradient of Sigma (<G, dSigma> for symmetric dSigma; given by its entries
-    00, 01, 02, 11, 12, 22), dL/dF = 2 sigma0^2 G F. Returns [L, N, 3, 3]."""
-    g00, g01, g02, g11, g12, g22 = grad_cov.unbind(-1)
-    G = torch.stack([torch.stack([g00, g01, g02], -1), torch.stack([g01, g11, g12], -1),
-                     torch.stack([g02, g12, g22], -1)], -2)  # [L, N, 3, 3]
-    s = torch.as_tensor(sigma0, dtype=F.dtype, device=F.device)
-    s2 = (s * s).reshape(1, -1, 1, 1) if s.ndim > 0 else s * s
-    return 2.0 * s2 * (G @ F)
-
-
-_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # a symmetric 3x3's entries, in order
-
-
-def project_gaussians_backward(x: torch.Tensor,  # [N, 3]
-                               cov3d: torch.Tensor,  # [N, 3, 3]
-                               cams: CameraTensors, cfg: RenderConfig,
-                               grad_params: torch.Tensor,  # [L, V, N, 6]
-                               want_grad_x: bool = True) -> tuple[torch.Tensor | None, torch.Tensor]:
-    """Hand-written reverse of :func:`project_gaussians`' params for L upstream gradients at once,
-    view by view, keeping no graph (autograd held ~1 GB of [V, N] intermediates at 471K particles).
-
-    With m0, m1 the rows of J W, a = m0^T Sigma m0 + low_pass, b = m0^T Sigma m1,
-    c = m1^T Sigma m1 + low_pass, det = a c - b^2 and the conic (c, -b, a) / det:
-        det_bar = -(A_bar c - B_bar b + C_bar a) / det^2
-        a_bar = C_bar / det + det_bar c,  c_bar = A_bar / det + det_bar a,  b_bar = -B_bar / det - 2 b det_bar
-        Sigma_bar = a_bar m0 m0^T + b_bar sym(m0 m1^T) + c_bar m1 m1^T     (symmetric)
-        m0_bar = 2 a_bar Sigma m0 + b_bar Sigma m1,  m1_bar = b_bar Sigma m0 + 2 c_bar Sigma m1
-    and m0 = (fx / z)(r0 - tx_c r2), tx = x_c / z, u = fx tx + cx (likewise m1, ty, v) back to the
-    camera-space mean and x. The Jacobian's clamp passes no gradient where it acts, and z only
-    where the entry is in front of the near plane (the forward's placeholder elsewhere), as
-    autograd does. Returns (dL/dx [L, N, 3] or None, dL/dSigma [L, N, 6]: the symmetric
-    gradient's entries 00, 01, 02, 11, 12, 22, for covariance_from_F_backward).
-    """
-    L, V, N = grad_params.shape[0], grad_params.shape[1], x.shape[0]
-    # component-wise on contiguous [N] and [L, N] tensors: strided views and 3x3 bmm are slow on CPU
-    zeros = lambda: torch.zeros((L, N), dtype=x.dtype, device=x.device)  # noqa: E731
-    grad_cov = [zeros() for _ in _SYM]  # the symmetric gradient's six entries
-    grad_xs = [zeros() for _ in range(3)] if want_grad_x else None
-    w, h = float(cams.width), float(cams.height)
-    det_floor = torch.finfo(x.dtype).tiny ** 0.5
-    xs = [x[:, i].contiguous() for i in range(3)]
-    cov = {(i, j): cov3d[:, i, j].contiguous() for i, j in _SYM}
-    cov.update({(j, i): cov[i, j] for i, j in _SYM})
-
-    def times_cov(m: list) -> list:  # Sigma m
-        return [cov[i, 0] * m[0] + cov[i, 1] * m[1] + cov[i, 2] * m[2] for i in range(3)]
-
-    def dot(p: list, q: list) -> torch.Tensor:
-        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
-
-    for view in range(V):
-        rot = [[float(r) for r in row] for row in cams.rotation[view]]
-        trans = [float(t) for t in cams.translation[view]]
-        fx, fy, cx, cy = (float(k) for k in cams.intrinsics[view])
-        xc = [xs[0] * rot[i][0] + xs[1] * rot[i][1] + xs[2] * rot[i][2] + trans[i] for i in range(3)]
-        in_front = xc[2] > cams.near
-        z_safe = torch.where(in_front, xc[2], 1.0)
-        tx, ty = xc[0] / z_safe, xc[1] / z_safe
-        lo_x, hi_x = (-_JACOBIAN_MARGIN * w - cx) / fx, ((1 + _JACOBIAN_MARGIN) * w - cx) / fx
-        lo_y, hi_y = (-_JACOBIAN_MARGIN * h - cy) / fy, ((1 + _JACOBIAN_MARGIN) * h - cy) / fy
-        fx_z, fy_z = fx / z_safe, fy / z_safe
-        tx_c, ty_c = tx.clamp(lo_x, hi_x), ty.clamp(lo_y, hi_y)
-        m0 = [fx_z * (rot[0][k] - tx_c * rot[2][k]) for k in range(3)]  # rows of J W
-        m1 = [fy_z * (rot[1][k] - ty_c * rot[2][k]) for k in range(3)]
-        s_m0, s_m1 = times_cov(m0), times_cov(m1)
-        a = dot(m0, s_m0) + cfg.low_pass
-        b = dot(m0, s_m1)
-        c = dot(m1, s_m1) + cfg.low_pass
-        det_raw = a * c - b * b
-        inv = 1.0 / torch.clamp(det_raw, min=det_floor)
-        gu, gv, gA, gB, gC, gz = grad_params[:, view].permute(2, 0, 1).contiguous()  # each [L, N]
-        det_bar = torch.where(det_raw >= det_floor, (-gA * c + gB * b - gC * a) * (inv * inv), 0.0)
-        a_bar = gC * inv + det_bar * c
-        c_bar = gA * inv + det_bar * a
-        b_bar = -gB * inv - (2.0 * b) * det_bar
-        for k, (i, j) in enumerate(_SYM):
-            grad_cov[k].addcmul_(a_bar, m0[i] * m0[j]).addcmul_(c_bar, m1[i] * m1[j])
-            grad_cov[k].addcmul_(b_bar, 0.5 * (m0[i] * m1[j] + m1[i] * m0[j]))
-        if not want_grad_x:
-            continue
-        m0_bar = [2.0 * a_bar * s_m0[k] + b_bar * s_m1[k] for k in range(3)]  # each [L, N]
-        m1_bar = [b_bar * s_m0[k] + 2.0 * c_bar * s_m1[k] for k in range(3)]
-        zs_bar = -(dot(m0_bar, m0) + dot(m1_bar, m1)) / z_safe
-        free_x = ((tx > lo_x) & (tx < hi_x)).to(x.dtype)
-        free_y = ((ty > lo_y) & (ty < hi_y)).to(x.dtype)
-        tx_bar = fx * gu - (free_x * fx_z) * dot(m0_bar, rot[2])
-        ty_bar = fy * gv - (free_y * fy_z) * dot(m1_bar, rot[2])
-        zs_bar = zs_bar - (tx_bar * tx + ty_bar * ty) / z_safe
-        xc_bar = [tx_bar / z_safe, ty_bar / z_safe, gz + torch.where(in_front, zs_bar, 0.0)]
-        for k in range(3):  # x_c = R x + t
-            grad_xs[k] += xc_bar[0] * rot[0][k] + xc_bar[1] * rot[1][k] + xc_bar[2] * rot[2][k]
-    grad_x = torch.stack(grad_xs, -1) if want_grad_x else None
-    return grad_x, torch.stack(grad_cov, -1)
