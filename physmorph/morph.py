@@ -290,6 +290,10 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.step_size)
         loss_before = scal["physics_loss"]
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic, fp_anisotropy=dm.anisotropy_plastic)
+        # the render's images and gradient and the metrics' arrays are done with: the checkpoint's
+        # buffers do not sit on top of them (physmorph.memory)
+        res = dm = None
+        release_free_memory()
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
