@@ -1,16 +1,23 @@
 """Screen-tile binning and depth sorting of projected Gaussians (3DGS duplicate-and-sort).
 
-Every visible (view, Gaussian) entry is duplicated once per screen tile its cutoff box touches;
-the duplicates are sorted by the key (global tile id, depth rank), so each tile's Gaussians lie
-contiguously, nearest first. Memory is O(pairs) = O(Gaussians x tiles each touches), never
-O(pixels x Gaussians).
+Every visible (view, Gaussian) entry is listed once per screen tile its cutoff box touches, each
+tile's entries contiguous and nearest first (ties in index order), so the list is the one sorting
+every (tile, depth rank) pair would give. Instead of that sort over the pairs, a counting sort:
+the Gaussians are sorted by depth per view (N entries, not pairs), each tile's count gives its
+range, and one pass over each view's Gaussians in depth order appends each to its tiles' ranges
+(serial within a view, the views in parallel), so the appends keep the depth order. Memory is
+O(pairs) = O(Gaussians x tiles each touches), never O(pixels x Gaussians). At the paper's scale
+(8 views x 424K Gaussians) the sort over the pairs took 0.7-2 s of a render.
 """
 
-from __future__ import annotations
+# No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
 
 from dataclasses import dataclass
 
+import taichi as ti
 import torch
+
+from physmorph.taichi_runtime import ensure_taichi
 
 
 @dataclass
@@ -27,61 +34,74 @@ class TileBins:
         return int(self.point_list.shape[0])
 
 
+@ti.func
+def _tile_box(means2d: ti.template(), half: ti.template(), v, n, tile, tiles_x, tiles_y):
+    """The inclusive tile range (x0, x1, y0, y1) of entry (v, n)'s cutoff box, clamped to the
+    image's tiles (conservative at the box's edges)."""
+    x0 = ti.cast(ti.min(ti.max(ti.floor((means2d[v, n, 0] - half[v, n, 0]) / tile), 0), tiles_x - 1), ti.i32)
+    x1 = ti.cast(ti.min(ti.max(ti.floor((means2d[v, n, 0] + half[v, n, 0]) / tile), 0), tiles_x - 1), ti.i32)
+    y0 = ti.cast(ti.min(ti.max(ti.floor((means2d[v, n, 1] - half[v, n, 1]) / tile), 0), tiles_y - 1), ti.i32)
+    y1 = ti.cast(ti.min(ti.max(ti.floor((means2d[v, n, 1] + half[v, n, 1]) / tile), 0), tiles_y - 1), ti.i32)
+    return x0, x1, y0, y1
+
+
+@ti.kernel
+def _count_pairs(means2d: ti.types.ndarray(), half: ti.types.ndarray(),  # [V, N, 2]
+                 visible: ti.types.ndarray(),  # [V, N] uint8
+                 per_tile: ti.types.ndarray(),  # [V * tiles_y * tiles_x] int32, zeroed, added to
+                 tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32):
+    for v, n in ti.ndrange(visible.shape[0], visible.shape[1]):
+        if visible[v, n] != 0:
+            x0, x1, y0, y1 = _tile_box(means2d, half, v, n, tile, tiles_x, tiles_y)
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    ti.atomic_add(per_tile[(v * tiles_y + y) * tiles_x + x], 1)
+
+
+@ti.kernel
+def _append_pairs(means2d: ti.types.ndarray(), half: ti.types.ndarray(),  # [V, N, 2]
+                  visible: ti.types.ndarray(),  # [V, N] uint8
+                  order: ti.types.ndarray(),  # [V, N] each view's entries by depth
+                  start: ti.types.ndarray(),  # [V * tiles_y * tiles_x] int32: each tile's first slot
+                  cursor: ti.types.ndarray(),  # [V * tiles_y * tiles_x] int32, zeroed
+                  point_list: ti.types.ndarray(),  # [M] int32 out
+                  tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32):
+    n_per_view = visible.shape[1]
+    for v in range(visible.shape[0]):  # the views in parallel; each view's entries in depth order
+        for r in range(n_per_view):
+            n = order[v, r]
+            if visible[v, n] != 0:
+                x0, x1, y0, y1 = _tile_box(means2d, half, v, n, tile, tiles_x, tiles_y)
+                for y in range(y0, y1 + 1):
+                    for x in range(x0, x1 + 1):
+                        t = (v * tiles_y + y) * tiles_x + x
+                        point_list[start[t] + cursor[t]] = v * n_per_view + ti.cast(n, ti.i32)
+                        cursor[t] += 1
+
+
 def bin_gaussians(means2d: torch.Tensor, half_extent: torch.Tensor, depth: torch.Tensor,
                   visible: torch.Tensor, width: int, height: int, tile_size: int) -> TileBins:
-    """means2d, half_extent: [V, N, 2]; depth, visible: [V, N]. No gradients flow here.
-
-    View by view: a tile belongs to one view, so each view's pairs sort on their own and the
-    lists concatenate in view order to the list of one sort over every view (the same list), with
-    a view's temporaries (~90 B a pair) alive at a time instead of every view's."""
+    """means2d, half_extent: [V, N, 2]; depth, visible: [V, N]. No gradients flow here."""
+    ensure_taichi()
     with torch.no_grad():
         n_views, n = visible.shape
         device = means2d.device
         tiles_x = (width + tile_size - 1) // tile_size
         tiles_y = (height + tile_size - 1) // tile_size
-        per_view = tiles_y * tiles_x
-        lists = []
-        per_tile = torch.zeros(n_views * per_view, dtype=torch.int64, device=device)
-        for v in range(n_views):
-            point_list, counts = _bin_view(means2d[v], half_extent[v], depth[v], visible[v], tiles_x, tiles_y,
-                                           tile_size)
-            lists.append((point_list + v * n).to(torch.int32))
-            per_tile[v * per_view:(v + 1) * per_view] = counts
-        ends = torch.cumsum(per_tile, 0)
-        tile_ranges = torch.stack([ends - per_tile, ends], dim=1).to(torch.int32)
-        return TileBins(torch.cat(lists).contiguous(), tile_ranges.contiguous(), half_extent.reshape(-1, 2).contiguous(),
+        means2d = means2d.detach().contiguous()
+        half = half_extent.detach().contiguous()
+        vis = visible.to(torch.uint8).contiguous()
+        per_tile = torch.zeros(n_views * tiles_y * tiles_x, dtype=torch.int32, device=device)
+        if n:
+            _count_pairs(means2d, half, vis, per_tile, tile_size, tiles_x, tiles_y)
+        ends = torch.cumsum(per_tile, 0, dtype=torch.int64)
+        starts = ends - per_tile
+        pairs = int(ends[-1]) if len(ends) else 0
+        point_list = torch.empty(pairs, dtype=torch.int32, device=device)
+        if pairs:
+            order = torch.argsort(depth.detach(), dim=1, stable=True).contiguous()  # [V, N] nearest first, ties by index
+            _append_pairs(means2d, half, vis, order, starts.to(torch.int32).contiguous(),
+                          torch.zeros_like(per_tile), point_list, tile_size, tiles_x, tiles_y)
+        tile_ranges = torch.stack([starts, ends], dim=1).to(torch.int32)
+        return TileBins(point_list, tile_ranges.contiguous(), half.reshape(-1, 2).contiguous(),
                         tiles_x, tiles_y, tile_size)
-
-
-def _bin_view(means2d: torch.Tensor, half_extent: torch.Tensor,  # [N, 2] one view
-              depth: torch.Tensor, visible: torch.Tensor,  # [N]
-              tiles_x: int, tiles_y: int, tile_size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """One view's (tile, depth)-sorted Gaussian indices [M_v] and its pairs per tile [tiles_y * tiles_x]."""
-    device = means2d.device
-    ids = torch.nonzero(visible).squeeze(1)  # [P_vis]
-    if ids.numel() == 0:
-        return ids, torch.zeros(tiles_y * tiles_x, dtype=torch.int64, device=device)
-    m = means2d[ids]
-    hx = half_extent[ids]
-    # Tile index range (inclusive) of the cutoff box; conservative at the box edges.
-    x0 = torch.clamp(torch.floor((m[:, 0] - hx[:, 0]) / tile_size), 0, tiles_x - 1).long()
-    x1 = torch.clamp(torch.floor((m[:, 0] + hx[:, 0]) / tile_size), 0, tiles_x - 1).long()
-    y0 = torch.clamp(torch.floor((m[:, 1] - hx[:, 1]) / tile_size), 0, tiles_y - 1).long()
-    y1 = torch.clamp(torch.floor((m[:, 1] + hx[:, 1]) / tile_size), 0, tiles_y - 1).long()
-    span_x = x1 - x0 + 1
-    counts = span_x * (y1 - y0 + 1)
-    # Depth rank: each tile's entries front to back (stable: ties keep the index order).
-    rank = torch.empty_like(ids)
-    rank[torch.argsort(depth[ids], stable=True)] = torch.arange(ids.numel(), device=device)
-    owner = torch.repeat_interleave(torch.arange(ids.numel(), device=device), counts)  # [M_v]
-    first = torch.cumsum(counts, 0) - counts
-    first_tile = y0 * tiles_x + x0
-    # One gather of everything a pair needs from its owner (gathers dominate on CPU).
-    packed = torch.stack([first, span_x, first_tile, rank], dim=1)[owner]  # [M_v, 4]
-    local = torch.arange(owner.numel(), device=device) - packed[:, 0]
-    row = torch.div(local, packed[:, 1], rounding_mode="floor")
-    tile_id = packed[:, 2] + row * tiles_x + (local - row * packed[:, 1])
-    key = tile_id * ids.numel() + packed[:, 3]
-    del packed, local, row
-    order = torch.argsort(key)
-    return ids[owner[order]], torch.bincount(tile_id, minlength=tiles_y * tiles_x)
