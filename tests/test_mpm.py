@@ -972,7 +972,7 @@ def test_step_volume_removes_the_steps_first_order_volume_change(state, smoothin
     # rightly takes no step, so that case is checked unclipped only
     for clip in (0.0,) if (smoothing, mode) == ("grid", "body") else (1.5, 0.0):
         cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=clip,
-                    step_per_volume=True, step_smoothing=smoothing, step_volume=mode)
+                    step_per_volume=True, step_smoothing=smoothing, step_volume=mode, step_volume_share=1.0)
         g, step = _gradient_and_one_step(cfg, st)
         d = g * w[None, :, None, None]
         if smoothing == "grid":
