@@ -88,36 +88,22 @@ def _deformation_kernel(F: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
 
 
 @ti.kernel
-def _grid_mass_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
-                      mass: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N]
-                      out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [R, R, R], zeroed, added to
-                      lo: ti.f64, inv_dx: ti.f64):
+def _splat_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
+                  weight: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N]
+                  out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [R, R, R], zeroed, added to
+                  lo: ti.f64, inv_h: ti.f64, quadratic: ti.template()):
+    """out_I += w_Ip weight_p with g = (x - lo) / h - 1/2, base = floor(g), t = g - base: the
+    quadratic B-spline on nodes lo + I h (0.5 (1 - t)^2, 0.75 - (t - 1/2)^2, 0.5 t^2; grid.bspline_weights)
+    or the trilinear weights on voxel centres lo + (I + 1/2) h (1 - t, t); entries off the grid dropped."""
     R = out.shape[0]
-    for p in range(x.shape[0]):
-        xg = ti.Vector([x[p, 0] - lo, x[p, 1] - lo, x[p, 2] - lo]) * inv_dx
-        base = ti.floor(xg - 0.5, ti.i32)
-        f = xg - ti.cast(base, ti.f64)
-        w = [0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2]
-        for a, b, c in ti.static(ti.ndrange(3, 3, 3)):
-            I = base + ti.Vector([a, b, c])
-            if 0 <= I[0] < R and 0 <= I[1] < R and 0 <= I[2] < R:
-                out[I[0], I[1], I[2]] += w[a][0] * w[b][1] * w[c][2] * mass[p]
-
-
-@ti.kernel
-def _voxel_density_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
-                          weight: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N]
-                          out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [M, M, M], zeroed, added to
-                          lo: ti.f64, inv_h: ti.f64):
-    M = out.shape[0]
     for p in range(x.shape[0]):
         g = ti.Vector([x[p, 0] - lo, x[p, 1] - lo, x[p, 2] - lo]) * inv_h - 0.5
         base = ti.floor(g, ti.i32)
-        f = g - ti.cast(base, ti.f64)
-        w = [1.0 - f, f]
-        for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+        t = g - ti.cast(base, ti.f64)
+        w = [0.5 * (1.0 - t) ** 2, 0.75 - (t - 0.5) ** 2, 0.5 * t ** 2] if ti.static(quadratic) else [1.0 - t, t]
+        for a, b, c in ti.static(ti.ndrange(len(w), len(w), len(w))):
             I = base + ti.Vector([a, b, c])
-            if 0 <= I[0] < M and 0 <= I[1] < M and 0 <= I[2] < M:
+            if 0 <= I[0] < R and 0 <= I[1] < R and 0 <= I[2] < R:
                 out[I[0], I[1], I[2]] += w[a][0] * w[b][1] * w[c][2] * weight[p]
 
 
@@ -164,7 +150,7 @@ def grid_mass(x: np.ndarray,  # [N, 3]
         raise ValueError(f"{len(x)} positions and {len(mass)} masses; they must match")
     out = np.zeros((grid.res,) * 3)
     if len(x):
-        _grid_mass_kernel(x, mass, out, float(grid.lo), 1.0 / grid.dx)
+        _splat_kernel(x, mass, out, float(grid.lo), 1.0 / grid.dx, True)
     return out
 
 
@@ -180,5 +166,5 @@ def voxel_density(x: np.ndarray,  # [N, 3]
         raise ValueError(f"{len(x)} positions and {len(weight)} weights; they must match")
     out = np.zeros((voxels,) * 3)
     if len(x):
-        _voxel_density_kernel(x, weight, out, float(lo), voxels / (hi - lo))
+        _splat_kernel(x, weight, out, float(lo), voxels / (hi - lo), False)
     return out

@@ -38,6 +38,7 @@ from physmorph.taichi_runtime import ensure_taichi
 
 from .config import RenderConfig
 from .projection import _JACOBIAN_MARGIN, CameraTensors
+from .rasterizer import _ti_dtype
 
 
 _SYM = ((0, 0, 0), (1, 0, 1), (2, 0, 2), (3, 1, 1), (4, 1, 2), (5, 2, 2))  # (k, i, j): a symmetric 3x3's entries
@@ -188,10 +189,6 @@ def _project_backward(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.types
             if ti.static(want_x):
                 for kk in ti.static(range(3)):
                     grad_x[l, n, kk] = gx[l, kk]
-
-
-def _ti_dtype(dtype: torch.dtype):
-    return ti.f64 if dtype == torch.float64 else ti.f32
 
 
 def _inputs(x: torch.Tensor, F: torch.Tensor, sigma0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
