@@ -49,6 +49,11 @@ def parse_set(items: list[str]) -> dict:
     return out
 
 
+def config_files(profile: str | None) -> list[Path]:
+    """config/config.yaml and the --profile files merged on it, in order."""
+    return [REPO / "config" / "config.yaml"] + [Path(p) for p in (profile or "").split(",") if p]
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     """Run each named experiment once; returns the rows (also printed and, unless --no-csv, appended)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -56,7 +61,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--tag", required=True)
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--set", action="append", default=[], help="dotted.key=value (YAML value)")
-    ap.add_argument("--profile", default=None, help="extra config file merged on config/config.yaml")
+    ap.add_argument("--profile", default=None,
+                    help="extra config files merged on config/config.yaml, left to right, comma-separated "
+                         "(config/mid.yaml,config/heldout.yaml: the held-out shapes at the mid scale)")
     ap.add_argument("--workdir", default="/tmp/physmorph_study")
     ap.add_argument("--results", default=str(REPO / "results"), help="where results/{profile}/ lives")
     ap.add_argument("--csv", default=str(CSV), help="the record the rows are appended to")
@@ -71,7 +78,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         overrides.setdefault("morph", {})["frames"] = args.frames
     # the row names the profile file too, so it says how to rerun it
     recorded = {**({"--profile": args.profile} if args.profile else {}), **overrides}
-    files = [REPO / "config" / "config.yaml"] + ([Path(args.profile)] if args.profile else [])
+    files = config_files(args.profile)
     cfg = load_settings(*files, overrides=overrides)
     res = cfg.sampling.tag
     rows = []
