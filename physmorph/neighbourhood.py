@@ -14,6 +14,12 @@ query, the particle itself included with r2 = 0):
 At the paper's scale (471K particles, k = 64) the sparse-matrix forms took ~1.4 s of a frame. The
 pair sums here are summed directly (no expansion of the products, so no cancellation); the
 references are plasticity.knn_smooth and plasticity.displacement_jacobian.
+
+The neighbourhoods K_i themselves (step 2's k nearest particles of the pool) come from
+:func:`k_nearest`: a uniform cell grid over the particles, each query scanning cells ring by ring
+and keeping its k best in a max-heap until the k-th distance is inside the rings scanned; exact,
+as the KD tree it replaces (plasticity.nearest_neighbours, the reference), which took ~3 s of a
+paper-scale frame for the query and another ~2 s to gather and square its arrays.
 """
 
 # No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
@@ -118,3 +124,226 @@ def displacement_jacobian_pairs(x: np.ndarray,  # [N, 3]
     if len(x):
         _jacobian(x, d, nb, r2, out, mode == "least_squares")
     return out
+
+
+@ti.func
+def _sift_down(r2: ti.template(), nb: ti.template(), i, base, root, end):
+    """Restore the max-heap order of the heap r2[i, base:end] (nb moved along) below its node ``root``."""
+    a = root
+    n = end - base
+    while 2 * a + 1 < n:
+        c = 2 * a + 1
+        if c + 1 < n and r2[i, base + c + 1] > r2[i, base + c]:
+            c += 1
+        if r2[i, base + c] > r2[i, base + a]:
+            r2[i, base + a], r2[i, base + c] = r2[i, base + c], r2[i, base + a]
+            nb[i, base + a], nb[i, base + c] = nb[i, base + c], nb[i, base + a]
+            a = c
+        else:
+            break
+
+
+@ti.func
+def _cell_of(xi, lo: ti.template(), dims: ti.template(), h):
+    c = ti.Vector([0, 0, 0])
+    for a in ti.static(range(3)):
+        c[a] = ti.min(ti.max(ti.cast(ti.floor((xi[a] - lo[a]) / h), ti.i32), 0), dims[a] - 1)
+    return c
+
+
+@ti.kernel
+def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the queries
+                     pts: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [P, 3] the pool, sorted by cell
+                     ids: ti.types.ndarray(ndim=1),  # [P] each sorted pool point's index into x
+                     cell_start: ti.types.ndarray(ndim=1),  # [C + 1] first sorted point of each cell
+                     lo: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [3] the grid's corner
+                     dims: ti.types.ndarray(ndim=1),  # [3] cells per axis
+                     h: ti.f64,  # the cells' side
+                     nb: ti.types.ndarray(ndim=2),  # [N, k] out: neighbour indices
+                     r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, k] out: squared distances
+                     settled: ti.types.ndarray(ndim=1)):  # [N] out: 1 where the row is written
+    """K_i from the 3x3x3 cells around x_i's alone, where they settle it: the points of the block
+    within R_b of x_i (R_b: the distance to the block's nearest face with cells beyond it, so no
+    point outside is nearer) number at least k. A histogram of their r2 in k bins over [0, R_b^2] finds the
+    bin holding the k-th; a second scan writes every point below that bin and keeps the nearest
+    of that bin's in a max-heap over the row's remaining slots. The row is in no particular order."""
+    k = nb.shape[1]
+    n0, n1, n2 = dims[0], dims[1], dims[2]
+    for i in range(x.shape[0]):
+        xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
+        c = _cell_of(xi, lo, dims, h)
+        rb2 = ti.f64(0.0)
+        bound = ti.f64(1e300)
+        far = ti.f64(0.0)  # the block's farthest corner from x_i: every point of the block is within
+        for a in ti.static(range(3)):
+            below = xi[a] - (lo[a] + (c[a] - 1) * h)
+            above = lo[a] + (c[a] + 2) * h - xi[a]
+            far += ti.max(below, above) ** 2
+            if c[a] > 1:
+                bound = ti.min(bound, below)
+            if c[a] < dims[a] - 2:
+                bound = ti.min(bound, above)
+        rb2 = ti.min(bound * bound, far) if bound < 1e300 else far
+        to_bin = k / rb2
+        # the histogram's k bins live in the row's index slots (a local array indexed at run time
+        # would be lowered to a chain of selects); the second scan overwrites them
+        for b in range(k):
+            nb[i, b] = 0
+        n_in = 0
+        for o in range(27):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
+            cz, cy, cx = c[0] + o // 9 - 1, c[1] + o // 3 % 3 - 1, c[2] + o % 3 - 1
+            if 0 <= cz < n0 and 0 <= cy < n1 and 0 <= cx < n2:
+                cell = (cz * n1 + cy) * n2 + cx
+                for s in range(cell_start[cell], cell_start[cell + 1]):
+                    e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                    d2 = e.dot(e)
+                    if d2 <= rb2:
+                        b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
+                        nb[i, b] = nb[i, b] + 1  # not +=: Taichi makes that an atomic add
+                        n_in += 1
+        settled[i] = 0
+        if n_in >= k:
+            kb = 0
+            m0 = 0
+            for b in range(k):
+                if m0 + nb[i, b] >= k:
+                    kb = b
+                    break
+                m0 += nb[i, b]
+            left = 0
+            held = 0
+            cap = k - m0
+            for o in range(27):
+                cz, cy, cx = c[0] + o // 9 - 1, c[1] + o // 3 % 3 - 1, c[2] + o % 3 - 1
+                if 0 <= cz < n0 and 0 <= cy < n1 and 0 <= cx < n2:
+                    cell = (cz * n1 + cy) * n2 + cx
+                    for s in range(cell_start[cell], cell_start[cell + 1]):
+                        e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                        d2 = e.dot(e)
+                        if d2 <= rb2:
+                            b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
+                            if b < kb:
+                                r2[i, left] = d2
+                                nb[i, left] = ids[s]
+                                left += 1
+                            elif b == kb:
+                                if held < cap:
+                                    r2[i, m0 + held] = d2
+                                    nb[i, m0 + held] = ids[s]
+                                    held += 1
+                                    if held == cap:
+                                        for q in range(cap // 2):
+                                            _sift_down(r2, nb, i, m0, cap // 2 - 1 - q, k)
+                                elif d2 < r2[i, m0]:
+                                    r2[i, m0] = d2
+                                    nb[i, m0] = ids[s]
+                                    _sift_down(r2, nb, i, m0, 0, k)
+            settled[i] = 1
+
+
+@ti.kernel
+def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the queries
+                     rows: ti.types.ndarray(ndim=1),  # [R] the queries to answer
+                     pts: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [P, 3] the pool, sorted by cell
+                     ids: ti.types.ndarray(ndim=1),  # [P] each sorted pool point's index into x
+                     cell_start: ti.types.ndarray(ndim=1),  # [C + 1] first sorted point of each cell
+                     lo: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [3] the grid's corner
+                     dims: ti.types.ndarray(ndim=1),  # [3] cells per axis
+                     h: ti.f64,  # the cells' side
+                     nb: ti.types.ndarray(ndim=2),  # [N, k] out: neighbour indices, nearest first
+                     r2: ti.types.ndarray(dtype=ti.f64, ndim=2)):  # [N, k] out: squared distances
+    """K_i for any query: cells are scanned in rings r = 0, 1, ... around x_i's cell, the k nearest
+    so far in a max-heap, until the heap is full and its largest r2 is no more than the squared
+    distance from x_i to the scanned block's nearest face with cells beyond it (every point
+    outside is farther), or the block covers the grid. The row ends sorted, nearest first."""
+    k = nb.shape[1]
+    n0, n1, n2 = dims[0], dims[1], dims[2]
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
+        c = _cell_of(xi, lo, dims, h)
+        filled = 0
+        ring = 0
+        done = False
+        while not done:
+            for dz, dy, dx in ti.ndrange((-ring, ring + 1), (-ring, ring + 1), (-ring, ring + 1)):
+                if ti.max(ti.abs(dz), ti.abs(dy), ti.abs(dx)) == ring:
+                    cz, cy, cx = c[0] + dz, c[1] + dy, c[2] + dx
+                    if 0 <= cz < n0 and 0 <= cy < n1 and 0 <= cx < n2:
+                        cell = (cz * n1 + cy) * n2 + cx
+                        for s in range(cell_start[cell], cell_start[cell + 1]):
+                            e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                            d2 = e.dot(e)
+                            if filled < k:  # fill, then heapify once full
+                                r2[i, filled] = d2
+                                nb[i, filled] = ids[s]
+                                filled += 1
+                                if filled == k:
+                                    for q in range(k // 2):
+                                        _sift_down(r2, nb, i, 0, k // 2 - 1 - q, k)
+                            elif d2 < r2[i, 0]:
+                                r2[i, 0] = d2
+                                nb[i, 0] = ids[s]
+                                _sift_down(r2, nb, i, 0, 0, k)
+            bound = ti.f64(1e300)
+            covered = True
+            for a in ti.static(range(3)):
+                if c[a] - ring > 0:
+                    bound = ti.min(bound, xi[a] - (lo[a] + (c[a] - ring) * h))
+                    covered = False
+                if c[a] + ring < dims[a] - 1:
+                    bound = ti.min(bound, lo[a] + (c[a] + ring + 1) * h - xi[a])
+                    covered = False
+            if covered or (filled == k and r2[i, 0] <= bound * bound):
+                done = True
+            ring += 1
+        for q in range(k - 1):  # heap sort: ascending r2
+            end = k - 1 - q
+            r2[i, 0], r2[i, end] = r2[i, end], r2[i, 0]
+            nb[i, 0], nb[i, end] = nb[i, end], nb[i, 0]
+            _sift_down(r2, nb, i, 0, 0, end)
+
+
+def k_nearest(x: np.ndarray,  # [N, 3]
+              source: np.ndarray,  # [P] indices into x the neighbours are drawn from
+              k: int,
+              cell_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:  # -> [N, k] indices, [N, k] r2
+    """Each particle's k nearest particles of ``source``, in no particular order, and their squared
+    distances, 0 for the particle itself (module docstring; plasticity.nearest_neighbours is the
+    KD-tree reference). Indices are int32 below 2^31 particles. ``cell_scale``: the cells' side in
+    k-th-neighbour radii (estimated from the pool's density); any value gives the same answer."""
+    ensure_taichi()
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    source = np.asarray(source)
+    n, p = len(x), len(source)
+    if not 1 <= k <= p:
+        raise ValueError(f"k must be in 1..{p} (the pool's size), got {k}")
+    index = np.int32 if n < np.iinfo(np.int32).max else np.int64
+    nb = np.empty((n, k), dtype=index)
+    r2 = np.empty((n, k))
+    if n == 0:
+        return nb, r2
+    pts = x[source]
+    lo = x.min(axis=0)
+    extent = np.maximum(x.max(axis=0) - lo, 1e-12)
+    # the k-th neighbour's radius from the pool's density in the cells it occupies (a coarse
+    # grid first, then one of about that radius); at most ~2 cells per pool point
+    h = float(extent.max()) / max(1.0, np.ceil(p ** (1 / 3)))
+    for _ in range(2):
+        occupied = len(np.unique(np.floor((pts - lo) / h).astype(np.int64) @ np.array([1 << 42, 1 << 21, 1])))
+        h = (3.0 * k * occupied * h ** 3 / (4.0 * np.pi * p)) ** (1 / 3)
+    h = max(cell_scale * h, float((np.prod(extent) / (2.0 * p)) ** (1 / 3)))
+    dims = np.maximum(1, np.ceil(extent / h).astype(np.int64))
+    cell = np.minimum(np.floor((pts - lo) / h).astype(np.int64), dims - 1)
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    cell_start = np.zeros(int(np.prod(dims)) + 1, dtype=index)
+    np.cumsum(np.bincount(key, minlength=len(cell_start) - 1), out=cell_start[1:])
+    args = (np.ascontiguousarray(pts[order]), np.ascontiguousarray(source[order].astype(index)), cell_start, lo,
+            dims.astype(np.int32), h)
+    settled = np.empty(n, dtype=np.int32)
+    _k_nearest_block(x, *args, nb, r2, settled)
+    rest = np.flatnonzero(settled == 0).astype(index)
+    if len(rest):
+        _k_nearest_rings(x, rest, *args, nb, r2)
+    return nb, r2

@@ -343,9 +343,10 @@ def neighbour_pool(x: np.ndarray,  # [N, 3] positions at rest
 def nearest_neighbours(x: np.ndarray,  # [N, 3]
                        source: np.ndarray,  # [P] indices into x the neighbours are drawn from
                        k: int, chunk: int = ROW_CHUNK) -> tuple[np.ndarray, np.ndarray]:  # -> [N, k] indices, [N, k] r2
-    """Each particle's k nearest particles of ``source`` (KD tree) and their squared distances, 0 for
-    the particle itself (it carries no information). Queried by chunks of rows into int32 indices
-    (at 471K particles, k = 64: 0.36 GB for both instead of 0.96 GB with the query's own arrays)."""
+    """Each particle's k nearest particles of ``source`` (KD tree), nearest first, and their squared
+    distances, 0 for the particle itself (it carries no information): the reference of
+    neighbourhood.k_nearest, which the chamfer step uses. Queried by chunks of rows into int32
+    indices (at 471K particles, k = 64: 0.36 GB for both instead of 0.96 GB with the query's own arrays)."""
     from scipy.spatial import cKDTree
 
     n = len(x)
@@ -377,7 +378,7 @@ def chamfer_plasticity_step(
     are taken from the pool's particles, whose displacements the smoothing passes update as well."""
     from scipy.spatial import cKDTree
 
-    from physmorph.neighbourhood import displacement_jacobian_pairs, smooth_displacement  # Taichi
+    from physmorph.neighbourhood import displacement_jacobian_pairs, k_nearest, smooth_displacement  # Taichi
 
     if destination is not None:
         d_raw = np.asarray(destination, dtype=np.float64) - x
@@ -386,7 +387,7 @@ def chamfer_plasticity_step(
         d_raw = (nearest_target_displacement(x, tree, target_points) if nearest_index is None
                  else target_points[nearest_index] - x)
     source = np.arange(len(x)) if pool is None else np.asarray(pool)
-    neighbors, r2 = nearest_neighbours(x, source, min(cfg.k_neighbors, len(source)))
+    neighbors, r2 = k_nearest(x, source, min(cfg.k_neighbors, len(source)))
     d = smooth_displacement(d_raw, neighbors, cfg.smooth_iters, sources=source)
     J = displacement_jacobian_pairs(x, d, neighbors, r2, cfg.jacobian)
     del neighbors, r2

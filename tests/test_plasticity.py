@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from physmorph.neighbourhood import displacement_jacobian_pairs, smooth_displacement
+from physmorph.neighbourhood import displacement_jacobian_pairs, k_nearest, smooth_displacement
 from physmorph.plasticity import (
     absorb_control,
     absorb_shape,
@@ -90,6 +90,62 @@ def test_nearest_neighbours_by_chunks_equal_a_brute_force_search():
     expect[nb == np.arange(len(x))[:, None]] = 0.0
     np.testing.assert_allclose(r2, expect, rtol=1e-12, atol=1e-12)
     assert (r2[np.isin(np.arange(len(x)), source), 0] == 0).all()  # a source particle is its own nearest
+
+
+def _brute_knn(x, source, k):
+    all_r2 = ((x[:, None] - x[source][None]) ** 2).sum(-1)  # [N, P]
+    order = np.argsort(all_r2, axis=1, kind="stable")[:, :k]
+    return source[order], np.take_along_axis(all_r2, order, axis=1)
+
+
+def _by_distance(nb, r2):
+    order = np.argsort(r2, axis=1, kind="stable")
+    return np.take_along_axis(nb, order, axis=1), np.take_along_axis(r2, order, axis=1)
+
+
+@pytest.mark.parametrize("cell_scale", [0.25, 1.0, 4.0, 100.0])
+def test_k_nearest_equals_a_brute_force_search(cell_scale):
+    """neighbourhood.k_nearest (the cell grid the chamfer step uses) against sorting every
+    pairwise distance, whatever the cells' size: small cells send most queries to the ring search,
+    large ones settle them in the 3x3x3 block, one cell covers the grid. A clustered cloud with a
+    far outlier, a coincident pair and a flat sheet; the same neighbour sets and r2 (0 for the
+    particle itself), in any order."""
+    rng = np.random.default_rng(11)
+    x = np.concatenate([rng.normal(0, 0.3, (300, 3)), rng.uniform(2, 3, (200, 3)),
+                        np.c_[rng.uniform(0, 1, (100, 2)), np.full(100, -1.0)], [[9.0, 9.0, 9.0]]])
+    x[5] = x[17]
+    source = np.sort(rng.choice(len(x), 240, replace=False))
+    source = np.union1d(source, [5, 17, 600])
+    for k in (1, 9, 64):
+        nb, r2 = k_nearest(x, source, k, cell_scale=cell_scale)
+        assert nb.dtype == np.int32 and nb.shape == r2.shape == (len(x), k)
+        ref_nb, ref_r2 = _brute_knn(x, source, k)
+        np.testing.assert_allclose(np.sort(r2, axis=1), ref_r2, rtol=0, atol=1e-12)
+        # the sets agree wherever the k-th distance is not tied with the next
+        all_r2 = np.sort(((x[:, None] - x[source][None]) ** 2).sum(-1), axis=1)
+        untied = all_r2[:, k] > all_r2[:, k - 1] + 1e-12 if k < len(source) else np.ones(len(x), bool)
+        assert untied.mean() > 0.95  # the coincident pair and its neighbours tie
+        np.testing.assert_array_equal(np.sort(nb[untied], axis=1), np.sort(ref_nb[untied], axis=1))
+        mine = np.isin(np.arange(len(x)), source)
+        assert (r2[mine] == 0).any(axis=1).all()  # a source particle is among its own neighbours at r2 = 0
+    nb, r2 = k_nearest(x, source, len(source), cell_scale=cell_scale)  # k = the whole pool
+    assert (np.sort(nb, axis=1) == source[None]).all()
+    with pytest.raises(ValueError, match="k must be"):
+        k_nearest(x, source, len(source) + 1)
+
+
+def test_k_nearest_matches_the_kd_tree_reference_on_a_jittered_lattice():
+    """On the sampling's own kind of cloud (a jittered lattice, neighbourhoods from a pool, k = 64)
+    the cell grid returns the KD tree's neighbours (plasticity.nearest_neighbours)."""
+    rng = np.random.default_rng(2)
+    g = np.stack(np.meshgrid(*[np.arange(14)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
+    x = 0.5 * (g + rng.uniform(-0.3, 0.3, g.shape))
+    pool = np.flatnonzero((g % 2 == 0).all(axis=1))
+    ref_nb, ref_r2 = nearest_neighbours(x, pool, 64)
+    nb, r2 = k_nearest(x, pool, 64)
+    nb_s, r2_s = _by_distance(nb, r2)
+    np.testing.assert_array_equal(nb_s, ref_nb)
+    np.testing.assert_allclose(r2_s, ref_r2, rtol=1e-12, atol=1e-15)
 
 
 def test_knn_smoothing_keeps_constant_fields():
