@@ -11,7 +11,9 @@ experiment for --frames frames with plasticity active from the first frame (so e
 timed, no release frames) and prints the mean seconds per stage over the frames after the ones
 that compile Taichi kernels, and the peak RSS: frame 1 compiles the solver's and the renderer's
 kernels, and with an injection gain to measure (f_inject, full) frame 2 compiles the calibration's
-(MPMSolver.backward_pair), so those methods are timed from frame 3.
+(MPMSolver.backward_pair), so those methods are timed from frame 3. The stages' sum (t_frame) leaves
+out each frame's commit (its frame file and the checkpoint, written, checksummed and fsynced), so
+the wall time from one frame's progress line to the next is printed as well.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import shutil
 import dataclasses
 import multiprocessing
 import os
+import re
 import time
 from pathlib import Path
 
@@ -77,12 +80,23 @@ def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path
     out = wd / "run.h5"
     out.unlink(missing_ok=True)
     shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
-    run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=experiment)
+    done_at = {}  # frame -> when its progress line came: after its commit (frame file and checkpoint)
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+        hit = re.search(r"\] frame (\d+)/", msg)
+        if hit:
+            done_at[int(hit.group(1))] = time.perf_counter()
+
+    run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=experiment, log=log)
     m = read_metrics(out)
     calibrates = mc.method in ("f_inject", "full") and mc.injection_calibration != "absolute"
     timed_from = min(3 if calibrates else 2, frames)
     sel = slice(timed_from, None)
     row = {key[2:]: float(np.nanmean(m[key][sel])) for key in STAGES}
+    # the wall time from one frame's progress line to the next: the frame and its commit
+    walls = [done_at[k] - done_at[k - 1] for k in range(max(timed_from, 2), frames + 1) if k - 1 in done_at and k in done_at]
+    row["wall"] = float(np.mean(walls)) if walls else float("nan")
     row.update(first_frame=float(m["t_frame"][1]), particles=int(m["attrs"]["n_particles"]),
                mask_fraction=float(np.nanmean(m["mask_fraction"][sel])),
                peak_rss_mb=float(m["attrs"]["peak_rss_mb"]), preparation=prep, timed_from=timed_from)
@@ -108,6 +122,7 @@ def main() -> None:
     print("| stage | seconds per frame |\n|---|---|")
     for key in STAGES:
         print(f"| {key[2:]} | {row[key[2:]]:.2f} |")
+    print(f"| frame and its commit (wall, progress line to progress line) | {row['wall']:.2f} |")
     print(f"| first frame (incl. compilation) | {row['first_frame']:.2f} |")
     print(f"mask fraction {row['mask_fraction']:.2f}, peak RSS {row['peak_rss_mb']:.0f} MiB")
 

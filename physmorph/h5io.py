@@ -19,6 +19,7 @@ import os
 import resource
 import subprocess
 import time
+from collections.abc import Mapping
 from contextlib import contextmanager
 from importlib import metadata
 from pathlib import Path
@@ -96,22 +97,30 @@ def _hash_attrs(h: "hashlib._Hash", name: str, attrs: h5py.AttributeManager) -> 
         _hash_value(h, attrs[key])
 
 
-def _hash_dataset(h: "hashlib._Hash", ds: h5py.Dataset) -> None:
+def _hash_dataset(h: "hashlib._Hash", ds: h5py.Dataset, written: np.ndarray | None = None) -> None:
+    """Feed ``ds`` into ``h``: its dtype, shape and C-order bytes. ``written``: the array ``ds`` was
+    just written from, hashed in its place (no read back) where its dtype and shape are the
+    dataset's, so its bytes are the stored ones."""
     _hash_value(h, f"{ds.dtype.str}{ds.shape}")
     if ds.dtype.kind in "OSUV" or ds.ndim == 0 or ds.size == 0:
         _hash_value(h, ds[()])
         return
+    if written is not None and written.dtype == ds.dtype and written.shape == ds.shape:
+        h.update(np.ascontiguousarray(written).reshape(-1).view(np.uint8))
+        return
     row_bytes = max(1, ds.size // ds.shape[0] * ds.dtype.itemsize)
     step = max(1, _HASH_BLOCK_BYTES // row_bytes)
     for i in range(0, ds.shape[0], step):  # C order: the blocks' bytes concatenate to the whole
-        h.update(np.ascontiguousarray(ds[i:i + step]).tobytes())
+        h.update(np.ascontiguousarray(ds[i:i + step]).reshape(-1).view(np.uint8))
 
 
-def content_checksum(f: h5py.File | h5py.Group, only: str | None = None) -> str:
+def content_checksum(f: h5py.File | h5py.Group, only: str | None = None,
+                     written: Mapping[str, np.ndarray] | None = None) -> str:
     """SHA-256 of the attributes and datasets under ``f`` (see the module docstring).
 
     ``only``: hash the root attributes and just the objects under this member (e.g. "metrics"),
-    for a cheap check of the part a reader uses.
+    for a cheap check of the part a reader uses. ``written``: dataset name -> the array it was
+    written from in this process (hashed from memory, see _hash_dataset; the same checksum).
     """
     h = hashlib.sha256()
     _hash_attrs(h, "/", f.attrs)
@@ -124,14 +133,15 @@ def content_checksum(f: h5py.File | h5py.Group, only: str | None = None) -> str:
         _hash_value(h, f"{'dataset' if isinstance(obj, h5py.Dataset) else 'group'} {name}")
         _hash_attrs(h, name, obj.attrs)
         if isinstance(obj, h5py.Dataset):
-            _hash_dataset(h, obj)
+            _hash_dataset(h, obj, None if written is None else written.get(name))
     return h.hexdigest()
 
 
-def stamp_checksum(f: h5py.File) -> str:
-    """Write ``content_sha256`` of everything already in ``f``; call it last."""
+def stamp_checksum(f: h5py.File, written: Mapping[str, np.ndarray] | None = None) -> str:
+    """Write ``content_sha256`` of everything already in ``f``; call it last. ``written``: as in
+    content_checksum (the arrays the datasets were just written from: nothing is read back)."""
     f.flush()
-    digest = content_checksum(f)
+    digest = content_checksum(f, written=written)
     f.attrs[CHECKSUM_ATTR] = digest
     return digest
 

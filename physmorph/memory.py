@@ -1,4 +1,4 @@
-"""Giving freed heap memory back to the operating system between the stages of a frame.
+"""Giving freed heap memory back to the operating system once a frame, before its commit.
 
 glibc serves allocations under its mmap threshold from the heap, and that threshold rises to 32 MB
 after the first large block is freed, so the morph loop's stage-sized NumPy and torch temporaries
@@ -7,6 +7,13 @@ after the first large block is freed, so the morph loop's stage-sized NumPy and 
 leftovers: at the paper profile the frame's resident set stayed ~1 GB above what the frame holds.
 ``malloc_trim(0)`` releases every free page of the heap (tens of milliseconds); other C libraries
 have no such call and nothing is done there.
+
+The morph loop trims once a frame, before the commit (where the frame's high-water mark was), not
+after each stage: pages given back are faulted in again by the next stage that allocates, and on
+a virtual machine that hands freed memory back to its host a fault costs ~2 ms per MB (the 2-core
+development machine). At the paper profile a trim after every stage took 230-290K page faults a
+frame and the high-water mark was 4,707 MiB in 4 frames; one trim a frame 115-160K faults and
+4,485 MiB (docs/performance.md).
 """
 
 from __future__ import annotations

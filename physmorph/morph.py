@@ -211,9 +211,6 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 break
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
-        # each stage's temporaries go back to the system before the next stage's are made, so
-        # the frame's peak is one stage's, not the sum of the heap's leftovers (physmorph.memory)
-        release_free_memory()
         t1 = time.time()
         # each particle's nearest target surface point, shared by the mask, the plasticity's
         # nearest-point map and the Chamfer metric (x is the same for all: plasticity changes only Fp)
@@ -238,7 +235,6 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             scal.update(loss_dt=res.losses["dt"], loss_iou=res.losses["iou"], loss_depth=res.losses["depth"],
                         loss_render=res.losses["total"], grad_F_norm=float(np.linalg.norm(g_F)),
                         grad_x_norm=float(np.linalg.norm(g_x)))
-            release_free_memory()
         t3 = time.time()
         # C. plasticity
         if cfg.method == "full" and k >= cfg.plasticity.start_frame:
@@ -266,7 +262,6 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             rebase_to = rebase_reference(cfg.plasticity, absorbing, Fp_from, pl.Fp)
             if rebase_to is not None:
                 solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
-            release_free_memory()
         t4 = time.time()
         m, per_view, dm = metrics_for(st, mask, alpha=res.alpha if want_grad and loss_render_is_metric else None,
                                   masked_alpha=res.alpha if want_grad and len(views) == V else None,
@@ -290,8 +285,11 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.step_size)
         loss_before = scal["physics_loss"]
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic, fp_anisotropy=dm.anisotropy_plastic)
-        # the render's images and gradient and the metrics' arrays are done with: the checkpoint's
-        # buffers do not sit on top of them (physmorph.memory)
+        # the render's images and gradient and the metrics' arrays are done with: the frame's freed
+        # heap goes back to the system once, so the checkpoint's buffers do not sit on top of it.
+        # Once a frame, not after every stage: memory returned is faulted in again by the next
+        # stage (on the 2-core VM ~2 ms per MB), and the stages reuse each other's freed blocks
+        # (physmorph.memory)
         res = dm = None
         release_free_memory()
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
@@ -299,7 +297,6 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
                    {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
                     "next_step": step, **solver.optimizer_state(), **monitor.state()})
-        release_free_memory()
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)

@@ -133,11 +133,12 @@ def _changed_keys(a, b, prefix: str = "") -> list[str]:
 
 # ------------------------------------------------------------------------- atomic file writes
 # Each step of a commit is a module-level function, so tests can kill a commit at any of them.
-def _write_aside(tmp: Path, fill: Callable[[h5py.File], None]) -> None:
-    """Create ``tmp`` (it must not exist), fill it, stamp its content checksum last."""
+def _write_aside(tmp: Path, fill: Callable[[h5py.File], dict | None]) -> None:
+    """Create ``tmp`` (it must not exist), fill it, stamp its content checksum last (``fill`` may
+    return the arrays it wrote by dataset name: they are hashed from memory)."""
     with h5py.File(tmp, "w-") as f:
-        fill(f)
-        stamp_checksum(f)
+        written = fill(f)
+        stamp_checksum(f, written=written)
 
 
 def _fsync(path: Path) -> None:
@@ -148,7 +149,7 @@ def _replace(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
-def _commit_h5(path: Path, fill: Callable[[h5py.File], None], what: str) -> None:
+def _commit_h5(path: Path, fill: Callable[[h5py.File], dict | None], what: str) -> None:
     """Write ``path`` all or nothing: aside, fsync, rename, fsync the directory."""
     tmp = path.with_name(path.name + ".tmp")
     tmp.unlink(missing_ok=True)
@@ -351,7 +352,7 @@ class RunWriter:
         self._require_lock()
         segments = self.segments_now()
 
-        def fill_frame(f: h5py.File) -> None:
+        def fill_frame(f: h5py.File) -> dict:
             f.attrs.update(format=FRAME_FORMAT, frame=frame, run_key=self.key.digest,
                            warnings=json.dumps(list(warnings)), peak_rss_mb=peak_rss_mb())
             if frame == 0:
@@ -360,20 +361,26 @@ class RunWriter:
             for name in SCALARS:
                 g[name] = float(scalars.get(name, np.nan))
             g["alpha_mse_views"] = np.asarray(views, dtype=np.float64).ravel()
+            written = {}
             if state is not None:
                 s = f.create_group("state")
                 for k in SAVED_STATE:
-                    s.create_dataset(k, data=np.asarray(state[k]).astype(np.float32), compression="gzip")
+                    written[f"state/{k}"] = np.asarray(state[k]).astype(np.float32)
+                    s.create_dataset(k, data=written[f"state/{k}"], compression="gzip")
+            return written
 
-        def fill_checkpoint(f: h5py.File) -> None:
+        def fill_checkpoint(f: h5py.File) -> dict:
             f.attrs.update(format=CHECKPOINT_FORMAT, frame=frame, wall_time_segments_s=json.dumps(list(segments)),
                            **self.key.attrs())
             sc = f.create_group("scalars")
+            written = {}
             for k, v in checkpoint.items():
                 if isinstance(v, np.ndarray):
+                    written[k] = v
                     f.create_dataset(k, data=v)
                 else:
                     sc.attrs[k] = v
+            return written
 
         _commit_h5(self.dir / frame_name(frame), fill_frame, f"frame {frame}")
         _commit_h5(self.dir / CHECKPOINT_NAME, fill_checkpoint, f"the checkpoint of frame {frame}")
@@ -392,17 +399,19 @@ class RunWriter:
         frames = [self._read_frame(self.dir / frame_name(k), k) for k in range(ck_frame + 1)]
         segments = self.segments_now()
 
-        def fill(f: h5py.File) -> None:
+        def fill(f: h5py.File) -> dict:
             f.attrs.update(self.meta)
             f.attrs.update(self.key.attrs())
             g = f.create_group("metrics")
             for name in SCALARS + ("alpha_mse_views",):
                 g.create_dataset(name, data=np.stack([_frame_metric(fr, name) for fr in frames]))
             st = f.create_group("states")
+            written = {}
             for k, fr in enumerate(frames):
                 if fr["state"] is not None:
                     s = st.create_group(f"frame_{k:04d}")
                     for name, arr in fr["state"].items():
+                        written[f"states/frame_{k:04d}/{name}"] = arr
                         s.create_dataset(name, data=arr, compression="gzip")
             write_provenance(f, config, self.started)
             f.attrs.update(attrs)
@@ -411,6 +420,7 @@ class RunWriter:
                            wall_time_s=float(sum(segments)), wall_time_segments_s=json.dumps(list(segments)),
                            peak_rss_mb=max([peak_rss_mb()] + [fr["peak_rss_mb"] for fr in frames]))
             f.attrs[METRICS_CHECKSUM_ATTR] = content_checksum(f, only="metrics")
+            return written
 
         _commit_h5(self.out, fill, "the finished run")
         shutil.rmtree(self.dir)  # the lock file goes with it; the lock itself until release()

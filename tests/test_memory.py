@@ -1,4 +1,4 @@
-"""Freed heap memory goes back to the system between a frame's stages (physmorph.memory)."""
+"""Freed heap memory goes back to the system once a frame, before its commit (physmorph.memory)."""
 
 import os
 import platform

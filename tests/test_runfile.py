@@ -71,6 +71,39 @@ def test_frames_commit_read_and_finish(tmp_path):
         read_metrics(out)
 
 
+def test_checksums_hashed_from_memory_equal_the_stored_bytes(tmp_path):
+    """Frame files, checkpoints and the finished file hash the arrays they were written from (no read
+    back): each stamp equals the checksum recomputed from the file, for float64, float32, bool, int
+    and non-contiguous arrays; an array whose dtype is not the dataset's is read back instead."""
+    from physmorph.h5io import CHECKSUM_ATTR, content_checksum, stamp_checksum
+
+    out = tmp_path / "run.h5"
+    rng = np.random.default_rng(3)
+    with RunWriter(out, KEY) as w:
+        w.resume(log=lambda m: None)
+        w.set_meta({"experiment": "hand", "views": V})
+        for k in range(2):
+            st = _state(k)
+            w.commit(k, {"alpha_mse": 1.0}, np.ones(V), st, [],
+                     {"x": st["x"], "F": np.transpose(rng.normal(size=(N, 3, 3)), (0, 2, 1)),
+                      "mask": rng.random(N) < 0.5, "control": rng.normal(size=(1, N, 3, 3)).astype(np.float32),
+                      "index": np.arange(N), "adam_step": k})
+        d = runfile.partial_dir(out)
+        files = sorted(d.glob("*.h5"))
+        assert len(files) == 3
+        for path in files:
+            with h5py.File(path) as f:
+                assert f.attrs[CHECKSUM_ATTR] == content_checksum(f), path.name
+        w.finish("complete", {}, {"frames": 2})
+    with h5py.File(out) as f:
+        assert f.attrs[CHECKSUM_ATTR] == content_checksum(f)
+    with h5py.File(tmp_path / "mixed.h5", "w") as f:
+        a = rng.normal(size=(4, 3))
+        f.create_dataset("a", data=a.astype(np.float32))
+        stamp_checksum(f, written={"a": a})  # float64 given for a float32 dataset: read back
+        assert f.attrs[CHECKSUM_ATTR] == content_checksum(f)
+
+
 def test_frames_written_before_a_metric_existed_resume_with_it_as_nan(tmp_path, monkeypatch):
     """A run begun by a writer that did not know a scalar yet, finished by one that does: the
     finished file has the scalar, NaN for the older frames and its value for the newer."""
