@@ -219,6 +219,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         if need_mask:
             mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi, previous=mask,
                                        target_distance=nearest_d)
+        # the physics' and the mask's temporaries go back to the system before the render, the
+        # frame's largest transient (physmorph.memory)
+        release_free_memory()
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
@@ -286,10 +289,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         loss_before = scal["physics_loss"]
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic, fp_anisotropy=dm.anisotropy_plastic)
         # the render's images and gradient and the metrics' arrays are done with: the frame's freed
-        # heap goes back to the system once, so the checkpoint's buffers do not sit on top of it.
-        # Once a frame, not after every stage: memory returned is faulted in again by the next
-        # stage (on the 2-core VM ~2 ms per MB), and the stages reuse each other's freed blocks
-        # (physmorph.memory)
+        # heap goes back to the system, so the checkpoint's buffers do not sit on top of it. Not
+        # after every stage: memory returned is faulted in again by the next stage (on the 2-core
+        # VM up to ~2 ms per MB), and the stages reuse each other's freed blocks (physmorph.memory)
         res = dm = None
         release_free_memory()
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)

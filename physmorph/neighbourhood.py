@@ -16,10 +16,12 @@ pair sums here are summed directly (no expansion of the products, so no cancella
 references are plasticity.knn_smooth and plasticity.displacement_jacobian.
 
 The neighbourhoods K_i themselves (step 2's k nearest particles of the pool) come from
-:func:`k_nearest`: a uniform cell grid over the particles, each query scanning cells ring by ring
-and keeping its k best in a max-heap until the k-th distance is inside the rings scanned; exact,
-as the KD tree it replaces (plasticity.nearest_neighbours, the reference), which took ~3 s of a
-paper-scale frame for the query and another ~2 s to gather and square its arrays.
+:func:`k_nearest`: a uniform cell grid over the particles, cells about the k-th neighbour's radius.
+Most queries are settled by the 3x3x3 cells around them (a histogram of r2 finds the bin of the
+k-th nearest, a second scan writes the row); the rest scan rings of cells, keeping their k best in
+a max-heap, until the k-th distance is inside the rings scanned. Exact, as the KD tree it replaces
+(plasticity.nearest_neighbours, the reference), which took ~3 s of a paper-scale frame for the
+query and another ~2 s to gather and square its arrays; the grid takes 1.3-2.2 s.
 """
 
 # No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
@@ -51,9 +53,10 @@ def _mean_rows(d: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
 def _jacobian(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
               d: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
               neighbors: ti.types.ndarray(ndim=2),  # [N, k] int
-              r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, k]
+              r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, k], or unused (given_r2 False)
               out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
-              least_squares: ti.template()):
+              least_squares: ti.template(),
+              given_r2: ti.template()):  # False: r2_ij = |x_j - x_i|^2 here (k_nearest's own value)
     k = neighbors.shape[1]
     for i in range(x.shape[0]):
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
@@ -62,10 +65,13 @@ def _jacobian(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
         M = ti.Matrix.zero(ti.f64, 3, 3)
         count = 0
         for a in range(k):
-            if r2[i, a] > 0.0:
-                j = neighbors[i, a]
-                w = 1.0 / r2[i, a]
-                e = ti.Vector([x[j, 0], x[j, 1], x[j, 2]]) - xi
+            j = neighbors[i, a]
+            e = ti.Vector([x[j, 0], x[j, 1], x[j, 2]]) - xi
+            rr = e.dot(e)
+            if ti.static(given_r2):
+                rr = r2[i, a]
+            if rr > 0.0:
+                w = 1.0 / rr
                 J += w * (ti.Vector([d[j, 0], d[j, 1], d[j, 2]]) - di).outer_product(e)
                 if ti.static(least_squares):
                     M += w * e.outer_product(e)
@@ -108,35 +114,37 @@ def smooth_displacement(d: np.ndarray,  # [N, 3]
 def displacement_jacobian_pairs(x: np.ndarray,  # [N, 3]
                                 d: np.ndarray,  # [N, 3]
                                 neighbors: np.ndarray,  # [N, k] indices
-                                r2: np.ndarray,  # [N, k] squared neighbour distances (0: the particle itself)
+                                r2: np.ndarray | None,  # [N, k] squared neighbour distances (0: the particle itself)
                                 mode: str = "paper") -> np.ndarray:  # -> [N, 3, 3]
-    """The displacement Jacobian of eq. 4 from the pair sums (module docstring)."""
+    """The displacement Jacobian of eq. 4 from the pair sums (module docstring). ``r2`` None: each
+    pair's |x_j - x_i|^2 computed here, as k_nearest computes it (0 for the particle itself)."""
     if mode not in ("paper", "least_squares"):
         raise ValueError(f"jacobian mode must be paper or least_squares, got {mode!r}")
     ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64)
     d = np.ascontiguousarray(d, dtype=np.float64)
-    r2 = np.ascontiguousarray(r2, dtype=np.float64)
     nb = _as_index(neighbors)
-    if not (len(x) == len(d) == len(nb) == len(r2)) or nb.shape != r2.shape:
+    given = r2 is not None
+    r2 = np.ascontiguousarray(r2, dtype=np.float64) if given else np.zeros((1, 1))
+    if not (len(x) == len(d) == len(nb)) or (given and nb.shape != r2.shape):
         raise ValueError(f"x {x.shape}, d {d.shape}, neighbors {nb.shape} and r2 {r2.shape} must agree")
     out = np.empty((len(x), 3, 3))
     if len(x):
-        _jacobian(x, d, nb, r2, out, mode == "least_squares")
+        _jacobian(x, d, nb, r2, out, mode == "least_squares", given)
     return out
 
 
 @ti.func
-def _sift_down(r2: ti.template(), nb: ti.template(), i, base, root, end):
-    """Restore the max-heap order of the heap r2[i, base:end] (nb moved along) below its node ``root``."""
+def _sift_down(r2: ti.template(), nb: ti.template(), r, i, base, root, end):
+    """Restore the max-heap order of the heap r2[r, base:end] (nb[i] moved along) below its node ``root``."""
     a = root
     n = end - base
     while 2 * a + 1 < n:
         c = 2 * a + 1
-        if c + 1 < n and r2[i, base + c + 1] > r2[i, base + c]:
+        if c + 1 < n and r2[r, base + c + 1] > r2[r, base + c]:
             c += 1
-        if r2[i, base + c] > r2[i, base + a]:
-            r2[i, base + a], r2[i, base + c] = r2[i, base + c], r2[i, base + a]
+        if r2[r, base + c] > r2[r, base + a]:
+            r2[r, base + a], r2[r, base + c] = r2[r, base + c], r2[r, base + a]
             nb[i, base + a], nb[i, base + c] = nb[i, base + c], nb[i, base + a]
             a = c
         else:
@@ -159,8 +167,9 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                      lo: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [3] the grid's corner
                      dims: ti.types.ndarray(ndim=1),  # [3] cells per axis
                      h: ti.f64,  # the cells' side
+                     row0: ti.i32,  # the first query of this chunk
                      nb: ti.types.ndarray(ndim=2),  # [N, k] out: neighbour indices
-                     r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, k] out: squared distances
+                     r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [R, k] out: squared distances of rows row0..
                      settled: ti.types.ndarray(ndim=1)):  # [N] out: 1 where the row is written
     """K_i from the 3x3x3 cells around x_i's alone, where they settle it: the points of the block
     within R_b of x_i (R_b: the distance to the block's nearest face with cells beyond it, so no
@@ -169,7 +178,8 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
     of that bin's in a max-heap over the row's remaining slots. The row is in no particular order."""
     k = nb.shape[1]
     n0, n1, n2 = dims[0], dims[1], dims[2]
-    for i in range(x.shape[0]):
+    for r in range(ti.min(r2.shape[0], x.shape[0] - row0)):
+        i = row0 + r
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
         c = _cell_of(xi, lo, dims, h)
         rb2 = ti.f64(0.0)
@@ -223,21 +233,21 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                         if d2 <= rb2:
                             b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
                             if b < kb:
-                                r2[i, left] = d2
+                                r2[r, left] = d2
                                 nb[i, left] = ids[s]
                                 left += 1
                             elif b == kb:
                                 if held < cap:
-                                    r2[i, m0 + held] = d2
+                                    r2[r, m0 + held] = d2
                                     nb[i, m0 + held] = ids[s]
                                     held += 1
                                     if held == cap:
                                         for q in range(cap // 2):
-                                            _sift_down(r2, nb, i, m0, cap // 2 - 1 - q, k)
-                                elif d2 < r2[i, m0]:
-                                    r2[i, m0] = d2
+                                            _sift_down(r2, nb, r, i, m0, cap // 2 - 1 - q, k)
+                                elif d2 < r2[r, m0]:
+                                    r2[r, m0] = d2
                                     nb[i, m0] = ids[s]
-                                    _sift_down(r2, nb, i, m0, 0, k)
+                                    _sift_down(r2, nb, r, i, m0, 0, k)
             settled[i] = 1
 
 
@@ -250,16 +260,18 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                      lo: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [3] the grid's corner
                      dims: ti.types.ndarray(ndim=1),  # [3] cells per axis
                      h: ti.f64,  # the cells' side
+                     row0: ti.i32,  # the first query of this chunk
                      nb: ti.types.ndarray(ndim=2),  # [N, k] out: neighbour indices, nearest first
-                     r2: ti.types.ndarray(dtype=ti.f64, ndim=2)):  # [N, k] out: squared distances
+                     r2: ti.types.ndarray(dtype=ti.f64, ndim=2)):  # [R, k] out: squared distances of rows row0..
     """K_i for any query: cells are scanned in rings r = 0, 1, ... around x_i's cell, the k nearest
     so far in a max-heap, until the heap is full and its largest r2 is no more than the squared
     distance from x_i to the scanned block's nearest face with cells beyond it (every point
     outside is farther), or the block covers the grid. The row ends sorted, nearest first."""
     k = nb.shape[1]
     n0, n1, n2 = dims[0], dims[1], dims[2]
-    for r in range(rows.shape[0]):
-        i = rows[r]
+    for t in range(rows.shape[0]):
+        i = rows[t]
+        r = i - row0
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
         c = _cell_of(xi, lo, dims, h)
         filled = 0
@@ -275,16 +287,16 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                             e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
                             d2 = e.dot(e)
                             if filled < k:  # fill, then heapify once full
-                                r2[i, filled] = d2
+                                r2[r, filled] = d2
                                 nb[i, filled] = ids[s]
                                 filled += 1
                                 if filled == k:
                                     for q in range(k // 2):
-                                        _sift_down(r2, nb, i, 0, k // 2 - 1 - q, k)
-                            elif d2 < r2[i, 0]:
-                                r2[i, 0] = d2
+                                        _sift_down(r2, nb, r, i, 0, k // 2 - 1 - q, k)
+                            elif d2 < r2[r, 0]:
+                                r2[r, 0] = d2
                                 nb[i, 0] = ids[s]
-                                _sift_down(r2, nb, i, 0, 0, k)
+                                _sift_down(r2, nb, r, i, 0, 0, k)
             bound = ti.f64(1e300)
             covered = True
             for a in ti.static(range(3)):
@@ -294,24 +306,28 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                 if c[a] + ring < dims[a] - 1:
                     bound = ti.min(bound, lo[a] + (c[a] + ring + 1) * h - xi[a])
                     covered = False
-            if covered or (filled == k and r2[i, 0] <= bound * bound):
+            if covered or (filled == k and r2[r, 0] <= bound * bound):
                 done = True
             ring += 1
         for q in range(k - 1):  # heap sort: ascending r2
             end = k - 1 - q
-            r2[i, 0], r2[i, end] = r2[i, end], r2[i, 0]
+            r2[r, 0], r2[r, end] = r2[r, end], r2[r, 0]
             nb[i, 0], nb[i, end] = nb[i, end], nb[i, 0]
-            _sift_down(r2, nb, i, 0, 0, end)
+            _sift_down(r2, nb, r, i, 0, 0, end)
 
 
 def k_nearest(x: np.ndarray,  # [N, 3]
               source: np.ndarray,  # [P] indices into x the neighbours are drawn from
               k: int,
-              cell_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:  # -> [N, k] indices, [N, k] r2
+              cell_scale: float = 1.0,
+              with_r2: bool = True,
+              chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray | None]:  # -> [N, k] indices, [N, k] r2
     """Each particle's k nearest particles of ``source``, in no particular order, and their squared
     distances, 0 for the particle itself (module docstring; plasticity.nearest_neighbours is the
     KD-tree reference). Indices are int32 below 2^31 particles. ``cell_scale``: the cells' side in
-    k-th-neighbour radii (estimated from the pool's density); any value gives the same answer."""
+    k-th-neighbour radii (estimated from the pool's density); any value gives the same answer.
+    ``with_r2`` False: r2 is None, and the distances are kept for ``chunk`` rows at a time only
+    (displacement_jacobian_pairs recomputes them: 241 MB fewer at 471K particles, k = 64)."""
     ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64)
     source = np.asarray(source)
@@ -320,7 +336,7 @@ def k_nearest(x: np.ndarray,  # [N, 3]
         raise ValueError(f"k must be in 1..{p} (the pool's size), got {k}")
     index = np.int32 if n < np.iinfo(np.int32).max else np.int64
     nb = np.empty((n, k), dtype=index)
-    r2 = np.empty((n, k))
+    r2 = np.empty((n, k)) if with_r2 else None
     if n == 0:
         return nb, r2
     pts = x[source]
@@ -339,11 +355,14 @@ def k_nearest(x: np.ndarray,  # [N, 3]
     order = np.argsort(key, kind="stable")
     cell_start = np.zeros(int(np.prod(dims)) + 1, dtype=index)
     np.cumsum(np.bincount(key, minlength=len(cell_start) - 1), out=cell_start[1:])
-    args = (np.ascontiguousarray(pts[order]), np.ascontiguousarray(source[order].astype(index)), cell_start, lo,
+    grid = (np.ascontiguousarray(pts[order]), np.ascontiguousarray(source[order].astype(index)), cell_start, lo,
             dims.astype(np.int32), h)
     settled = np.empty(n, dtype=np.int32)
-    _k_nearest_block(x, *args, nb, r2, settled)
-    rest = np.flatnonzero(settled == 0).astype(index)
-    if len(rest):
-        _k_nearest_rings(x, rest, *args, nb, r2)
+    step = n if with_r2 else max(1, int(chunk))
+    scratch = r2 if with_r2 else np.empty((min(step, n), k))
+    for row0 in range(0, n, step):
+        _k_nearest_block(x, *grid, row0, nb, scratch, settled)
+        rest = np.flatnonzero(settled[row0:row0 + step] == 0).astype(index) + row0
+        if len(rest):
+            _k_nearest_rings(x, rest, *grid, row0, nb, scratch)
     return nb, r2

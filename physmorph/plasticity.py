@@ -387,10 +387,10 @@ def chamfer_plasticity_step(
         d_raw = (nearest_target_displacement(x, tree, target_points) if nearest_index is None
                  else target_points[nearest_index] - x)
     source = np.arange(len(x)) if pool is None else np.asarray(pool)
-    neighbors, r2 = k_nearest(x, source, min(cfg.k_neighbors, len(source)))
+    neighbors, _ = k_nearest(x, source, min(cfg.k_neighbors, len(source)), with_r2=False)
     d = smooth_displacement(d_raw, neighbors, cfg.smooth_iters, sources=source)
-    J = displacement_jacobian_pairs(x, d, neighbors, r2, cfg.jacobian)
-    del neighbors, r2
+    J = displacement_jacobian_pairs(x, d, neighbors, None, cfg.jacobian)
+    del neighbors
     dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
     mag = np.linalg.norm(d, axis=1)
     scale = np.median(mag)

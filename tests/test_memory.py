@@ -1,4 +1,4 @@
-"""Freed heap memory goes back to the system once a frame, before its commit (physmorph.memory)."""
+"""Freed heap memory goes back to the system before a frame's render and its commit (physmorph.memory)."""
 
 import os
 import platform

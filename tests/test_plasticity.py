@@ -61,6 +61,8 @@ def test_neighbour_sum_jacobian_and_smoothing_equal_their_gather_references(mode
     r2[nb == np.arange(len(x))[:, None]] = 0.0
     np.testing.assert_allclose(displacement_jacobian_pairs(x, d, nb.astype(np.int32), r2, mode), ref,
                                rtol=1e-7, atol=1e-7)
+    # r2 left out: each pair's distance from x, as k_nearest computes it
+    np.testing.assert_allclose(displacement_jacobian_pairs(x, d, nb, None, mode), ref, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(smooth_displacement(d, nb, 3), knn_smooth(d, nb, 3), rtol=1e-12, atol=1e-12)
     # with neighbourhoods drawn from a pool (its rows alone until the last pass)
     pool = np.arange(0, len(x), 3)
@@ -128,6 +130,10 @@ def test_k_nearest_equals_a_brute_force_search(cell_scale):
         np.testing.assert_array_equal(np.sort(nb[untied], axis=1), np.sort(ref_nb[untied], axis=1))
         mine = np.isin(np.arange(len(x)), source)
         assert (r2[mine] == 0).any(axis=1).all()  # a source particle is among its own neighbours at r2 = 0
+        # by chunks of rows, without the distances: the same rows
+        nb_c, none = k_nearest(x, source, k, cell_scale=cell_scale, with_r2=False, chunk=97)
+        assert none is None
+        np.testing.assert_array_equal(np.sort(nb_c, axis=1), np.sort(nb, axis=1))
     nb, r2 = k_nearest(x, source, len(source), cell_scale=cell_scale)  # k = the whole pool
     assert (np.sort(nb, axis=1) == source[None]).all()
     with pytest.raises(ValueError, match="k must be"):
