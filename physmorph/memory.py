@@ -8,8 +8,8 @@ leftovers: at the paper profile the frame's resident set stayed ~1 GB above what
 ``malloc_trim(0)`` releases every free page of the heap (tens of milliseconds); other C libraries
 have no such call and nothing is done there.
 
-The morph loop trims twice a frame, before the render (the frame's largest transient) and before
-the commit, not after every stage: pages given back are faulted in again by the next stage that
+The morph loop trims before the render (the frame's largest transient) and before the commit, and
+the render once more before its rasterizer backward, not after every stage: pages given back are faulted in again by the next stage that
 allocates, and on a virtual machine that hands freed memory back to its host a fault costs up to
 ~2 ms per MB (the 2-core development machine). At the paper profile a trim after every stage took
 230-290K page faults a frame (docs/performance.md).
