@@ -152,6 +152,16 @@ def _sift_down(r2: ti.template(), nb: ti.template(), r, i, base, root, end):
 
 
 @ti.func
+def _cell_range(cell, dims: ti.template(), cell_start: ti.template()):
+    """The sorted pool points [first, end) of grid cell ``cell`` (z, y, x); empty outside the grid."""
+    first, end = 0, 0
+    if 0 <= cell[0] < dims[0] and 0 <= cell[1] < dims[1] and 0 <= cell[2] < dims[2]:
+        at = (cell[0] * dims[1] + cell[1]) * dims[2] + cell[2]
+        first, end = cell_start[at], cell_start[at + 1]
+    return first, end
+
+
+@ti.func
 def _cell_of(xi, lo: ti.template(), dims: ti.template(), h):
     c = ti.Vector([0, 0, 0])
     for a in ti.static(range(3)):
@@ -177,7 +187,6 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
     bin holding the k-th; a second scan writes every point below that bin and keeps the nearest
     of that bin's in a max-heap over the row's remaining slots. The row is in no particular order."""
     k = nb.shape[1]
-    n0, n1, n2 = dims[0], dims[1], dims[2]
     for r in range(ti.min(r2.shape[0], x.shape[0] - row0)):
         i = row0 + r
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
@@ -201,16 +210,14 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
             nb[i, b] = 0
         n_in = 0
         for o in range(27):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
-            cz, cy, cx = c[0] + o // 9 - 1, c[1] + o // 3 % 3 - 1, c[2] + o % 3 - 1
-            if 0 <= cz < n0 and 0 <= cy < n1 and 0 <= cx < n2:
-                cell = (cz * n1 + cy) * n2 + cx
-                for s in range(cell_start[cell], cell_start[cell + 1]):
-                    e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
-                    d2 = e.dot(e)
-                    if d2 <= rb2:
-                        b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
-                        nb[i, b] = nb[i, b] + 1  # not +=: Taichi makes that an atomic add
-                        n_in += 1
+            first, end = _cell_range(c + ti.Vector([o // 9 - 1, o // 3 % 3 - 1, o % 3 - 1]), dims, cell_start)
+            for s in range(first, end):
+                e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                d2 = e.dot(e)
+                if d2 <= rb2:
+                    b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
+                    nb[i, b] = nb[i, b] + 1  # not +=: Taichi makes that an atomic add
+                    n_in += 1
         settled[i] = 0
         if n_in >= k:
             kb = 0
@@ -224,30 +231,28 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
             held = 0
             cap = k - m0
             for o in range(27):
-                cz, cy, cx = c[0] + o // 9 - 1, c[1] + o // 3 % 3 - 1, c[2] + o % 3 - 1
-                if 0 <= cz < n0 and 0 <= cy < n1 and 0 <= cx < n2:
-                    cell = (cz * n1 + cy) * n2 + cx
-                    for s in range(cell_start[cell], cell_start[cell + 1]):
-                        e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
-                        d2 = e.dot(e)
-                        if d2 <= rb2:
-                            b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
-                            if b < kb:
-                                r2[r, left] = d2
-                                nb[i, left] = ids[s]
-                                left += 1
-                            elif b == kb:
-                                if held < cap:
-                                    r2[r, m0 + held] = d2
-                                    nb[i, m0 + held] = ids[s]
-                                    held += 1
-                                    if held == cap:
-                                        for q in range(cap // 2):
-                                            _sift_down(r2, nb, r, i, m0, cap // 2 - 1 - q, k)
-                                elif d2 < r2[r, m0]:
-                                    r2[r, m0] = d2
-                                    nb[i, m0] = ids[s]
-                                    _sift_down(r2, nb, r, i, m0, 0, k)
+                first, end = _cell_range(c + ti.Vector([o // 9 - 1, o // 3 % 3 - 1, o % 3 - 1]), dims, cell_start)
+                for s in range(first, end):
+                    e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                    d2 = e.dot(e)
+                    if d2 <= rb2:
+                        b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
+                        if b < kb:
+                            r2[r, left] = d2
+                            nb[i, left] = ids[s]
+                            left += 1
+                        elif b == kb:
+                            if held < cap:
+                                r2[r, m0 + held] = d2
+                                nb[i, m0 + held] = ids[s]
+                                held += 1
+                                if held == cap:
+                                    for q in range(cap // 2):
+                                        _sift_down(r2, nb, r, i, m0, cap // 2 - 1 - q, k)
+                            elif d2 < r2[r, m0]:
+                                r2[r, m0] = d2
+                                nb[i, m0] = ids[s]
+                                _sift_down(r2, nb, r, i, m0, 0, k)
             settled[i] = 1
 
 
@@ -268,7 +273,6 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
     distance from x_i to the scanned block's nearest face with cells beyond it (every point
     outside is farther), or the block covers the grid. The row ends sorted, nearest first."""
     k = nb.shape[1]
-    n0, n1, n2 = dims[0], dims[1], dims[2]
     for t in range(rows.shape[0]):
         i = rows[t]
         r = i - row0
@@ -280,23 +284,21 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
         while not done:
             for dz, dy, dx in ti.ndrange((-ring, ring + 1), (-ring, ring + 1), (-ring, ring + 1)):
                 if ti.max(ti.abs(dz), ti.abs(dy), ti.abs(dx)) == ring:
-                    cz, cy, cx = c[0] + dz, c[1] + dy, c[2] + dx
-                    if 0 <= cz < n0 and 0 <= cy < n1 and 0 <= cx < n2:
-                        cell = (cz * n1 + cy) * n2 + cx
-                        for s in range(cell_start[cell], cell_start[cell + 1]):
-                            e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
-                            d2 = e.dot(e)
-                            if filled < k:  # fill, then heapify once full
-                                r2[r, filled] = d2
-                                nb[i, filled] = ids[s]
-                                filled += 1
-                                if filled == k:
-                                    for q in range(k // 2):
-                                        _sift_down(r2, nb, r, i, 0, k // 2 - 1 - q, k)
-                            elif d2 < r2[r, 0]:
-                                r2[r, 0] = d2
-                                nb[i, 0] = ids[s]
-                                _sift_down(r2, nb, r, i, 0, 0, k)
+                    first, end = _cell_range(c + ti.Vector([dz, dy, dx]), dims, cell_start)
+                    for s in range(first, end):
+                        e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                        d2 = e.dot(e)
+                        if filled < k:  # fill, then heapify once full
+                            r2[r, filled] = d2
+                            nb[i, filled] = ids[s]
+                            filled += 1
+                            if filled == k:
+                                for q in range(k // 2):
+                                    _sift_down(r2, nb, r, i, 0, k // 2 - 1 - q, k)
+                        elif d2 < r2[r, 0]:
+                            r2[r, 0] = d2
+                            nb[i, 0] = ids[s]
+                            _sift_down(r2, nb, r, i, 0, 0, k)
             bound = ti.f64(1e300)
             covered = True
             for a in ti.static(range(3)):
