@@ -246,7 +246,7 @@ def check_job(job: JobRequest, cluster: Cluster) -> list[str]:
     if job.runtime_min is not None and part.max_minutes is not None and job.runtime_min > part.max_minutes:
         problems.append(f"{job.label} asks runtime={job.runtime_min} min (from {job.runtime_from}), but {where} allows "
                         f"{part.max_minutes} min: set --set-resources {job.rule}:runtime={part.max_minutes} (a morph killed at "
-                        "its time limit resumes from its last committed frame on the next attempt: raise --retries "
+                        "its time limit resumes from its last checkpoint on the next attempt: raise --retries "
                         "to give it enough attempts) or pick a partition with a longer limit")
     return problems
 

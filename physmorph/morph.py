@@ -296,9 +296,11 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         release_free_memory()
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         save = k % cfg.save_every == 0 or k == cfg.frames
+        # the checkpoint's arrays are gathered only when it is due (physmorph.runfile)
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
-                   {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
-                    "next_step": step, **solver.optimizer_state(), **monitor.state()})
+                   lambda: {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
+                            "next_step": step, **solver.optimizer_state(), **monitor.state()},
+                   last=k == cfg.frames)
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)

@@ -17,11 +17,15 @@ While it runs, a run lives in the directory ``<out>.partial/``:
   LOCK              held (fcntl.flock) by the one process writing the run; holds that PID
   frame_XXXX.h5     one per committed frame: its metrics, saved state and warnings (frame 0 also
                     holds the run's description)
-  checkpoint.h5     the loop state after the last committed frame
+  checkpoint.h5     the loop state after a committed frame: what a resume continues from
 Every file there is written aside (``*.tmp``), flushed to disk (fsync) and renamed into place
 (os.replace), and carries a format tag, its frame number, the run key and a content checksum
-written last: a file is either absent or complete. Frame k is committed when checkpoint.h5 says
-k; a frame file beyond the checkpoint is what an interrupted commit left and is removed on resume.
+written last: a file is either absent or complete. Each frame commits its frame file; the
+checkpoint follows at the first frame, the last, and between them once the frames since the
+previous one took ``1 / CHECKPOINT_WALL_SHARE`` times what writing it took (at the paper's scale
+it is ~0.2 GB: written every frame it cost ~8 % of the run). A resume continues after the
+checkpoint's frame: the frame files beyond it are removed and computed again (the same frames: a
+run is deterministic given its checkpoint).
 A run resumes only when its key (settings and input checksums) equals the checkpoint's; otherwise
 it restarts and says what changed. A damaged or foreign file is refused with its name, the reason
 and what to delete.
@@ -59,6 +63,10 @@ SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 FRAME_FORMAT = "physmorph-run-frame/1"
 CHECKPOINT_FORMAT = "physmorph-checkpoint/1"
 CHECKPOINT_NAME = "checkpoint.h5"
+# The most of a run's wall time its checkpoints take: a checkpoint that took c seconds to write is
+# followed by the next once c / CHECKPOINT_WALL_SHARE seconds have passed, so a kill loses at most
+# that much computing (None: a checkpoint every frame).
+CHECKPOINT_WALL_SHARE: float | None = 0.02
 LOCK_NAME = "LOCK"
 METRICS_CHECKSUM_ATTR = "metrics_sha256"
 
@@ -149,6 +157,10 @@ def _replace(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
+def _clock() -> float:  # the checkpoints' cadence (a function, so tests can set the time)
+    return time.monotonic()
+
+
 def _commit_h5(path: Path, fill: Callable[[h5py.File], dict | None], what: str) -> None:
     """Write ``path`` all or nothing: aside, fsync, rename, fsync the directory."""
     tmp = path.with_name(path.name + ".tmp")
@@ -230,6 +242,8 @@ class RunWriter:
         self.previous_segments: tuple[float, ...] = ()
         self.meta: dict = {}
         self.last_frame = -1  # the last committed frame
+        self.checkpoint_frame = -1  # the frame the checkpoint holds (a resume continues after it)
+        self._checkpoint_due = -np.inf  # _clock() time from which the next frame writes the checkpoint
         self._lock_fd: int | None = None
 
     # -- lock
@@ -322,7 +336,7 @@ class RunWriter:
             if k > ck.frame:  # an interrupted commit's frame file
                 p.unlink()
         self.previous_segments = ck.wall_time_segments_s
-        self.last_frame = ck.frame
+        self.last_frame = self.checkpoint_frame = ck.frame
         with h5py.File(frames[0], "r") as f:
             self.meta = dict(f["meta"].attrs)
         return ck
@@ -344,10 +358,13 @@ class RunWriter:
         return self.previous_segments + (time.time() - self.started,)
 
     def commit(self, frame: int, scalars: dict, views: np.ndarray,  # views [V] alpha MSE per view
-               state: dict | None, warnings: list[str], checkpoint: dict) -> None:
-        """Commit frame ``frame``: its frame file, then the checkpoint (the commit point).
+               state: dict | None, warnings: list[str], checkpoint: dict | Callable[[], dict],
+               last: bool = False) -> None:
+        """Commit frame ``frame``: its frame file, then, when due (see the module docstring) or
+        ``last``, the checkpoint.
 
-        state: None or {x [N,3], F [N,3,3], Fp [N,3,3]} to save; checkpoint: name -> array or scalar.
+        state: None or {x [N,3], F [N,3,3], Fp [N,3,3]} to save; checkpoint: name -> array or scalar,
+        or a function returning it (called only when the checkpoint is written).
         """
         self._require_lock()
         segments = self.segments_now()
@@ -383,8 +400,17 @@ class RunWriter:
             return written
 
         _commit_h5(self.dir / frame_name(frame), fill_frame, f"frame {frame}")
-        _commit_h5(self.dir / CHECKPOINT_NAME, fill_checkpoint, f"the checkpoint of frame {frame}")
         self.last_frame = frame
+        if not (last or CHECKPOINT_WALL_SHARE is None or _clock() >= self._checkpoint_due):
+            return
+        if callable(checkpoint):
+            checkpoint = checkpoint()
+        began = _clock()
+        _commit_h5(self.dir / CHECKPOINT_NAME, fill_checkpoint, f"the checkpoint of frame {frame}")
+        self.checkpoint_frame = frame
+        if CHECKPOINT_WALL_SHARE is not None:
+            ended = _clock()
+            self._checkpoint_due = ended + (ended - began) / CHECKPOINT_WALL_SHARE
 
     def set_meta(self, meta: dict) -> None:
         """The run's description (stored with frame 0, copied to the finished file's attributes)."""
@@ -393,10 +419,10 @@ class RunWriter:
     def finish(self, status: str, attrs: dict, config: dict | None) -> Path:
         """Assemble ``out`` from the committed frames (aside, fsync, rename) and remove the partial run."""
         self._require_lock()
-        ck_frame = self.last_frame
-        if ck_frame < 0:
+        last = self.last_frame
+        if last < 0:
             raise RuntimeError(f"{self.dir}: no committed frame to finish the run with")
-        frames = [self._read_frame(self.dir / frame_name(k), k) for k in range(ck_frame + 1)]
+        frames = [self._read_frame(self.dir / frame_name(k), k) for k in range(last + 1)]
         segments = self.segments_now()
 
         def fill(f: h5py.File) -> dict:
@@ -415,7 +441,7 @@ class RunWriter:
                         s.create_dataset(name, data=arr, compression="gzip")
             write_provenance(f, config, self.started)
             f.attrs.update(attrs)
-            f.attrs.update(status=status, frames_completed=ck_frame,
+            f.attrs.update(status=status, frames_completed=last,
                            warnings=json.dumps([w for fr in frames for w in fr["warnings"]]),
                            wall_time_s=float(sum(segments)), wall_time_segments_s=json.dumps(list(segments)),
                            peak_rss_mb=max([peak_rss_mb()] + [fr["peak_rss_mb"] for fr in frames]))
@@ -436,24 +462,29 @@ def _frame_content(f: h5py.File) -> dict:
 
 # ------------------------------------------------------------------------------------ read
 def _partial_metrics(d: Path) -> dict[str, np.ndarray]:
-    """Metrics of the committed frames of a partial run directory (read-only, no lock)."""
+    """Metrics of the committed frames of a partial run directory (read-only, no lock): frame 0 on
+    to the last frame file (``frames_completed``); ``resumes_after``: the checkpoint's frame."""
     remedy = f"delete {d} (rm -r '{d}') and rerun to restart the run"
     ck_path = d / CHECKPOINT_NAME
     if not ck_path.exists():
         return {"attrs": {}, **{name: np.zeros(0) for name in SCALARS}}
     with _open_run_h5(ck_path, remedy) as f:
-        last = int(f.attrs["frame"])
+        resumes_after = int(f.attrs["frame"])
     frames = []
-    for k in range(last + 1):
+    while True:
+        k = len(frames)
         path = d / frame_name(k)
         if not path.exists():
-            raise RunFileError(f"{path}: missing, but the checkpoint says frame {last} was committed; {remedy}")
+            if k <= resumes_after:
+                raise RunFileError(f"{path}: missing, but the checkpoint says frame {resumes_after} was committed; "
+                                   f"{remedy}")
+            break
         with _open_run_h5(path, remedy) as f:
             _check_format(f, path, FRAME_FORMAT, remedy)
             frames.append(_frame_content(f))
     out = {name: np.stack([_frame_metric(fr, name) for fr in frames]) for name in SCALARS + ("alpha_mse_views",)}
-    out["attrs"] = {**(frames[0]["meta"] or {}), "status": "running", "frames_completed": last,
-                    "warnings": json.dumps([w for fr in frames for w in fr["warnings"]])}
+    out["attrs"] = {**(frames[0]["meta"] or {}), "status": "running", "frames_completed": len(frames) - 1,
+                    "resumes_after": resumes_after, "warnings": json.dumps([w for fr in frames for w in fr["warnings"]])}
     return out
 
 

@@ -95,7 +95,7 @@ def test_resources_no_single_node_has_together(cluster):
 def test_a_run_time_above_the_partition_limit_names_the_setting(cluster):
     (msg,) = check_job(_job(runtime_min=610, partition="big"), cluster)
     assert "runtime=610 min (from the morph rule's runtime estimate)" in msg and "allows 240 min" in msg
-    assert "--set-resources morph:runtime=240" in msg and "resumes from its last committed frame" in msg
+    assert "--set-resources morph:runtime=240" in msg and "resumes from its last checkpoint" in msg
 
 
 def test_unknown_partition_is_named(cluster):

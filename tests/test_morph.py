@@ -21,6 +21,13 @@ from physmorph.runfile import RunFileError, RunKey, RunLockedError, RunWriter, r
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
 
+@pytest.fixture(autouse=True)
+def checkpoint_every_frame(monkeypatch):
+    """The tests that kill a run count on a checkpoint every frame (a tiny run's frames are faster
+    than the checkpoints' wall-time cadence); the cadence's own test sets it."""
+    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory, mesh_dir):
     """iso particles and a bunny target at the test profile's resolution."""
@@ -594,7 +601,7 @@ def test_kill_at_every_write_step_of_a_frame_resumes_to_the_uninterrupted_run(ti
         monkeypatch.setattr(runfile, attr, fn)
     # Killed before a step: frame 2 is committed once the checkpoint's rename has happened.
     committed = KILL_FRAME if step > COMMIT_STEPS.index(("replace", "checkpoint.h5")) else KILL_FRAME - 1
-    assert read_metrics(partial)["attrs"]["frames_completed"] == committed
+    assert read_metrics(partial)["attrs"]["resumes_after"] == committed
     segment_1 = read_checkpoint(partial / "checkpoint.h5").wall_time_segments_s
     out, log = _run_logged(tiny, out_name, **_short(tiny))
     assert f"[{out_name}] resuming after frame {committed}/3" in log
@@ -605,6 +612,35 @@ def test_kill_at_every_write_step_of_a_frame_resumes_to_the_uninterrupted_run(ti
     segments = json.loads(attrs["wall_time_segments_s"])
     assert len(segments) == 2 and segments[0] == pytest.approx(segment_1[0])
     assert attrs["wall_time_s"] == pytest.approx(sum(segments))
+
+
+def test_killed_between_checkpoints_resumes_after_the_last_one_to_the_uninterrupted_run(tiny, uninterrupted_short,
+                                                                                         monkeypatch):
+    """With checkpoints at their wall-time cadence (here a clock under which writing one takes
+    1 s: due again 50 s later, never within this run), frames 1 and 2 commit only their frame
+    files; killed after frame 2, the rerun resumes after frame 0 and computes them again."""
+    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", 0.02)
+    clock = {"t": 0.0}
+
+    def ticks():  # one second a call
+        clock["t"] += 1.0
+        return clock["t"]
+
+    monkeypatch.setattr(runfile, "_clock", ticks)
+    steps = []
+    frame_2_done = 8 + 4 + 4 - 1  # frame 0's eight steps, then the frame files of frames 1 and 2
+    real = _kill_at(monkeypatch, frame_2_done + 1, steps)  # killed at frame 3's first write
+    with pytest.raises(_SigKill):
+        _run_logged(tiny, "killed_between.h5", **_short(tiny))
+    assert [f for _, f in steps if f.startswith("checkpoint")] == ["checkpoint.h5.tmp"] * 2 + ["checkpoint.h5"]
+    for attr, fn in (("_write_aside", real["write"]), ("_fsync", real["fsync"]), ("_replace", real["replace"])):
+        monkeypatch.setattr(runfile, attr, fn)
+    partial = tiny[1] / "killed_between.h5.partial"
+    attrs = read_metrics(partial)["attrs"]
+    assert attrs["frames_completed"] == 2 and attrs["resumes_after"] == 0
+    out, log = _run_logged(tiny, "killed_between.h5", **_short(tiny))
+    assert "[killed_between.h5] resuming after frame 0/3" in log
+    _assert_same_run(out, uninterrupted_short)
 
 
 def test_kill_while_writing_the_finished_file_resumes_to_the_uninterrupted_run(tiny, uninterrupted_short, monkeypatch):

@@ -22,6 +22,13 @@ KEY = RunKey(json.dumps({"frames": 3}), (("particles", "aa" * 32), ("target", "b
 N, V = 5, 2
 
 
+@pytest.fixture(autouse=True)
+def checkpoint_every_frame(monkeypatch):
+    """These tests commit frames faster than the checkpoints' cadence: one checkpoint a frame,
+    unless a test sets the cadence itself."""
+    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
+
+
 def _state(frame: int) -> dict:  # a recognisable loop state for each frame
     rng = np.random.default_rng(frame)
     return {"x": rng.normal(size=(N, 3)), "F": np.tile(np.eye(3), (N, 1, 1)) * (1 + frame),
@@ -69,6 +76,56 @@ def test_frames_commit_read_and_finish(tmp_path):
         f["metrics/alpha_mse"][1] = 0.0
     with pytest.raises(RunFileError, match=r"run\.h5: its metrics do not match their checksum"):
         read_metrics(out)
+
+
+def test_checkpoint_follows_at_its_wall_share_and_a_resume_recomputes_the_frames_after_it(tmp_path, monkeypatch):
+    """With a checkpoint that takes 1 s to write and frames of 10 s, at a 2 % share the checkpoint
+    follows frame 0, then the first frame at least 50 s after it ended, and the last frame; its
+    state is gathered only then. Killed after frame 7, the run resumes after frame 6."""
+    now = {"t": 0.0}
+    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", 0.02)
+    monkeypatch.setattr(runfile, "_clock", lambda: now["t"])
+    real, written = runfile._write_aside, []
+
+    def takes_a_second(tmp, fill):
+        real(tmp, fill)
+        if tmp.name == "checkpoint.h5.tmp":
+            now["t"] += 1.0
+            with h5py.File(tmp) as f:
+                written.append(int(f.attrs["frame"]))
+
+    monkeypatch.setattr(runfile, "_write_aside", takes_a_second)
+    gathered = []
+
+    def checkpoint_of(k):
+        def gather():
+            gathered.append(k)
+            return {"x": _state(k)["x"], "adam_step": k}
+        return gather
+
+    out = tmp_path / "run.h5"
+    with RunWriter(out, KEY) as w:
+        w.resume(log=lambda m: None)
+        w.set_meta({"experiment": "hand", "views": V})
+        for k in range(9):
+            now["t"] = 10.0 * k + (0.5 if k > 0 else 0.0)  # frame 0's checkpoint ends at 1 s
+            w.commit(k, {"alpha_mse": 1.0 / (k + 1)}, np.ones(V), None, [], checkpoint_of(k), last=k == 8)
+            if k == 7:
+                break  # killed before frame 8
+    assert written == [0, 6] and gathered == [0, 6]  # 0 -> due at 51 s: frame 6 (60.5 s) -> due at 111.5 s
+    d = runfile.partial_dir(out)
+    m = read_metrics(d)
+    assert m["attrs"]["frames_completed"] == 7 and m["attrs"]["resumes_after"] == 6 and len(m["alpha_mse"]) == 8
+    with RunWriter(out, KEY) as w:
+        ck = w.resume(log=lambda msg: None)
+        assert ck.frame == 6 and ck.data["adam_step"] == 6
+        np.testing.assert_array_equal(ck.data["x"], _state(6)["x"])
+        assert not (d / "frame_0007.h5").exists()  # computed again by the resumed run
+        now["t"] = 200.0
+        w.commit(7, {"alpha_mse": 0.125}, np.ones(V), None, [], checkpoint_of(7))  # a resumed writer checkpoints its first frame
+        now["t"] = 205.0
+        w.commit(8, {"alpha_mse": 1 / 9}, np.ones(V), None, [], checkpoint_of(8), last=True)  # the last frame
+    assert written == [0, 6, 7, 8] and read_checkpoint(d / "checkpoint.h5").frame == 8
 
 
 def test_checksums_hashed_from_memory_equal_the_stored_bytes(tmp_path):

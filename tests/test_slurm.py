@@ -163,8 +163,9 @@ def test_slurm_profile_runs_every_job_on_the_cluster_to_the_local_tables(runs):
 
 
 def _frames_committed(partial: Path) -> int:
+    """The frame the partial run's checkpoint holds (what a retry resumes after)."""
     try:
-        return int(read_metrics(partial)["attrs"]["frames_completed"])
+        return int(read_metrics(partial)["attrs"]["resumes_after"])
     except Exception:  # not there yet, or being replaced right now
         return -1
 
