@@ -71,6 +71,8 @@ def test_frames_commit_read_and_finish(tmp_path):
     assert len(segments) == 2 and a["wall_time_s"] == pytest.approx(sum(segments))
     with h5py.File(out) as f:
         np.testing.assert_allclose(f["states/frame_0001/x"][()], _state(1)["x"].astype(np.float32))
+        saved = f["states/frame_0001/F"]
+        assert (saved.compression, saved.compression_opts, saved.shuffle) == ("gzip", 1, True)
     # The finished file's metrics are checked: zeroed bytes in them are refused with the file's name.
     with h5py.File(out, "a") as f:
         f["metrics/alpha_mse"][1] = 0.0
