@@ -311,7 +311,7 @@ class RunWriter:
     def resume(self, log: Callable[[str], None]) -> Checkpoint | None:
         """The checkpoint to continue from, or None (the partial run is cleared: start at frame 0).
 
-        Leftovers of an interrupted commit are removed. A checkpoint of another key restarts the run
+        Leftovers of an interrupted commit and the frame files after the checkpoint are removed. A checkpoint of another key restarts the run
         with the reason logged; a damaged checkpoint or committed frame raises RunFileError.
         """
         self._require_lock()
@@ -336,7 +336,7 @@ class RunWriter:
                                    f"committed; delete {self.dir} (rm -r '{self.dir}') and rerun to restart the run")
             self._read_frame(frames[k], k)  # verifies
         for k, p in frames.items():
-            if k > ck.frame:  # an interrupted commit's frame file
+            if k > ck.frame:  # a frame after the checkpoint (or an interrupted commit's): computed again
                 p.unlink()
         self.previous_segments = ck.wall_time_segments_s
         self.last_frame = self.checkpoint_frame = ck.frame
