@@ -162,12 +162,14 @@ def test_slurm_profile_runs_every_job_on_the_cluster_to_the_local_tables(runs):
         np.testing.assert_allclose(b["iou"], a["iou"], rtol=0, atol=1e-3, err_msg=f"{exp}: iou")
 
 
-def _frames_committed(partial: Path) -> int:
-    """The frame the partial run's checkpoint holds (what a retry resumes after)."""
+def _progress(partial: Path) -> tuple[int, int]:
+    """The partial run's last committed frame and the frame its checkpoint holds (what a retry
+    resumes after; the checkpoint follows the frames at a wall-time cadence)."""
     try:
-        return int(read_metrics(partial)["attrs"]["resumes_after"])
+        attrs = read_metrics(partial)["attrs"]
+        return int(attrs["frames_completed"]), int(attrs["resumes_after"])
     except Exception:  # not there yet, or being replaced right now
-        return -1
+        return -1, -1
 
 
 def test_cancelled_morph_resumes_on_the_retry_and_equals_the_uninterrupted_run(runs):
@@ -188,7 +190,7 @@ def test_cancelled_morph_resumes_on_the_retry_and_equals_the_uninterrupted_run(r
     try:
         # wait until the morph job has committed a few of its 12 frames, then cancel it
         deadline, job = time.time() + 600, None
-        while time.time() < deadline and _frames_committed(partial) < 3:
+        while time.time() < deadline and _progress(partial)[0] < 3:
             assert proc.poll() is None, proc.stdout.read()[-4000:]
             time.sleep(0.5)
         for line in _cmd("squeue", "-h", "-o", "%i|%k").splitlines():
@@ -196,8 +198,8 @@ def test_cancelled_morph_resumes_on_the_retry_and_equals_the_uninterrupted_run(r
             if comment == "rule_morph_wildcards_iso_bunny_full" and int(jobid) not in before:
                 job = int(jobid)
         assert job is not None, _cmd("squeue")
-        seen = _frames_committed(partial)
-        assert 3 <= seen < 12
+        seen, checkpoint = _progress(partial)
+        assert 3 <= seen < 12 and 0 <= checkpoint <= seen
         subprocess.run(["scancel", str(job)], check=True)
         text, _ = proc.communicate(timeout=900)
     finally:
@@ -208,12 +210,12 @@ def test_cancelled_morph_resumes_on_the_retry_and_equals_the_uninterrupted_run(r
     jobs = [j for j in _sacct(wd) if j["id"] not in before]
     assert [(j["id"], j["state"]) for j in jobs][:1] == [(job, "CANCELLED")], jobs
     assert len(jobs) == 2 and jobs[1]["state"] == "COMPLETED" and jobs[1]["comment"] == jobs[0]["comment"], jobs
-    # the retry resumed from the last committed frame (at least the one seen before the cancel)
+    # the retry resumed from the last checkpoint (at least the one seen before the cancel)
     log = (wd / "results/test/logs/morph/iso_bunny_full.log").read_text()
     resumed = [int(k) for k in re.findall(r"\[iso_bunny_full\] resuming after frame (\d+)/12", log)]
-    assert len(resumed) == 1 and seen <= resumed[0] < 12, log[-3000:]
-    print(f"SLURM job {job} cancelled with {seen} frames committed; retry {jobs[1]['id']} resumed after frame "
-          f"{resumed[0]}/12")
+    assert len(resumed) == 1 and checkpoint <= resumed[0] < 12, log[-3000:]
+    print(f"SLURM job {job} cancelled with {seen} frames committed, its checkpoint at frame {checkpoint}; retry "
+          f"{jobs[1]['id']} resumed after frame {resumed[0]}/12")
     assert not partial.exists()
     a, b = read_metrics(uninterrupted), read_metrics(out)
     assert len(json.loads(b["attrs"]["wall_time_segments_s"])) == 2  # two attempts, one run
