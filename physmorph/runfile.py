@@ -245,7 +245,6 @@ class RunWriter:
         self.previous_segments: tuple[float, ...] = ()
         self.meta: dict = {}
         self.last_frame = -1  # the last committed frame
-        self.checkpoint_frame = -1  # the frame the checkpoint holds (a resume continues after it)
         self._checkpoint_due = -np.inf  # _clock() time from which the next frame writes the checkpoint
         self._lock_fd: int | None = None
 
@@ -339,7 +338,7 @@ class RunWriter:
             if k > ck.frame:  # a frame after the checkpoint (or an interrupted commit's): computed again
                 p.unlink()
         self.previous_segments = ck.wall_time_segments_s
-        self.last_frame = self.checkpoint_frame = ck.frame
+        self.last_frame = ck.frame
         with h5py.File(frames[0], "r") as f:
             self.meta = dict(f["meta"].attrs)
         return ck
@@ -410,7 +409,6 @@ class RunWriter:
             checkpoint = checkpoint()
         began = _clock()
         _commit_h5(self.dir / CHECKPOINT_NAME, fill_checkpoint, f"the checkpoint of frame {frame}")
-        self.checkpoint_frame = frame
         if CHECKPOINT_WALL_SHARE is not None:
             ended = _clock()
             self._checkpoint_due = ended + (ended - began) / CHECKPOINT_WALL_SHARE
