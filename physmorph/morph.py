@@ -38,8 +38,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from physmorph.frame_measures import DeformationMeasures, deformation_measures, grid_mass
+from physmorph.grid import grid_average
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
+from physmorph.linalg3 import det3
 from physmorph.memory import release_free_memory
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, kinetic_energy, total_volume
@@ -211,6 +213,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 break
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
+        if cfg.volume_averaging > 0:
+            st = dataclasses.replace(st, F=averaged_volume(st.F, grid_average(st.x, st.mass, det3(st.F), target.grid),
+                                                           cfg.volume_averaging))
         t1 = time.time()
         # each particle's nearest target surface point, shared by the mask, the plasticity's
         # nearest-point map and the Chamfer metric (x is the same for all: plasticity changes only Fp)
@@ -341,6 +346,20 @@ def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, 
     if frames:
         log(f"[{name}] released for {frames} frames: alpha_mse {curve[0]:.4f} -> {curve[-1]:.4f}")
     return curve
+
+
+def averaged_volume(F: np.ndarray,  # [N, 3, 3]
+                    J_average: np.ndarray,  # [N] the grid's average of det F at each particle
+                    share: float) -> np.ndarray:  # [N, 3, 3]
+    """F <- (J' / J)^(1/3) F with J' = (1 - share) J + share J_average (MorphConfig.volume_averaging):
+    the volume ratio moves toward the grid's average, the shape (F / J^(1/3)) stays. A particle whose
+    J or J' is not positive (an inverted F) keeps its F."""
+    J = det3(np.asarray(F, dtype=np.float64))
+    J_new = (1.0 - share) * J + share * np.asarray(J_average, dtype=np.float64)
+    ok = (J > 0) & (J_new > 0)
+    r = np.ones_like(J)
+    r[ok] = np.cbrt(J_new[ok] / J[ok])
+    return (F * r[:, None, None]).astype(np.asarray(F).dtype)
 
 
 def asdict_state(st: ParticleState) -> dict:

@@ -67,6 +67,11 @@ class MorphConfig:
     # the control is carried whole, warm_start). Neither is in the paper.
     restart_control_keep: float = 1.0
     control_decay: float = 0.95
+    # Between frames, move this share of each particle's volume ratio det F to its grid average
+    # (physmorph.grid.grid_average; F rescaled by (J' / J)^(1/3)): the spread of det F below the
+    # cell, which the grid's mass loss cannot see, is taken out of the state. 0 = off. Not in the
+    # paper; measured in docs/study/log.md part 34 (it narrows the spread, not the slide).
+    volume_averaging: float = 0.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -95,6 +100,8 @@ class MorphConfig:
             raise ValueError(f"restart_control_keep must be in [0, 1], got {self.restart_control_keep}")
         if not 0.0 <= self.control_decay <= 1.0:
             raise ValueError(f"control_decay must be in [0, 1], got {self.control_decay}")
+        if not 0.0 <= self.volume_averaging <= 1.0:
+            raise ValueError(f"volume_averaging must be in [0, 1], got {self.volume_averaging}")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

@@ -373,6 +373,43 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
             np.testing.assert_allclose(entry[k], factor * end[k - 1], rtol=1e-6, atol=1e-12)
 
 
+
+def test_volume_averaging_hands_the_next_frame_the_grid_averaged_volume(tiny, monkeypatch):
+    """morph.volume_averaging s: after each frame's physics every particle's det F moves by s toward
+    its grid average (physmorph.grid.grid_average of det F), its shape F / det F^(1/3) kept, and the
+    next frame starts from that F. Off (0) by default."""
+    cfg, _ = tiny
+    assert morph_config(cfg, "iso_bunny_physics_only").volume_averaging == 0.0
+    calls, loaded = [], []
+    real_average, real_load = morph.averaged_volume, morph.MPMSolver.load_state
+
+    def spy_average(F, J_average, share):
+        out = real_average(F, J_average, share)
+        calls.append((np.array(F, dtype=np.float64), np.array(J_average), share, np.array(out, dtype=np.float64)))
+        return out
+
+    def spy_load(self, state):
+        loaded.append(np.array(state.F, dtype=np.float64))
+        return real_load(self, state)
+
+    monkeypatch.setattr(morph, "averaged_volume", spy_average)
+    monkeypatch.setattr(morph.MPMSolver, "load_state", spy_load)
+    _run(tiny, "iso_bunny_physics_only", "no_average.h5", frames=2)
+    assert calls == []
+    loaded.clear()
+    _run(tiny, "iso_bunny_physics_only", "average.h5", frames=3, volume_averaging=0.5)
+    assert [c[2] for c in calls] == [0.5] * 3 and len(loaded) == 3
+    for k, (F, J_average, _, out) in enumerate(calls):
+        J = np.linalg.det(F)
+        assert np.std(J) > 1e-4, "the frame left every volume equal: nothing to average"
+        np.testing.assert_allclose(np.linalg.det(out), 0.5 * J + 0.5 * J_average, rtol=1e-5)
+        np.testing.assert_allclose(out / np.cbrt(np.linalg.det(out))[:, None, None],
+                                   F / np.cbrt(J)[:, None, None], rtol=1e-5, atol=1e-6)
+        if k + 1 < len(loaded):
+            np.testing.assert_allclose(loaded[k + 1], out, rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="volume_averaging"):
+        dataclasses.replace(morph_config(cfg, "iso_bunny_physics_only"), volume_averaging=1.5)
+
 # Measured on the tiny profile (12 frames, ~1.2K particles): see docs/study/log.md.
 TINY_CLOSED_FINAL = 0.5
 # Measured on the tiny run (2026-11-22): 4.5 % with the control absorbed, 101 % without plasticity.
