@@ -181,7 +181,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         # A. physics
         solver.load_state(st)
         if cfg.control_decay < 1.0:
-            solver.scale_control(cfg.control_decay)
+            share = step / cfg.mpm.step_size if cfg.control_decay_follows_step else 1.0
+            solver.scale_control(1.0 - (1.0 - cfg.control_decay) * share)
         try:
             recalibrate = np.isnan(scale) or cfg.injection_calibration == "every_frame"
             calibration = None

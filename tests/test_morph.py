@@ -374,6 +374,33 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
 
 
 
+
+def test_control_decay_follows_step_leaks_in_proportion_to_the_backed_off_step(tiny, monkeypatch):
+    """morph.control_decay_follows_step: frame k starts with 1 - (1 - kappa) x (step_k / mpm's step)
+    of the control frame k - 1 ended with (step_k the bold driver's); off by default."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert base.control_decay_follows_step is False
+    entry, end = [], []
+    real = morph.MPMSolver.optimize_control
+
+    def spy(self, *a, **kw):
+        entry.append(self.control())
+        out = real(self, *a, **kw)
+        end.append(self.control())
+        return out
+
+    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)  # the mass loss rises
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "leak_follows.h5", mpm=mpm,
+                          control_decay_follows_step=True, step_backoff=0.5, step_growth=1.5))
+    ratio = m["step_size"][1:] / mpm.step_size  # frames 1..K
+    assert (ratio < 1).any(), "the step never backed off: the test needs a run whose mass loss rises"
+    assert np.abs(end[0]).max() > 0
+    for k in range(1, len(entry)):
+        np.testing.assert_allclose(entry[k], (1 - 0.05 * ratio[k]) * end[k - 1], rtol=1e-6, atol=1e-12)
+
+
 def test_volume_averaging_hands_the_next_frame_the_grid_averaged_volume(tiny, monkeypatch):
     """morph.volume_averaging s: after each frame's physics every particle's det F moves by s toward
     its grid average (physmorph.grid.grid_average of det F), its shape F / det F^(1/3) kept, and the
