@@ -68,9 +68,9 @@ class MorphConfig:
     restart_control_keep: float = 1.0
     control_decay: float = 0.95
     # The leak follows the bold driver's step: a frame starts with 1 - (1 - control_decay) x
-    # (step / mpm's step) of the control, so a step that backs off stops replacing less of a
-    # leaking control and the control is held instead (docs/study/log.md finding 170). Not in the
-    # paper; off: the leak is control_decay at every frame.
+    # (step / mpm's step) of the control, so as the step backs off the control leaks less and is
+    # held rather than lost (docs/study/log.md finding 170: the body still flows under it). Not in
+    # the paper; off: the leak is 1 - control_decay at every frame.
     control_decay_follows_step: bool = False
     # Between frames, move this share of each particle's volume ratio det F to its grid average
     # (physmorph.grid.grid_average; F rescaled by (J' / J)^(1/3)): the spread of det F below the
