@@ -86,13 +86,11 @@ def grid_average(x: np.ndarray,  # [N, 3]
     resolve stays, and the mass-weighted sum is kept: sum_p m_p qbar_p = sum_p m_p q_p."""
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     mass = np.asarray(mass, dtype=np.float64).reshape(-1)
+    m_I = splat_mass(x, mass, grid)
+    mq_I = splat_mass(x, mass * np.asarray(values, dtype=np.float64).reshape(-1), grid)
+    a_I = np.divide(mq_I, m_I, out=np.zeros_like(mq_I), where=m_I > 0)
     base, w = bspline_weights(x, grid)
     wt = w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]  # [N, 3, 3, 3]
-    m_I = np.zeros((grid.res,) * 3)
-    mq_I = np.zeros((grid.res,) * 3)
-    scatter_add(m_I, base, wt * mass[:, None, None, None])
-    scatter_add(mq_I, base, wt * (mass * np.asarray(values, dtype=np.float64))[:, None, None, None])
-    a_I = np.divide(mq_I, m_I, out=np.zeros_like(mq_I), where=m_I > 0)
     off = np.stack(np.meshgrid(*(np.arange(3),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)  # [27, 3]
     node = base[:, None, :] + off[None]  # [N, 27, 3]
     return (wt.reshape(len(x), 27) * a_I[node[..., 0], node[..., 1], node[..., 2]]).sum(axis=1)

@@ -341,14 +341,10 @@ def test_step_schedule_hands_the_optimiser_a_linear_ramp_from_step_first_to_step
         dataclasses.replace(base, step_last=0.0)
 
 
-def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
-    """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
-    morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
-    (0.95, 1) leak 5 % a frame and keep it whole at a restart."""
-    cfg, _ = tiny
-    base = morph_config(cfg, "iso_bunny_physics_only")
-    assert (base.control_decay, base.restart_control_keep) == (0.95, 1.0)
-    entry, end = [], []
+def _spy_controls(monkeypatch) -> tuple[list, list]:
+    """The control each MPMSolver.optimize_control call starts from and ends with, one entry a call."""
+    entry: list = []
+    end: list = []
     real = morph.MPMSolver.optimize_control
 
     def spy(self, *a, **kw):
@@ -358,6 +354,17 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
         return out
 
     monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    return entry, end
+
+
+def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
+    """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
+    morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
+    (0.95, 1) leak 5 % a frame and keep it whole at a restart."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert (base.control_decay, base.restart_control_keep) == (0.95, 1.0)
+    entry, end = _spy_controls(monkeypatch)
     mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)  # forces restarts
     for decay, keep in ((0.9, 1.0), (1.0, 0.5), (1.0, 1.0)):
         entry.clear()
@@ -373,24 +380,13 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
             np.testing.assert_allclose(entry[k], factor * end[k - 1], rtol=1e-6, atol=1e-12)
 
 
-
-
 def test_control_decay_follows_step_leaks_in_proportion_to_the_backed_off_step(tiny, monkeypatch):
     """morph.control_decay_follows_step: frame k starts with 1 - (1 - kappa) x (step_k / mpm's step)
     of the control frame k - 1 ended with (step_k the bold driver's); off by default."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
     assert base.control_decay_follows_step is False
-    entry, end = [], []
-    real = morph.MPMSolver.optimize_control
-
-    def spy(self, *a, **kw):
-        entry.append(self.control())
-        out = real(self, *a, **kw)
-        end.append(self.control())
-        return out
-
-    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    entry, end = _spy_controls(monkeypatch)
     mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)  # the mass loss rises
     m = read_metrics(_run(tiny, "iso_bunny_physics_only", "leak_follows.h5", mpm=mpm,
                           control_decay_follows_step=True, step_backoff=0.5, step_growth=1.5))
