@@ -204,6 +204,7 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.restart_control_keep": ("share of the carried control a restart keeps", "", R01),
     "morph.control_decay": ("share of the control each frame starts with (1: carried whole)", "", R01),
     "morph.control_decay_follows_step": ("the leak (1 - control_decay) scales with the bold driver's step over mpm's step", "", ""),
+    "morph.overfill_onset": ("when mpm.overfill_weight's packing term starts: start, or first_restart (after the first momentum restart)", "", ""),
     "morph.volume_averaging": ("share of each particle's det F moved to its grid average between frames (0: off)", "", R01),
     # experiments
     "experiments": ("the experiments, by name (run one: results/{profile}/runs/{name}.h5)", "", ""),

@@ -171,6 +171,10 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     # the adaptive step (MorphConfig.step_backoff): this frame's step, and the mass loss it is judged against
     step = cfg.mpm.step_size if resumed_from is None else float(ck.get("next_step", cfg.mpm.step_size))
     loss_before = run.frame_metric(start - 1, "physics_loss")
+    # MorphConfig.overfill_onset: the packing term waits for the first momentum restart (a
+    # resumed run takes the weight its checkpoint was written with; frame 0's has none: 0)
+    if cfg.overfill_onset == "first_restart":
+        solver.set_overfill_weight(0.0 if resumed_from is None else float(ck.get("overfill_weight", 0.0)))
     inject_F = cfg.method in ("f_inject", "full")
     inject_x = cfg.method == "position_inject"
     want_grad = inject_F or inject_x
@@ -287,6 +291,9 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                                    mass=st.mass, volume=st.volume)
                 if cfg.restart_control_keep < 1.0:
                     solver.scale_control(cfg.restart_control_keep)
+                if solver.overfill_weight != cfg.mpm.overfill_weight:
+                    solver.set_overfill_weight(cfg.mpm.overfill_weight)
+                    log(f"[{name}] frame {k}: first momentum restart, the packing term acts from frame {k + 1}")
             scal["momentum_restart"] = float(restart)
             previous = now
         if np.isfinite(loss_before):  # the bold driver: back off after a rise, regrow after a fall
@@ -305,7 +312,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         # the checkpoint's arrays are gathered only when it is due (physmorph.runfile)
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
                    lambda: {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
-                            "next_step": step, **solver.optimizer_state(), **monitor.state()},
+                            "next_step": step, "overfill_weight": solver.overfill_weight,
+                            **solver.optimizer_state(), **monitor.state()},
                    last=k == cfg.frames)
         frame_times.append(scal["t_frame"])
         if cfg.progress:

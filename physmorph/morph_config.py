@@ -77,6 +77,11 @@ class MorphConfig:
     # cell, which the grid's mass loss cannot see, is taken out of the state. 0 = off. Not in the
     # paper; measured in docs/study/log.md part 34 (it narrows the spread, not the slide).
     volume_averaging: float = 0.0
+    # When mpm.overfill_weight's packing term starts to act: "start" from the first frame,
+    # "first_restart" from the frame after the momentum restart first fires (the run's first rise
+    # of its objective: it has arrived and starts to cycle, docs/study/log.md finding 167), so a
+    # body still on its way is not slowed by it (finding 177). Not in the paper.
+    overfill_onset: Literal["start", "first_restart"] = "start"
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -107,6 +112,12 @@ class MorphConfig:
             raise ValueError(f"control_decay must be in [0, 1], got {self.control_decay}")
         if not 0.0 <= self.volume_averaging <= 1.0:
             raise ValueError(f"volume_averaging must be in [0, 1], got {self.volume_averaging}")
+        if self.overfill_onset not in ("start", "first_restart"):
+            raise ValueError(f"overfill_onset must be start or first_restart, got {self.overfill_onset!r}")
+        if self.overfill_onset == "first_restart" and not self.mpm.overfill_weight > 0:
+            raise ValueError("overfill_onset first_restart needs mpm.overfill_weight > 0 (the term it switches on)")
+        if self.overfill_onset == "first_restart" and self.momentum_restart == "off":
+            raise ValueError("overfill_onset first_restart needs a momentum_restart (mass_loss or alpha_mse)")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

@@ -397,6 +397,50 @@ def test_control_decay_follows_step_leaks_in_proportion_to_the_backed_off_step(t
         np.testing.assert_allclose(entry[k], (1 - 0.05 * ratio[k]) * end[k - 1], rtol=1e-6, atol=1e-12)
 
 
+def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_first_restart(tiny, monkeypatch):
+    """morph.overfill_onset first_restart: every frame up to the one whose momentum restart fires
+    first runs with the packing term's weight 0, every later frame with mpm.overfill_weight; a run
+    killed after the switch resumes with the weight its checkpoint holds, as the uninterrupted run
+    had it. "start" (the default) keeps the weight throughout."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert base.overfill_onset == "start"
+    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)  # a checkpoint every frame
+    mpm = dataclasses.replace(base.mpm, learning_rate=5 * base.mpm.learning_rate,  # the mass loss rises
+                              overfill_weight=1.0, overfill_ratio=0.001)
+    seen, kill = [], {"at": None}
+    real = morph.MPMSolver.optimize_control
+
+    def spy(self, *a, **kw):
+        seen.append(self.overfill_weight)
+        if kill["at"] is not None and len(seen) == kill["at"]:
+            raise _Killed()
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset.h5", mpm=mpm, overfill_onset="first_restart"))
+    restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
+    assert restarted[:-3].any(), "no restart early enough: the test needs a run whose mass loss rises"
+    first = int(np.argmax(restarted)) + 1  # the frame whose restart fired first
+    uninterrupted = list(seen)
+    assert uninterrupted == [0.0] * first + [1.0] * (len(seen) - first)
+    seen.clear()
+    kill["at"] = first + 2  # killed in frame first + 2, after the checkpoint of frame first + 1
+    with pytest.raises(_Killed):
+        _run(tiny, "iso_bunny_physics_only", "onset_killed.h5", mpm=mpm, overfill_onset="first_restart")
+    seen.clear()
+    kill["at"] = None
+    _run(tiny, "iso_bunny_physics_only", "onset_killed.h5", mpm=mpm, overfill_onset="first_restart")
+    assert seen == uninterrupted[first + 1:]
+    seen.clear()
+    _run(tiny, "iso_bunny_physics_only", "onset_start.h5", frames=3, mpm=mpm)
+    assert seen == [1.0] * 3
+    with pytest.raises(ValueError, match="overfill_weight > 0"):
+        dataclasses.replace(base, overfill_onset="first_restart")
+    with pytest.raises(ValueError, match="momentum_restart"):
+        dataclasses.replace(base, overfill_onset="first_restart", mpm=mpm, momentum_restart="off")
+
+
 def test_volume_averaging_hands_the_next_frame_the_grid_averaged_volume(tiny, monkeypatch):
     """morph.volume_averaging s: after each frame's physics every particle's det F moves by s toward
     its grid average (physmorph.grid.grid_average of det F), its shape F / det F^(1/3) kept, and the

@@ -1133,17 +1133,19 @@ def _node_losses(m, t, eps, kind):  # the documented per-node formulas, in NumPy
     return np.where(m <= t, below, above)
 
 
-def _loss_control_gradient_matches_autograd(s: MPMSolver, state: ParticleState, ctrl, target, eps: float) -> None:
+def _loss_control_gradient_matches_autograd(s: MPMSolver, state: ParticleState, ctrl, target, eps: float,
+                                            cfg: MPMConfig | None = None) -> None:
     """The solver's dFc gradient of its mass loss (with log eps) against torch autograd through the
-    reference rollout and reference loss."""
+    reference rollout and reference loss (of cfg, the solver's own by default)."""
+    cfg = s.cfg if cfg is None else cfg
     s.load_state(state)
     s.set_control(ctrl)
     s.forward()
     s.backward()
     c = ref.as_torch(ctrl, True)
     states = ref.rollout_torch(ref.as_torch(state.x), ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), s.cfg)
-    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(target), s.cfg, log_eps=eps).backward()
+                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
+    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(target), cfg, log_eps=eps).backward()
     np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
 
 
@@ -1196,6 +1198,39 @@ def test_overfill_term_matches_its_formula_reference_and_fd(state):
     _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
     with pytest.raises(MPMConfigError, match="overfill_weight"):
         cfg64(overfill_weight=-1.0)
+
+
+def test_overfill_weight_set_at_run_time_matches_its_formula_reference_and_fd(state):
+    """set_overfill_weight w' (MorphConfig.overfill_onset switches the term on during a run): the
+    loss is the log loss plus w' times the packing term, 0 leaves the plain log loss, and the
+    control gradient at w' matches central finite differences and autograd of the reference built
+    with overfill_weight w'. A solver built without the term refuses a weight."""
+    cfg = cfg64(substeps=2, mass_loss="log", overfill_weight=3.0, overfill_ratio=0.4)
+    s = make(cfg, state)
+    assert s.overfill_weight == 3.0
+    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
+    s.forward()
+    end = s.state_at(cfg.substeps)
+    m = splat_mass(end.x, end.mass, s.grid)
+    t = s.target_m.to_numpy()
+    eps = cfg.log_mass_eps * state.mass.mean()
+    log_loss = ((np.log(m + eps) - np.log(t + eps)) ** 2).sum()
+    over = np.maximum(np.log(m + eps) - np.log(np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t) + eps), 0.0)
+    assert (over ** 2).sum() > 1e-3 * log_loss
+    for w in (0.0, 1.5):
+        s.set_overfill_weight(w)
+        assert s.overfill_weight == w
+        assert s.forward() == pytest.approx(log_loss + w * (over ** 2).sum(), rel=1e-10)
+    ctrl = random_control(cfg, state.n)
+    s.set_control(ctrl)
+    _fd_check(s, state, n_checks=4, seed=13)
+    _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps, cfg=dataclasses.replace(cfg, overfill_weight=1.5))
+    with pytest.raises(ValueError, match="overfill weight"):
+        s.set_overfill_weight(-1.0)
+    plain = make(cfg64(substeps=2, mass_loss="log"), state)
+    plain.set_overfill_weight(0.0)
+    with pytest.raises(MPMConfigError, match="overfill_weight > 0"):
+        plain.set_overfill_weight(1.0)
 
 
 # ----------------------------------------------------------------------------- packing pressure

@@ -163,6 +163,7 @@ class MPMSolver:
         self._last_loss: float | None = None
         self._adam_step = 0
         self._log_eps = 0.0
+        self._overfill_weight = float(self.cfg.overfill_weight)
         self.reset_control()
 
     def configure(self, cfg: MPMConfig) -> None:
@@ -594,26 +595,27 @@ class MPMSolver:
                 self.grid_m[base + off] += wt * self.mass[p]
 
     @ti.kernel
-    def _mass_loss(self, log_eps: ti.f64):
+    def _mass_loss(self, log_eps: ti.f64, overfill_w: ti.f64):
         """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2;
         sqrt: (sqrt(m+e) - sqrt(m*+e))^2; log_bounded: log below m*, 4 (sqrt(m+e) - sqrt(m*+e))^2 / (m*+e)
-        above it; plus the packing term _overfill_term where overfill_weight > 0."""
+        above it; plus the packing term _overfill_term with weight overfill_w where the
+        configuration has one (overfill_weight > 0)."""
         self.loss_acc[None] = 0.0
         for I in ti.grouped(self.grid_m):
             r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
             if ti.static(self.cfg.overfill_weight > 0):
-                o2, oadj = self._overfill_term(self.grid_m[I], self.target_m[I], log_eps)
+                o2, oadj = self._overfill_term(self.grid_m[I], self.target_m[I], log_eps, overfill_w)
                 r2 += o2
                 adj += oadj
             self.loss_acc[None] += r2
             self.grid_m_adj[I] = adj
 
     @ti.func
-    def _overfill_term(self, m, mt, log_eps: ti.f64):
+    def _overfill_term(self, m, mt, log_eps: ti.f64, overfill_w: ti.f64):
         """The packing term of MPMConfig.overfill_weight: w max(0, r)^2 with r = log(m + e) -
         log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e)."""
         e = ti.cast(log_eps, self.dtype)
-        w = self.dtype(self.cfg.overfill_weight)
+        w = ti.cast(overfill_w, self.dtype)
         cap = ti.max(self.dtype(self.cfg.overfill_ratio * self.cfg.density * self.cfg.dx ** 3), mt)
         r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
         return ti.cast(w * r * r, ti.f64), 2.0 * w * r / (m + e)
@@ -676,7 +678,7 @@ class MPMSolver:
 
     def _loss_with_adjoint(self) -> None:
         """Mass loss of the splatted grid_m into loss_acc, dL/dm_I into grid_m_adj (all levels)."""
-        self._mass_loss(self._log_eps)
+        self._mass_loss(self._log_eps, self._overfill_weight)
         for lv, (cm, ct, ca) in enumerate(self.pyramid, start=1):
             self._pyramid_loss(cm, ct, ca, 1 << lv, self._log_eps * 8.0 ** lv)
 
@@ -1331,6 +1333,22 @@ class MPMSolver:
             raise MPMStateError(f"dFc must be finite with shape {shape}, got {dFc.shape}")
         self.ctrl.from_numpy(np.ascontiguousarray(dFc, dtype=self.np_dtype))
         self._forward_current = False
+
+    def set_overfill_weight(self, weight: float) -> None:
+        """The packing term's weight from now on (MorphConfig.overfill_onset switches it on during a
+        run): 0 leaves the configured mass loss alone; any weight needs a solver built with
+        overfill_weight > 0, whose kernels carry the term."""
+        if not (np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"overfill weight must be finite and >= 0, got {weight!r}")
+        if weight > 0 and not self.cfg.overfill_weight > 0:
+            raise MPMConfigError("set_overfill_weight > 0 needs a solver built with overfill_weight > 0")
+        self._overfill_weight = float(weight)
+        self._forward_current = False
+
+    @property
+    def overfill_weight(self) -> float:
+        """The packing term's weight in use (MPMConfig.overfill_weight unless set_overfill_weight)."""
+        return self._overfill_weight
 
     def scale_control(self, factor: float) -> None:
         """dFc <- factor dFc, in place (the morph loop's leak and restart; no copy of the control)."""
