@@ -399,42 +399,36 @@ def test_control_decay_follows_step_leaks_in_proportion_to_the_backed_off_step(t
 
 def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_first_restart(tiny, monkeypatch):
     """morph.overfill_onset first_restart: every frame up to the one whose momentum restart fires
-    first runs with the packing term's weight 0, every later frame with mpm.overfill_weight; a run
-    killed after the switch resumes with the weight its checkpoint holds, as the uninterrupted run
-    had it. "start" (the default) keeps the weight throughout."""
+    first runs with the packing term's weight 0, every later frame with mpm.overfill_weight. The
+    run is killed in the second frame after the switch and resumed: the resumed frames take the
+    weight from the checkpoint. "start" (the default) never touches the weight."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
     assert base.overfill_onset == "start"
     monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)  # a checkpoint every frame
     mpm = dataclasses.replace(base.mpm, learning_rate=5 * base.mpm.learning_rate,  # the mass loss rises
                               overfill_weight=1.0, overfill_ratio=0.001)
-    seen, kill = [], {"at": None}
+    seen, resumed = [], []
     real = morph.MPMSolver.optimize_control
 
     def spy(self, *a, **kw):
         seen.append(self.overfill_weight)
-        if kill["at"] is not None and len(seen) == kill["at"]:
+        if seen.count(1.0) == 2 and not resumed:  # killed in frame first + 2
             raise _Killed()
         return real(self, *a, **kw)
 
     monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
-    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset.h5", mpm=mpm, overfill_onset="first_restart"))
-    restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
-    assert restarted[:-3].any(), "no restart early enough: the test needs a run whose mass loss rises"
-    first = int(np.argmax(restarted)) + 1  # the frame whose restart fired first
-    uninterrupted = list(seen)
-    assert uninterrupted == [0.0] * first + [1.0] * (len(seen) - first)
-    seen.clear()
-    kill["at"] = first + 2  # killed in frame first + 2, after the checkpoint of frame first + 1
     with pytest.raises(_Killed):
-        _run(tiny, "iso_bunny_physics_only", "onset_killed.h5", mpm=mpm, overfill_onset="first_restart")
+        _run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm, overfill_onset="first_restart")
+    before_kill = seen[:-1]  # the killed frame computes again after the resume
+    resumed.append(True)
     seen.clear()
-    kill["at"] = None
-    _run(tiny, "iso_bunny_physics_only", "onset_killed.h5", mpm=mpm, overfill_onset="first_restart")
-    assert seen == uninterrupted[first + 1:]
-    seen.clear()
-    _run(tiny, "iso_bunny_physics_only", "onset_start.h5", frames=3, mpm=mpm)
-    assert seen == [1.0] * 3
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm, overfill_onset="first_restart"))
+    restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
+    assert restarted.any(), "no restart: the test needs a run whose mass loss rises"
+    first = int(np.argmax(restarted)) + 1  # the frame whose restart fired first
+    assert len(before_kill) == first + 1 and len(seen) == len(restarted) - first - 1
+    assert before_kill + seen == [0.0] * first + [1.0] * (len(restarted) - first)
     with pytest.raises(ValueError, match="overfill_weight > 0"):
         dataclasses.replace(base, overfill_onset="first_restart")
     with pytest.raises(ValueError, match="momentum_restart"):
