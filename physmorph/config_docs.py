@@ -115,11 +115,12 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.log_mass_eps": ("eps of the log and sqrt losses, in mean particle masses", "particle masses", POS),
     "mpm.mass_loss_levels": ("levels of a grid-mass pyramid the loss is summed over; 1 = the grid alone", "",
                              ">= 1, 2^(levels-1) divides grid_res"),
-    "mpm.overfill_weight": ("weight of a packing penalty on nodes above overfill_ratio x density; 0 = off", "",
+    "mpm.overfill_weight": ("weight of a packing term on nodes holding more than the target (or than overfill_ratio x "
+                            "density, where that is more); 1 with ratio 0.001: overfill weighed twice; 0 = off", "",
                             ">= 0"),
     "mpm.volume_law": ("volume term of the elastic energy: fixed_corotated (the paper's) or barrier (grows "
                        "without bound as det F -> 0)", "", ""),
-    "mpm.overfill_ratio": ("density ratio at which overfill_weight starts to act", "", POS),
+    "mpm.overfill_ratio": ("density ratio of the packing term's cap (0.001: the target's own node mass)", "", POS),
     "mpm.warm_start": ("keep the control (and Adam's moments) from frame to frame", "", ""),
     "mpm.volume_stiffness": ("K of a pressure against packing measured from the particles' density; 0 = off",
                              "Pa", ">= 0"),
@@ -204,7 +205,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.restart_control_keep": ("share of the carried control a restart keeps", "", R01),
     "morph.control_decay": ("share of the control each frame starts with (1: carried whole)", "", R01),
     "morph.control_decay_follows_step": ("the leak (1 - control_decay) scales with the bold driver's step over mpm's step", "", ""),
-    "morph.overfill_onset": ("when mpm.overfill_weight's packing term starts: start, or first_restart (after the first momentum restart)", "", ""),
+    "morph.overfill_onset": ("when mpm.overfill_weight's packing term starts: start, or first_restart (the frame after the "
+                             "objective first rose, the first momentum restart)", "", ""),
     "morph.volume_averaging": ("share of each particle's det F moved to its grid average between frames (0: off)", "", R01),
     # experiments
     "experiments": ("the experiments, by name (run one: results/{profile}/runs/{name}.h5)", "", ""),

@@ -167,11 +167,14 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
 
     scale = float(ck["injection_scale"]) if resumed_from is not None else float("nan")
     restart_on = {"mass_loss": "physics_loss", "alpha_mse": "alpha_mse"}.get(cfg.momentum_restart)
-    previous = run.frame_metric(start - 1, restart_on) if restart_on else float("nan")
+    # the objective whose rise restarts the momentum, and starts the packing term (the mass loss
+    # where the restart is off, so the onset does not depend on it)
+    rise_on = restart_on or "physics_loss"
+    previous = run.frame_metric(start - 1, rise_on)
     # the adaptive step (MorphConfig.step_backoff): this frame's step, and the mass loss it is judged against
     step = cfg.mpm.step_size if resumed_from is None else float(ck.get("next_step", cfg.mpm.step_size))
     loss_before = run.frame_metric(start - 1, "physics_loss")
-    # MorphConfig.overfill_onset: the packing term waits for the first momentum restart (a
+    # MorphConfig.overfill_onset: the packing term waits for the objective's first rise (a
     # resumed run takes the weight its checkpoint was written with; frame 0's has none: 0)
     if cfg.overfill_onset == "first_restart":
         solver.set_overfill_weight(0.0 if resumed_from is None else float(ck.get("overfill_weight", 0.0)))
@@ -281,21 +284,21 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                                   target_distance=nearest_d)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
+        now = scal[rise_on]
+        rose = bool(np.isfinite(previous) and now > previous)
+        previous = now
         if restart_on:
             # the objective rose over this frame: the state is moving away from the target, so
             # the next frame starts with (most of) that momentum removed
-            now = scal[restart_on]
-            restart = bool(np.isfinite(previous) and now > previous)
-            if restart:
+            if rose:
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
                 if cfg.restart_control_keep < 1.0:
                     solver.scale_control(cfg.restart_control_keep)
-                if solver.overfill_weight != cfg.mpm.overfill_weight:
-                    solver.set_overfill_weight(cfg.mpm.overfill_weight)
-                    log(f"[{name}] frame {k}: first momentum restart, the packing term acts from frame {k + 1}")
-            scal["momentum_restart"] = float(restart)
-            previous = now
+            scal["momentum_restart"] = float(rose)
+        if rose and solver.overfill_weight != cfg.mpm.overfill_weight:
+            solver.set_overfill_weight(cfg.mpm.overfill_weight)
+            log(f"[{name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")
         if np.isfinite(loss_before):  # the bold driver: back off after a rise, regrow after a fall
             rose = scal["physics_loss"] > loss_before
             step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.step_size)

@@ -21,7 +21,7 @@ METHODS = ("physics_only", "f_inject", "full", "position_inject")
 class MorphConfig:
     # always in a run's params (physmorph.config.without_defaults), so its record names the method
     # (and, for control_decay, because its default changed since runs were first made)
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay"})
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset"})
     method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
     frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
@@ -78,10 +78,11 @@ class MorphConfig:
     # paper; measured in docs/study/log.md part 34 (it narrows the spread, not the slide).
     volume_averaging: float = 0.0
     # When mpm.overfill_weight's packing term starts to act: "start" from the first frame,
-    # "first_restart" from the frame after the momentum restart first fires (the run's first rise
-    # of its objective: it has arrived and starts to cycle, docs/study/log.md finding 167), so a
-    # body still on its way is not slowed by it (finding 177). Not in the paper.
-    overfill_onset: Literal["start", "first_restart"] = "start"
+    # "first_restart" from the frame after the run's objective first rose (the momentum restart's
+    # signal; the mass loss where the restart is off): the body has arrived and starts to cycle
+    # (docs/study/log.md finding 167), so a body still on its way is not slowed by it (findings
+    # 177, 180). Not in the paper.
+    overfill_onset: Literal["start", "first_restart"] = "first_restart"  # history: docs/study/CHANGELOG.md
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -114,10 +115,6 @@ class MorphConfig:
             raise ValueError(f"volume_averaging must be in [0, 1], got {self.volume_averaging}")
         if self.overfill_onset not in ("start", "first_restart"):
             raise ValueError(f"overfill_onset must be start or first_restart, got {self.overfill_onset!r}")
-        if self.overfill_onset == "first_restart" and not self.mpm.overfill_weight > 0:
-            raise ValueError("overfill_onset first_restart needs mpm.overfill_weight > 0 (the term it switches on)")
-        if self.overfill_onset == "first_restart" and self.momentum_restart == "off":
-            raise ValueError("overfill_onset first_restart needs a momentum_restart (mass_loss or alpha_mse)")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

@@ -398,16 +398,16 @@ def test_control_decay_follows_step_leaks_in_proportion_to_the_backed_off_step(t
 
 
 def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_first_restart(tiny, monkeypatch):
-    """morph.overfill_onset first_restart: every frame up to the one whose momentum restart fires
-    first runs with the packing term's weight 0, every later frame with mpm.overfill_weight. The
-    run is killed in the second frame after the switch and resumed: the resumed frames take the
-    weight from the checkpoint. "start" (the default) never touches the weight."""
+    """morph.overfill_onset first_restart (the default): every frame up to the one whose objective
+    first rose (its momentum restart fires) runs with the packing term's weight 0, every later frame
+    with mpm.overfill_weight. The run is killed in the second frame after the switch and resumed:
+    the resumed frames take the weight from the checkpoint. With the momentum restart off, the mass
+    loss's own first rise starts the term all the same."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
-    assert base.overfill_onset == "start"
+    assert base.overfill_onset == "first_restart" and base.mpm.overfill_weight == 1.0
     monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)  # a checkpoint every frame
-    mpm = dataclasses.replace(base.mpm, learning_rate=5 * base.mpm.learning_rate,  # the mass loss rises
-                              overfill_weight=1.0, overfill_ratio=0.001)
+    mpm = dataclasses.replace(base.mpm, learning_rate=5 * base.mpm.learning_rate)  # the mass loss rises
     seen, resumed = [], []
     real = morph.MPMSolver.optimize_control
 
@@ -419,20 +419,26 @@ def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_fir
 
     monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
     with pytest.raises(_Killed):
-        _run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm, overfill_onset="first_restart")
+        _run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm)
     before_kill = seen[:-1]  # the killed frame computes again after the resume
     resumed.append(True)
     seen.clear()
-    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm, overfill_onset="first_restart"))
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm))
     restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
     assert restarted.any(), "no restart: the test needs a run whose mass loss rises"
     first = int(np.argmax(restarted)) + 1  # the frame whose restart fired first
     assert len(before_kill) == first + 1 and len(seen) == len(restarted) - first - 1
     assert before_kill + seen == [0.0] * first + [1.0] * (len(restarted) - first)
-    with pytest.raises(ValueError, match="overfill_weight > 0"):
-        dataclasses.replace(base, overfill_onset="first_restart")
-    with pytest.raises(ValueError, match="momentum_restart"):
-        dataclasses.replace(base, overfill_onset="first_restart", mpm=mpm, momentum_restart="off")
+
+    seen.clear()
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset_no_restart.h5", frames=10, mpm=mpm,
+                          momentum_restart="off"))
+    assert np.isnan(m["momentum_restart"]).all()
+    loss = m["physics_loss"]
+    rose = loss[2:] > loss[1:-1]  # frames 2..K against the frame before (frame 1 has none)
+    assert rose.any(), "the mass loss never rose: the test needs a run where it does"
+    first = int(np.argmax(rose)) + 2
+    assert seen == [0.0] * first + [1.0] * (len(loss) - 1 - first)
 
 
 def test_volume_averaging_hands_the_next_frame_the_grid_averaged_volume(tiny, monkeypatch):

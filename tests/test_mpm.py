@@ -60,11 +60,12 @@ def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = F
 
 def cfg64(**kw) -> MPMConfig:
     # The solver tests are written for the squared mass loss and Adam, without the step clip, the
-    # authors' full step (no volume projection) and the paper's F smoothing (the workflow's defaults
-    # are the log loss, clipped volume-projected normalised GD and isochoric smoothing, tested where a
-    # test names them).
+    # authors' full step (no volume projection), the paper's F smoothing and no packing term (the
+    # workflow's defaults are the log loss with overfill weighed twice, clipped volume-projected
+    # normalised GD and isochoric smoothing, tested where a test names them).
     base = dict(grid_res=RES, precision="float64", substeps=3, mass_loss="squared", log_mass_eps=1e-3,
-                optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_volume="full")
+                optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_volume="full",
+                overfill_weight=0.0)
     base.update(kw)
     return MPMConfig(**base)
 

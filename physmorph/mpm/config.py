@@ -81,9 +81,12 @@ class MPMConfig:
         the target's own where that is more. It is zero wherever a node holds no more than the
         target or the cap, so it never pulls against the target; where the log loss's pull falls
         as 1/m on a packed node, this adds a pull the optimiser sees within the frame
-        (docs/study/log.md part 15).
+        (docs/study/log.md part 15). The default, weight 1 with the cap at the target's own node
+        mass (ratio 0.001), makes every node holding more than the target pay the log loss's term
+        twice: the body spills less past the silhouette (findings 175, 180); MorphConfig's
+        overfill_onset starts it when the body has arrived.
     overfill_ratio: the density ratio of that cap (the sampled shapes at rest reach ~2x their
-        density at the 99th percentile, on their surface shell).
+        density at the 99th percentile, on their surface shell; 0.001: the target's own mass).
     warm_start: True keeps dFc and the Adam moments across frames (load_state does not touch
         them; the particles are the same material points from frame to frame); False makes
         load_state call reset_control.
@@ -187,7 +190,8 @@ class MPMConfig:
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
                                                              "step_scales_with_dx", "step_per_volume",
-                                                             "step_volume", "step_volume_share"})
+                                                             "step_volume", "step_volume_share",
+                                                             "overfill_weight", "overfill_ratio"})
 
     grid_res: int = 64
     domain_lo: float = DOMAIN_LO
@@ -221,9 +225,9 @@ class MPMConfig:
     mass_loss: Literal["squared", "log", "sqrt", "log_bounded"] = "log"
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
-    overfill_weight: float = 0.0
+    overfill_weight: float = 1.0  # history: docs/study/CHANGELOG.md
     volume_law: Literal["fixed_corotated", "barrier"] = "fixed_corotated"
-    overfill_ratio: float = 2.0
+    overfill_ratio: float = 0.001
     warm_start: bool = True
     volume_stiffness: float = 0.0
     volume_onset: float = 2.0
