@@ -113,3 +113,12 @@ def scatter_add(out: np.ndarray,  # [R0, R1, R2], added to in place
         ok = np.all((idx >= 0) & (idx < shape), axis=-1)
         flat, w = flat[ok], w[ok]
     out += np.bincount(flat.ravel(), weights=w.ravel(), minlength=out.size).reshape(out.shape)
+
+
+def blur_weights(sigma: float) -> np.ndarray:  # [2 r + 1]
+    """The 1D weights of MPMConfig.mass_loss_blur: exp(-k^2 / (2 sigma^2)) for |k| <= r = ceil(3 sigma),
+    normalised to sum 1."""
+    r = int(np.ceil(3.0 * sigma))
+    k = np.arange(-r, r + 1, dtype=np.float64)
+    w = np.exp(-k ** 2 / (2.0 * sigma ** 2))
+    return w / w.sum()

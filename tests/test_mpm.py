@@ -1175,6 +1175,38 @@ def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
     _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
 
 
+def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
+    """mass_loss_blur sigma > 0 adds weight x sum_I (log((B m)_I + e) - log((B m*)_I + e))^2, B the
+    Gaussian blur truncated at 3 sigma, zero outside the grid: the loss against the formula with B
+    as one dense 3D convolution (scipy, not the solver's separable passes), and the control gradient
+    against central finite differences and torch autograd (the reference's conv3d)."""
+    from scipy.ndimage import convolve
+
+    cfg = cfg64(substeps=2, mass_loss="log", mass_loss_blur=1.2, mass_loss_blur_weight=2.0)
+    s = make(cfg, state)
+    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
+    L = s.forward()
+    end = s.state_at(cfg.substeps)
+    m = splat_mass(end.x, end.mass, s.grid)
+    t = s.target_m.to_numpy()
+    eps = cfg.log_mass_eps * state.mass.mean()
+    r = int(np.ceil(3 * 1.2))
+    k = np.exp(-np.arange(-r, r + 1) ** 2 / (2 * 1.2 ** 2))
+    kernel = np.einsum("i,j,k->ijk", k, k, k) / k.sum() ** 3
+    Bm, Bt = (convolve(a, kernel, mode="constant", cval=0.0) for a in (m, t))
+    grid_level = ((np.log(m + eps) - np.log(t + eps)) ** 2).sum()
+    blurred = ((np.log(Bm + eps) - np.log(Bt + eps)) ** 2).sum()
+    assert blurred > 0.05 * grid_level  # the level is not negligible in the test's ball
+    assert L == pytest.approx(grid_level + 2.0 * blurred, rel=1e-10)
+    ctrl = random_control(cfg, state.n)
+    s.set_control(ctrl)
+    _fd_check(s, state, n_checks=6, seed=5)
+    _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
+    for bad in ({"mass_loss_blur": -1.0}, {"mass_loss_blur": 4.0}, {"mass_loss_blur_weight": -1.0}):
+        with pytest.raises(MPMConfigError, match="mass_loss_blur"):
+            cfg64(**bad)
+
+
 def test_overfill_term_matches_its_formula_reference_and_fd(state):
     """overfill_weight > 0 adds w sum_I max(0, log(m_I + e) - log(c_I + e))^2, c_I = max(ratio x
     density x dx^3, m*_I), to the log loss: the documented formula on the reference grid mass (the

@@ -75,6 +75,15 @@ class MPMConfig:
         grid mass summed over blocks of 2^l x 2^l x 2^l nodes, each level the same loss form (log:
         eps x 8^l) with weight 1. Coarse levels see a missing feature (an ear) from farther away
         than the 27-node stencil does. 1 = the grid alone (the paper's loss).
+    mass_loss_blur: sigma (in cells) of a Gaussian-blurred level added to the mass loss, 0 = off:
+        mass_loss_blur_weight x sum_I (log((B m)_I + e) - log((B m*)_I + e))^2 in the log form (each
+        form as on the grid), B the separable Gaussian blur of the grid, truncated at 3 sigma, its
+        weights summing to 1, zero outside the grid. The grid's loss sees a particle's 27 nodes
+        only: material several cells from any node the target fills feels no pull toward it, and
+        the pyramid's block sums move only particles on a block's edge; the blur gives every
+        particle within ~3 sigma of the target a direction toward it (docs/study/log.md finding
+        178: the cow's head 4 cells in front of the bunny).
+    mass_loss_blur_weight: the blurred level's weight (the grid's own is 1).
     overfill_weight: w of a packing term added to the mass loss, 0 = off (the paper has none):
         w sum_I max(0, log(m_I + eps) - log(c_I + eps))^2 with the cap c_I = max(overfill_ratio x
         density x dx^3, m*_I), the node mass of material at overfill_ratio times its density, or
@@ -225,6 +234,8 @@ class MPMConfig:
     mass_loss: Literal["squared", "log", "sqrt", "log_bounded"] = "log"
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
+    mass_loss_blur: float = 0.0
+    mass_loss_blur_weight: float = 1.0
     overfill_weight: float = 1.0  # history: docs/study/CHANGELOG.md
     volume_law: Literal["fixed_corotated", "barrier"] = "fixed_corotated"
     overfill_ratio: float = 0.001
@@ -291,6 +302,10 @@ class MPMConfig:
         need(math.isfinite(self.overfill_ratio) and self.overfill_ratio > 0,
              f"overfill_ratio must be > 0, got {self.overfill_ratio}")
         need(self.log_mass_eps > 0, f"log_mass_eps must be > 0, got {self.log_mass_eps}")
+        need(math.isfinite(self.mass_loss_blur) and 0 <= self.mass_loss_blur <= self.grid_res / 6,
+             f"mass_loss_blur must be in [0, grid_res / 6] cells (0 = off), got {self.mass_loss_blur}")
+        need(math.isfinite(self.mass_loss_blur_weight) and self.mass_loss_blur_weight >= 0,
+             f"mass_loss_blur_weight must be finite and >= 0, got {self.mass_loss_blur_weight}")
         need(isinstance(self.mass_loss_levels, int) and self.mass_loss_levels >= 1
              and self.grid_res % (1 << (self.mass_loss_levels - 1)) == 0,
              f"mass_loss_levels must be an int >= 1 whose blocks 2^(levels-1) divide grid_res "

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..grid import BOUNDARY_CELLS
+from ..grid import BOUNDARY_CELLS, blur_weights
 from .config import BARRIER_J_LINEAR, MPMConfig
 
 _OFFSETS = torch.tensor([[i, j, k] for i in range(3) for j in range(3) for k in range(3)],
@@ -130,33 +130,47 @@ def rollout_torch(x, v, C, F, ctrl, Fp, mass, vol, cfg: MPMConfig):
     return states
 
 
+def blur_torch(a: torch.Tensor, sigma: float) -> torch.Tensor:
+    """a [R, R, R] convolved with the 3D kernel w x w x w of blur_weights, zero outside the grid
+    (one dense conv3d: the solver's separable passes must give the same)."""
+    w = torch.tensor(blur_weights(sigma), dtype=a.dtype)
+    r = (len(w) - 1) // 2
+    kernel = w[:, None, None] * w[None, :, None] * w[None, None, :]
+    return torch.nn.functional.conv3d(a[None, None], kernel[None, None], padding=r)[0, 0]
+
+
 def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> torch.Tensor:
     """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2; sqrt: sum (sqrt(m + e) -
     sqrt(m* + e))^2; log_bounded: log where m <= m*, 4 (sqrt(m + e) - sqrt(m* + e))^2 / (m* + e) above
     (see MPMConfig), summed
     over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l; plus, where
-    overfill_weight > 0, w sum_I max(0, log(m_I + e) - log(max(c density dx^3, m*_I) + e))^2."""
+    mass_loss_blur > 0, mass_loss_blur_weight times the same form on the blurred grids (blur_torch)
+    with eps; plus, where overfill_weight > 0, w sum_I max(0, log(m_I + e) - log(max(c density dx^3,
+    m*_I) + e))^2."""
     R = cfg.grid_res
     m = grid_mass_torch(x, mass, cfg).reshape(R, R, R)
     t = target.reshape(R, R, R)
+
+    def form(ml, tl, e):
+        if cfg.mass_loss == "squared":
+            return ((ml - tl) ** 2).sum()
+        if cfg.mass_loss == "log_bounded":
+            below = (torch.log(ml + e) - torch.log(tl + e)) ** 2
+            above = 4.0 / (tl + e) * (torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2
+            return torch.where(ml <= tl, below, above).sum()
+        if cfg.mass_loss == "sqrt":
+            return ((torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2).sum()
+        return ((torch.log(ml + e) - torch.log(tl + e)) ** 2).sum()
+
     total = torch.zeros((), dtype=m.dtype)
     for level in range(cfg.mass_loss_levels):
         b = 2 ** level
         ml = m.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
         tl = t.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
-        if cfg.mass_loss == "squared":
-            total = total + ((ml - tl) ** 2).sum()
-        elif cfg.mass_loss == "log_bounded":
-            e = log_eps * 8.0 ** level
-            below = (torch.log(ml + e) - torch.log(tl + e)) ** 2
-            above = 4.0 / (tl + e) * (torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2
-            total = total + torch.where(ml <= tl, below, above).sum()
-        elif cfg.mass_loss == "sqrt":
-            e = log_eps * 8.0 ** level
-            total = total + ((torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2).sum()
-        else:
-            e = log_eps * 8.0 ** level
-            total = total + ((torch.log(ml + e) - torch.log(tl + e)) ** 2).sum()
+        total = total + form(ml, tl, log_eps * 8.0 ** level)
+    if cfg.mass_loss_blur > 0:
+        total = total + cfg.mass_loss_blur_weight * form(blur_torch(m, cfg.mass_loss_blur),
+                                                         blur_torch(t, cfg.mass_loss_blur), log_eps)
     if cfg.overfill_weight > 0:  # the packing term, on the grid itself (level 0)
         cap = torch.clamp(t, min=cfg.overfill_ratio * cfg.density * cfg.dx ** 3)
         r = torch.clamp(torch.log(m + log_eps) - torch.log(cap + log_eps), min=0.0)

@@ -31,7 +31,7 @@ hand-written differential, the rotation derivative included, are in physmorph.mp
 import numpy as np
 import taichi as ti
 
-from ..grid import BOUNDARY_CELLS, Grid
+from ..grid import BOUNDARY_CELLS, Grid, blur_weights
 from ..taichi_runtime import init_taichi
 from .config import STEP_VOLUME_MODES, MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
 from .state import ParticleState
@@ -113,6 +113,13 @@ class MPMSolver:
         # mass, of the target and their loss adjoints, level l = 1 .. levels - 1
         self.pyramid = [tuple(ti.field(f, shape=(R >> lv,) * 3) for _ in range(3))
                         for lv in range(1, cfg.mass_loss_levels)]
+        # the blurred level of the mass loss (mass_loss_blur > 0): the blurred grid mass, the blurred
+        # target, the level's adjoint and two scratch grids for the separable passes
+        self._blur_radius = int(np.ceil(3.0 * cfg.mass_loss_blur)) if cfg.mass_loss_blur > 0 else 0
+        self.blur_grids = [ti.field(f, shape=(R, R, R)) for _ in range(5)] if cfg.mass_loss_blur > 0 else []
+        if cfg.mass_loss_blur > 0:
+            self.blur_w = ti.field(f, shape=2 * self._blur_radius + 1)
+            self.blur_w.from_numpy(blur_weights(cfg.mass_loss_blur).astype(self.np_dtype))
         self.loss_acc = ti.field(ti.f64, shape=())
         self.norm_acc = ti.field(ti.f64, shape=())
         # per-particle scratch of the substep being reversed: affine A, Fe and its SVD, so
@@ -676,11 +683,53 @@ class MPMSolver:
         for I in ti.grouped(self.grid_m):
             self.grid_m_adj[I] += ca[I // block]
 
+    @ti.kernel
+    def _blur_axis(self, src: ti.template(), dst: ti.template(), axis: ti.template()):
+        """One separable pass of MPMConfig.mass_loss_blur: dst_I = sum_k w_k src_(I + k e_axis) over
+        |k| <= r, nodes outside the grid counting as zero (so the pass is a symmetric matrix)."""
+        R = self.cfg.grid_res
+        r = ti.static(self._blur_radius)
+        for I in ti.grouped(dst):
+            acc = ti.cast(0.0, self.dtype)
+            for k in ti.static(range(-r, r + 1)):
+                J = I + ti.Vector([k if axis == 0 else 0, k if axis == 1 else 0, k if axis == 2 else 0])
+                if 0 <= J[axis] < R:
+                    acc += self.blur_w[k + r] * src[J]
+            dst[I] = acc
+
+    def _blur(self, src, dst) -> None:
+        """dst = B src, B the 3D Gaussian blur (three passes through the scratch grids)."""
+        t1, t2 = self.blur_grids[3], self.blur_grids[4]
+        self._blur_axis(src, t1, 0)
+        self._blur_axis(t1, t2, 1)
+        self._blur_axis(t2, dst, 2)
+
+    @ti.kernel
+    def _blur_level_loss(self, bm: ti.template(), bt: ti.template(), ba: ti.template(), log_eps: ti.f64,
+                         weight: ti.f64):
+        """The blurred level (MPMConfig.mass_loss_blur): weight x _node_loss of B m against B m* added
+        to loss_acc, its adjoint into ba."""
+        for I in ti.grouped(bm):
+            r2, adj = self._node_loss(bm[I], bt[I], log_eps)
+            self.loss_acc[None] += weight * r2
+            ba[I] = ti.cast(weight, self.dtype) * adj
+
+    @ti.kernel
+    def _add_to_mass_adjoint(self, a: ti.template()):
+        for I in ti.grouped(a):
+            self.grid_m_adj[I] += a[I]
+
     def _loss_with_adjoint(self) -> None:
         """Mass loss of the splatted grid_m into loss_acc, dL/dm_I into grid_m_adj (all levels)."""
         self._mass_loss(self._log_eps, self._overfill_weight)
         for lv, (cm, ct, ca) in enumerate(self.pyramid, start=1):
             self._pyramid_loss(cm, ct, ca, 1 << lv, self._log_eps * 8.0 ** lv)
+        if self.blur_grids:
+            bm, bt, ba = self.blur_grids[:3]
+            self._blur(self.grid_m, bm)
+            self._blur_level_loss(bm, bt, ba, self._log_eps, self.cfg.mass_loss_blur_weight)
+            self._blur(ba, bm)  # B is symmetric: dL/dm = B dL/d(B m)
+            self._add_to_mass_adjoint(bm)
 
     @ti.kernel
     def _loss_backward(self, xa: ti.template()):
@@ -925,6 +974,8 @@ class MPMSolver:
         for lv, (_, ct, _) in enumerate(self.pyramid, start=1):
             b = 1 << lv
             ct.from_numpy(m.reshape(R // b, b, R // b, b, R // b, b).sum(axis=(1, 3, 5)).astype(self.np_dtype))
+        if self.blur_grids:
+            self._blur(self.target_m, self.blur_grids[1])
         self._has_target = True
         self._forward_current = False  # the cached loss refers to the old target
 
