@@ -116,7 +116,7 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.mass_loss_levels": ("levels of a grid-mass pyramid the loss is summed over; 1 = the grid alone", "",
                              ">= 1, 2^(levels-1) divides grid_res"),
     "mpm.mass_loss_blur": ("sigma of a Gaussian-blurred level of the mass loss, reaching material several cells from "
-                           "the target; 0 = off", "cells", "[0, grid_res / 6]"),
+                           "the target; 0 = off", "cells", "[0, 16]"),
     "mpm.mass_loss_blur_weight": ("weight of the blurred level (the grid's own is 1)", "", ">= 0"),
     "mpm.overfill_weight": ("weight of a packing term on nodes holding more than the target (or than overfill_ratio x "
                             "density, where that is more); 1 with ratio 0.001: overfill weighed twice; 0 = off", "",

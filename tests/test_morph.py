@@ -503,8 +503,10 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
 
 def _paper_loop(cfg: MorphConfig) -> dict:
     """The changes that make a run use the paper's loop: its F smoothing, the authors' step (no
-    share of the particles' volume change removed), no momentum restart."""
-    return dict(mpm=dataclasses.replace(cfg.mpm, smoothing_mode="full", step_volume="full"), momentum_restart="off")
+    share of the particles' volume change removed), no momentum restart, and the loss without the
+    terms added since these runs were measured (no packing term, no blurred level)."""
+    return dict(mpm=dataclasses.replace(cfg.mpm, smoothing_mode="full", step_volume="full", overfill_weight=0.0,
+                                        mass_loss_blur=0.0), momentum_restart="off")
 
 
 def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
@@ -569,7 +571,8 @@ def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
 # (measured 2026-11-24): with the transport plasticity -30.5 % (it keeps closing), -15.7 % without
 # the absorption, and f_inject (no plasticity) springs back; with the nearest-point map 26.7 %,
 # 136 % without the absorption (measured 2026-11-23). The tiny run is still moving at its last
-# frame, so part of the body's momentum carries on.
+# frame, so part of the body's momentum carries on. With the blurred level of the mass loss
+# (2026-11-27): -12.5 % with the absorption, 48 % without it, f_inject 122 %.
 RELEASE_REBOUND_SHAPE = 40.0
 
 
@@ -579,7 +582,7 @@ def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny
     to the same run without absorption), and released the tiny morph keeps most of its gain, while
     without plasticity (f_inject) it springs back. With the nearest-point map the plasticity alone
     does not hold the shape (it springs back without the absorption); the transport map's rest
-    state does (both released runs keep their gain)."""
+    state alone keeps part of it (it springs back less than f_inject)."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     assert base.plasticity.absorb_control and base.plasticity.absorb_target == "shape"
@@ -602,7 +605,7 @@ def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny
         assert rebound[k] < RELEASE_REBOUND_SHAPE
         assert rebound["none"] > rebound[k] + RELEASE_REBOUND_GAP
     assert rebound["nearest_off"] > rebound["nearest_shape"] + RELEASE_REBOUND_GAP
-    assert rebound["off"] < RELEASE_REBOUND_SHAPE
+    assert rebound["none"] > rebound["off"] + RELEASE_REBOUND_GAP
 
 
 def test_the_release_starts_from_rest(tiny):

@@ -60,12 +60,13 @@ def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = F
 
 def cfg64(**kw) -> MPMConfig:
     # The solver tests are written for the squared mass loss and Adam, without the step clip, the
-    # authors' full step (no volume projection), the paper's F smoothing and no packing term (the
-    # workflow's defaults are the log loss with overfill weighed twice, clipped volume-projected
-    # normalised GD and isochoric smoothing, tested where a test names them).
+    # authors' full step (no volume projection), the paper's F smoothing, no packing term and no
+    # blurred level (the workflow's defaults are the log loss with overfill weighed twice and a
+    # blurred level, clipped volume-projected normalised GD and isochoric smoothing, tested where
+    # a test names them).
     base = dict(grid_res=RES, precision="float64", substeps=3, mass_loss="squared", log_mass_eps=1e-3,
                 optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_volume="full",
-                overfill_weight=0.0)
+                overfill_weight=0.0, mass_loss_blur=0.0)
     base.update(kw)
     return MPMConfig(**base)
 
@@ -1202,7 +1203,7 @@ def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
     s.set_control(ctrl)
     _fd_check(s, state, n_checks=6, seed=5)
     _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
-    for bad in ({"mass_loss_blur": -1.0}, {"mass_loss_blur": 4.0}, {"mass_loss_blur_weight": -1.0}):
+    for bad in ({"mass_loss_blur": -1.0}, {"mass_loss_blur": 17.0}, {"mass_loss_blur_weight": -1.0}):
         with pytest.raises(MPMConfigError, match="mass_loss_blur"):
             cfg64(**bad)
 
