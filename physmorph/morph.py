@@ -285,18 +285,18 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
         now = scal[rise_on]
-        rose = bool(np.isfinite(previous) and now > previous)
+        objective_rose = bool(np.isfinite(previous) and now > previous)
         previous = now
         if restart_on:
             # the objective rose over this frame: the state is moving away from the target, so
             # the next frame starts with (most of) that momentum removed
-            if rose:
+            if objective_rose:
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
                 if cfg.restart_control_keep < 1.0:
                     solver.scale_control(cfg.restart_control_keep)
-            scal["momentum_restart"] = float(rose)
-        if rose and solver.overfill_weight != cfg.mpm.overfill_weight:
+            scal["momentum_restart"] = float(objective_rose)
+        if objective_rose and solver.overfill_weight != cfg.mpm.overfill_weight:
             solver.set_overfill_weight(cfg.mpm.overfill_weight)
             log(f"[{name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")
         if np.isfinite(loss_before):  # the bold driver: back off after a rise, regrow after a fall

@@ -716,6 +716,7 @@ class MPMSolver:
 
     @ti.kernel
     def _add_to_mass_adjoint(self, a: ti.template()):
+        """dL/dm_I += a_I (a coarser or blurred level's adjoint brought back to the grid)."""
         for I in ti.grouped(a):
             self.grid_m_adj[I] += a[I]
 
