@@ -6,6 +6,7 @@ the workflow builds every experiment's MorphConfig when it parses its config.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import ClassVar, Literal
 
@@ -83,6 +84,14 @@ class MorphConfig:
     # (docs/study/log.md finding 167), so a body still on its way is not slowed by it (findings
     # 177, 180). Not in the paper.
     overfill_onset: Literal["start", "first_restart"] = "first_restart"  # history: docs/study/CHANGELOG.md
+    # The stray pull: a particle outside the target (its grid node holds no target mass) and more
+    # than stray_pull_onset cells from the target's surface is pulled toward its nearest surface
+    # point by stray_pull x (m_p / (density dx^3)) |x_T,p - s_p|^2 / dx^2 in the physics loss (the
+    # anchor s_p taken at the frame's start): a cell of material one cell out costs stray_pull. The
+    # grid's mass loss has no direction for a region several cells outside the target, and the
+    # plasticity cannot carry a region over (docs/study/log.md). 0 = off. Not in the paper.
+    stray_pull: float = 0.0
+    stray_pull_onset: float = 1.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -115,6 +124,10 @@ class MorphConfig:
             raise ValueError(f"volume_averaging must be in [0, 1], got {self.volume_averaging}")
         if self.overfill_onset not in ("start", "first_restart"):
             raise ValueError(f"overfill_onset must be start or first_restart, got {self.overfill_onset!r}")
+        if not (math.isfinite(self.stray_pull) and self.stray_pull >= 0.0):
+            raise ValueError(f"stray_pull must be finite and >= 0, got {self.stray_pull}")
+        if not (math.isfinite(self.stray_pull_onset) and self.stray_pull_onset >= 0.0):
+            raise ValueError(f"stray_pull_onset must be finite and >= 0 cells, got {self.stray_pull_onset}")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

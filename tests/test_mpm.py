@@ -1208,6 +1208,37 @@ def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
             cfg64(**bad)
 
 
+def test_position_anchors_add_their_term_and_match_fd(state):
+    """set_position_anchors(a, w) adds sum_p w_p |x_T,p - a_p|^2 to the loss (the morph loop's stray
+    pull): the loss is the plain one plus that sum at the rollout's end, the gradients of control and
+    initial state match central finite differences, backward_pair's mass-loss gradient carries the
+    term (it belongs to the physics objective, not to the injected adjoints), and None removes it."""
+    cfg = cfg64(substeps=2, mass_loss="log")
+    s = make(cfg, state)
+    s.set_control(random_control(cfg, state.n))
+    plain = s.forward()
+    rng = np.random.default_rng(4)
+    anchor = state.x + rng.normal(0.0, 0.3, state.x.shape)
+    weight = np.where(rng.random(state.n) < 0.5, 0.0, rng.uniform(0.5, 2.0, state.n))
+    s.set_position_anchors(anchor, weight)
+    L = s.forward()
+    end = s.state_at(cfg.substeps).x
+    pull = (weight * ((end - anchor) ** 2).sum(axis=1)).sum()
+    assert pull > 0.05 * plain
+    assert L == pytest.approx(plain + pull, rel=1e-10)
+    _fd_check(s, state, n_checks=6, seed=12)
+    s.forward()
+    s.backward()
+    whole = s.control_gradient()
+    s.forward()
+    n_mass, _ = s.backward_pair(None, None)
+    assert n_mass == pytest.approx(np.linalg.norm(whole), rel=1e-10)
+    s.set_position_anchors(None)
+    assert s.forward() == pytest.approx(plain, rel=1e-12)
+    with pytest.raises(MPMStateError, match="anchor weights"):
+        s.set_position_anchors(anchor, -weight - 1.0)
+
+
 def test_overfill_term_matches_its_formula_reference_and_fd(state):
     """overfill_weight > 0 adds w sum_I max(0, log(m_I + e) - log(c_I + e))^2, c_I = max(ratio x
     density x dx^3, m*_I), to the log loss: the documented formula on the reference grid mass (the

@@ -120,6 +120,9 @@ class MPMSolver:
         if cfg.mass_loss_blur > 0:
             self.blur_w = ti.field(f, shape=2 * self._blur_radius + 1)
             self.blur_w.from_numpy(blur_weights(cfg.mass_loss_blur).astype(self.np_dtype))
+        # position anchors of the loss (set_position_anchors: the morph loop's stray pull),
+        # allocated on first use: a_p and the weight w_p of w_p |x_T,p - a_p|^2
+        self.anchor = self.anchor_w = None
         self.loss_acc = ti.field(ti.f64, shape=())
         self.norm_acc = ti.field(ti.f64, shape=())
         # per-particle scratch of the substep being reversed: affine A, Fe and its SVD, so
@@ -171,6 +174,7 @@ class MPMSolver:
         self._adam_step = 0
         self._log_eps = 0.0
         self._overfill_weight = float(self.cfg.overfill_weight)
+        self._anchored = False
         self.reset_control()
 
     def configure(self, cfg: MPMConfig) -> None:
@@ -733,6 +737,21 @@ class MPMSolver:
             self._add_to_mass_adjoint(bm)
 
     @ti.kernel
+    def _anchor_loss(self):
+        """The anchors' term of the loss (set_position_anchors): loss_acc += sum_p w_p |x_T,p - a_p|^2."""
+        T = self.cfg.substeps
+        for p in range(self.n):
+            d = self.x[T, p] - self.anchor[p]
+            self.loss_acc[None] += ti.cast(self.anchor_w[p] * d.dot(d), ti.f64)
+
+    @ti.kernel
+    def _anchor_backward(self, xa: ti.template()):
+        """Reverse of _anchor_loss: x_bar_T,p += 2 w_p (x_T,p - a_p)."""
+        T = self.cfg.substeps
+        for p in range(self.n):
+            xa[p] += 2.0 * self.anchor_w[p] * (self.x[T, p] - self.anchor[p])
+
+    @ti.kernel
     def _loss_backward(self, xa: ti.template()):
         """Reverse of _splat_mass(T) and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
         of the injected g^x already there)."""
@@ -1040,6 +1059,8 @@ class MPMSolver:
             self._clear_grid()
             self._splat_mass(self.cfg.substeps)
             self._loss_with_adjoint()
+            if self._anchored:
+                self._anchor_loss()
             self._last_loss = float(self.loss_acc[None])
         else:
             self._last_loss = float("nan")
@@ -1104,6 +1125,8 @@ class MPMSolver:
             self._splat_mass(self.cfg.substeps)
             self._loss_with_adjoint()
             self._loss_backward(self.x_adj2 if pair else self.x_adj)
+            if self._anchored:
+                self._anchor_backward(self.x_adj2 if pair else self.x_adj)
         for t in reversed(range(self.cfg.substeps)):
             self._restore_p2g(t)
             self._grid_update()
@@ -1395,6 +1418,26 @@ class MPMSolver:
         if weight > 0 and not self.cfg.overfill_weight > 0:
             raise MPMConfigError("set_overfill_weight > 0 needs a solver built with overfill_weight > 0")
         self._overfill_weight = float(weight)
+        self._forward_current = False
+
+    def set_position_anchors(self, anchor: np.ndarray | None,  # [N, 3]
+                             weight: np.ndarray | None = None) -> None:  # [N]
+        """Add sum_p w_p |x_T,p - a_p|^2 to the loss from now on (the morph loop's stray pull,
+        MorphConfig.stray_pull); None removes the term. The fields are allocated on first use."""
+        if anchor is None:
+            self._anchored = False
+            self._forward_current = False
+            return
+        a = self._check_adjoint(anchor, (self.n, 3), "anchor")
+        w = np.asarray(weight, dtype=np.float64)
+        if w.shape != (self.n,) or not np.isfinite(w).all() or (w < 0).any():
+            raise MPMStateError(f"anchor weights must be [{self.n}], finite and >= 0")
+        if self.anchor is None:
+            self.anchor = ti.types.vector(3, self.dtype).field(shape=self.n)
+            self.anchor_w = ti.field(self.dtype, shape=self.n)
+        self.anchor.from_numpy(a.astype(self.np_dtype))
+        self.anchor_w.from_numpy(w.astype(self.np_dtype))
+        self._anchored = bool((w > 0).any())
         self._forward_current = False
 
     @property
