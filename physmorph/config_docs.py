@@ -210,8 +210,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.control_decay_follows_step": ("the leak (1 - control_decay) scales with the bold driver's step over mpm's step", "", ""),
     "morph.overfill_onset": ("when mpm.overfill_weight's packing term starts: start, or first_restart (the frame after the "
                              "objective first rose, the first momentum restart)", "", ""),
-    "morph.stray_pull": ("weight of a pull on particles outside the target toward their nearest target surface point "
-                         "(a cell of material one cell out costs this; 0: off)", "", ">= 0"),
+    "morph.stray_pull": ("method full: weight of a pull on particles outside the target toward their nearest target "
+                         "surface point (a cell of material one cell out costs this; 0: off)", "", ">= 0"),
     "morph.stray_pull_onset": ("the stray pull acts on particles more than this far from the target's surface", "cells", ">= 0"),
     "morph.volume_averaging": ("share of each particle's det F moved to its grid average between frames (0: off)", "", R01),
     # experiments

@@ -181,6 +181,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     inject_F = cfg.method in ("f_inject", "full")
     inject_x = cfg.method == "position_inject"
     want_grad = inject_F or inject_x
+    # the stray pull is the Chamfer guidance's (component C, with the plasticity): the full method's
+    stray_pull = cfg.stray_pull > 0 and cfg.method == "full"
     status = "complete"
     frame_times = []
     nearest_d = nearest_i = None  # the state's nearest target surface points, kept from the last frame's end
@@ -188,7 +190,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t0 = time.time()
         # A. physics
         solver.load_state(st)
-        if cfg.stray_pull > 0:
+        if stray_pull:
             if nearest_d is None:
                 nearest_d, nearest_i = tree.query(st.x, k=1, workers=-1)
             solver.set_position_anchors(*stray_pull_anchors(st.x, st.mass, nearest_d, nearest_i, target, cfg))

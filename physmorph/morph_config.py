@@ -84,8 +84,9 @@ class MorphConfig:
     # (docs/study/log.md finding 167), so a body still on its way is not slowed by it (findings
     # 177, 180). Not in the paper.
     overfill_onset: Literal["start", "first_restart"] = "first_restart"  # history: docs/study/CHANGELOG.md
-    # The stray pull: a particle outside the target (its grid node holds no target mass) and more
-    # than stray_pull_onset cells from the target's surface is pulled toward its nearest surface
+    # The stray pull (method full: it belongs to the Chamfer guidance, with the plasticity): a
+    # particle outside the target (its grid node holds no target mass) and more than
+    # stray_pull_onset cells from the target's surface is pulled toward its nearest surface
     # point by stray_pull x (m_p / (density dx^3)) |x_T,p - s_p|^2 / dx^2 in the physics loss (the
     # anchor s_p taken at the frame's start): a cell of material one cell out costs stray_pull. The
     # grid's mass loss has no direction for a region several cells outside the target, and the

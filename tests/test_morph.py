@@ -597,7 +597,7 @@ def _strays(tiny, run_h5) -> list[int]:
 
 
 def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
-    """MorphConfig.stray_pull pulls the particles outside the target, more than stray_pull_onset
+    """MorphConfig.stray_pull (method full) pulls the particles outside the target, more than stray_pull_onset
     cells from its surface, toward their nearest surface point: the tiny iso -> bunny full run
     brings them in sooner than the same run without (measured: 42 at the start; at frames 4 / 8 /
     12 32 / 8 / 0 without the pull, 12 / 0 / 0 with stray_pull 3) and closes about as much of the
@@ -611,6 +611,9 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     print("strays at the stored frames", without, "without the pull,", with_pull, "with it")
     assert without[0] >= 20 and sum(with_pull[1:]) < 0.5 * sum(without[1:3])
     assert pulled["gap_closed"][-1] >= 0.9 * read_metrics(d / "full.h5")["gap_closed"][8]
+    # the full method's alone: a physics-only run is the same with it (up to float32 atomics)
+    alone = read_metrics(_run(tiny, "iso_bunny_physics_only", "stray_pull_physics.h5", stray_pull=3.0, frames=3))
+    np.testing.assert_allclose(alone["alpha_mse"], tiny_runs["physics_only"]["alpha_mse"][:4], rtol=1e-4)
     # the selection and the weights on three hand-placed particles
     from physmorph.targets import load_target
     target = load_target(d / "t_bunny.h5")
