@@ -22,7 +22,8 @@ METHODS = ("physics_only", "f_inject", "full", "position_inject")
 class MorphConfig:
     # always in a run's params (physmorph.config.without_defaults), so its record names the method
     # (and, for control_decay, because its default changed since runs were first made)
-    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset"})
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
+                                                              "stray_pull"})
     method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
     frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
@@ -91,7 +92,7 @@ class MorphConfig:
     # anchor s_p taken at the frame's start): a cell of material one cell out costs stray_pull. The
     # grid's mass loss has no direction for a region several cells outside the target, and the
     # plasticity cannot carry a region over (docs/study/log.md). 0 = off. Not in the paper.
-    stray_pull: float = 0.0
+    stray_pull: float = 1.0  # history: docs/study/CHANGELOG.md
     stray_pull_onset: float = 1.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)

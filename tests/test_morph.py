@@ -597,22 +597,23 @@ def _strays(tiny, run_h5) -> list[int]:
 
 
 def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
-    """MorphConfig.stray_pull (method full) pulls the particles outside the target, more than stray_pull_onset
-    cells from its surface, toward their nearest surface point: the tiny iso -> bunny full run
-    brings them in sooner than the same run without (measured: 42 at the start; at frames 4 / 8 /
-    12 32 / 8 / 0 without the pull, 12 / 0 / 0 with stray_pull 3) and closes about as much of the
-    gap by frame 8. Its selection:
-    outside (the nearest node holds no target mass) and beyond the onset, weights m_p / (density
-    dx^3) / dx^2 times stray_pull, zero elsewhere."""
+    """MorphConfig.stray_pull (method full; default 1) pulls the particles outside the target, more
+    than stray_pull_onset cells from its surface, toward their nearest surface point: the tiny iso
+    -> bunny full run brings them in sooner than the same run without (measured: 42 at the start;
+    at frames 4 / 8 32 / 8 without the pull, 22 / 1 with the default) and closes about as much of
+    the gap by frame 8; a physics-only run is the same with or without it. Its selection: outside
+    (the nearest node holds no target mass) and beyond the onset, weights m_p / (density dx^3) /
+    dx^2 times stray_pull, zero elsewhere."""
     cfg, d = tiny
-    without = _strays(tiny, d / "full.h5")
-    pulled = read_metrics(_run(tiny, "iso_bunny_full", "stray_pull.h5", stray_pull=3.0, frames=8))
-    with_pull = _strays(tiny, d / "stray_pull.h5")  # frames 0, 4, 8
+    assert morph_config(cfg, "iso_bunny_full").stray_pull == 1.0
+    with_pull = _strays(tiny, d / "full.h5")  # frames 0, 4, 8, 12
+    off = read_metrics(_run(tiny, "iso_bunny_full", "no_stray_pull.h5", stray_pull=0.0, frames=8))
+    without = _strays(tiny, d / "no_stray_pull.h5")  # frames 0, 4, 8
     print("strays at the stored frames", without, "without the pull,", with_pull, "with it")
-    assert without[0] >= 20 and sum(with_pull[1:]) < 0.5 * sum(without[1:3])
-    assert pulled["gap_closed"][-1] >= 0.9 * read_metrics(d / "full.h5")["gap_closed"][8]
-    # the full method's alone: a physics-only run is the same with it (up to float32 atomics)
-    alone = read_metrics(_run(tiny, "iso_bunny_physics_only", "stray_pull_physics.h5", stray_pull=3.0, frames=3))
+    assert without[0] >= 20 and with_pull[1] < without[1] and with_pull[2] <= without[2] / 4
+    assert tiny_runs["full"]["gap_closed"][8] >= 0.9 * off["gap_closed"][-1]
+    # the full method's alone: a physics-only run is the same without it (up to float32 atomics)
+    alone = read_metrics(_run(tiny, "iso_bunny_physics_only", "no_stray_pull_physics.h5", stray_pull=0.0, frames=3))
     np.testing.assert_allclose(alone["alpha_mse"], tiny_runs["physics_only"]["alpha_mse"][:4], rtol=1e-4)
     # the selection and the weights on three hand-placed particles
     from physmorph.targets import load_target
