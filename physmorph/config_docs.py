@@ -198,10 +198,10 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.release_frames": ("frames with the control off after the run (how much of the morph persists)",
                              "frames", ">= 0"),
     "morph.progress": ("log a line per frame; changing it reruns nothing", "", ""),
-    "morph.momentum_restart": ("start the next frame at rest when the frame's mass loss (or alpha MSE) rose; "
+    "morph.momentum_restart": ("start the next frame at rest when the frame's physics loss (the mass loss, with the full method's stray pull) or alpha MSE rose; "
                                "off: the paper's loop", "", ""),
     "morph.restart_keep": ("share of the velocity a restart keeps", "", R01),
-    "morph.step_backoff": ("step multiplier after a frame whose mass loss rose; 1 = fixed step", "", "(0, 1]"),
+    "morph.step_backoff": ("step multiplier after a frame whose physics loss rose; 1 = fixed step", "", "(0, 1]"),
     "morph.step_growth": ("step multiplier after a frame whose loss fell, up to learning_rate", "", ">= 1"),
     "morph.step_first": ("the step at the first frame, in learning rates (linear to step_last); 1 = fixed step", "", "> 0"),
     "morph.step_last": ("the step at the last frame, in learning rates", "", "> 0"),

@@ -214,7 +214,7 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
         "drag_ablation": lambda png: curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], png,
                                                    "drag ablation: iso -> bunny"),
         "trajectory_divergence": lambda png: curves_figure(
-            sel["trajectory_divergence"], [("physics_loss", "physics (mass) loss"), ("alpha_mse", "alpha MSE")],
+            sel["trajectory_divergence"], [("physics_loss", "physics loss"), ("alpha_mse", "alpha MSE")],
             png, "trajectory divergence: iso -> duck", logy=("physics_loss",)),
         # The paper shows frames 10, 15 and 19 side by side; the saved frames nearest to them.
         "trajectory_frames": lambda png: sequence_figure(sel["trajectory_frames"], target_cfg, png, columns=3,

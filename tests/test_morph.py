@@ -621,7 +621,10 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     g = target.grid
     inside = np.argwhere(target.grid_mass > 0)[len(np.argwhere(target.grid_mass > 0)) // 2]
     empty = np.argwhere(target.grid_mass == 0)[0]
+    # 0.4 dx off each particle's node (node i at lo + i dx), so a node taken by floor or by a
+    # half-cell shift would be another one
     x = np.stack([g.lo + inside * g.dx, g.lo + empty * g.dx, g.lo + empty * g.dx]).astype(float)
+    x += np.array([[0.4, -0.4, 0.4], [-0.4, 0.4, -0.4], [0.4, 0.4, -0.4]]) * g.dx
     mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), stray_pull=2.0, stray_pull_onset=1.0)
     near_d = np.array([5.0, 5.0, 0.5]) * g.dx  # the third is outside but within the onset
     _, w = morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, mc)
