@@ -850,7 +850,7 @@ def morph_params(cfg) -> str:
 
     Settings at their defaults are left out (see ``without_defaults``: a new option reruns
     nothing), and so are settings the run's method never reads, so changing them reruns nothing:
-    plasticity outside ``full``, the injection gains and their calibration for ``physics_only``,
+    plasticity and the stray pull outside ``full``, the injection gains and their calibration for ``physics_only``,
     ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
     it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
     string (what is left out takes its default)."""
@@ -859,6 +859,8 @@ def morph_params(cfg) -> str:
     d.get("mpm", {}).pop("threads", None)
     if cfg.method != "full":
         d.pop("plasticity", None)
+        d.pop("stray_pull", None)
+        d.pop("stray_pull_onset", None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):
             d.pop(k, None)
