@@ -245,6 +245,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
+                "mass_loss": solver.mass_loss(),
                 "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": frame_step,
                 # the normalised step the line search kept (0: none lowered the objective; Adam: NaN)
                 "step_accepted": (stats["step"] if stats["iters"] > 0 else 0.0) if "step" in stats else np.nan}

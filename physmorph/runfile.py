@@ -52,8 +52,10 @@ from physmorph.h5io import (StageInputError, content_checksum, fsync_path, peak_
                             write_provenance)
 
 # Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
+# physics_loss: the loss the frame's control minimised, at its end (the mass loss with the packing
+# term, for the full method plus the stray pull's term); mass_loss: the same without the pull's term.
 SCALARS = (
-    "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "delta_E_percent", "loss_dt", "loss_iou",
+    "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", "loss_dt", "loss_iou",
     "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
     "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "step_size", "step_accepted", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",

@@ -601,7 +601,8 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     than stray_pull_onset cells from its surface, toward their nearest surface point: the tiny iso
     -> bunny full run brings them in sooner than the same run without (measured: 42 at the start;
     at frames 4 / 8 32 / 8 without the pull, 22 / 1 with the default) and closes about as much of
-    the gap by frame 8; a physics-only run is the same with or without it. Its selection: outside
+    the gap by frame 8; a physics-only run is the same with or without it. The run's mass_loss is its
+    physics_loss without the pull's term. Its selection: outside
     (the nearest node holds no target mass) and beyond the onset, weights m_p / (density dx^3) /
     dx^2 times stray_pull, zero elsewhere."""
     cfg, d = tiny
@@ -612,6 +613,13 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     print("strays at the stored frames", without, "without the pull,", with_pull, "with it")
     assert without[0] >= 20 and with_pull[1] < without[1] and with_pull[2] <= without[2] / 4
     assert tiny_runs["full"]["gap_closed"][8] >= 0.9 * off["gap_closed"][-1]
+    # the run records the physics loss whole and without the pull's term: apart while strays are
+    # pulled, equal where nothing pulls
+    full = tiny_runs["full"]
+    pull_term = full["physics_loss"][1:] - full["mass_loss"][1:]
+    assert (pull_term >= 0).all() and pull_term[0] > 0
+    np.testing.assert_array_equal(off["mass_loss"][1:], off["physics_loss"][1:])
+    np.testing.assert_array_equal(tiny_runs["physics_only"]["mass_loss"][1:], tiny_runs["physics_only"]["physics_loss"][1:])
     # the full method's alone: a physics-only run is the same without it (up to float32 atomics)
     alone = read_metrics(_run(tiny, "iso_bunny_physics_only", "no_stray_pull_physics.h5", stray_pull=0.0, frames=3))
     np.testing.assert_allclose(alone["alpha_mse"], tiny_runs["physics_only"]["alpha_mse"][:4], rtol=1e-4)

@@ -1212,7 +1212,8 @@ def test_position_anchors_add_their_term_and_match_fd(state):
     """set_position_anchors(a, w) adds sum_p w_p |x_T,p - a_p|^2 to the loss (the morph loop's stray
     pull): the loss is the plain one plus that sum at the rollout's end, the gradients of control and
     initial state match central finite differences, backward_pair's mass-loss gradient carries the
-    term (it belongs to the physics objective, not to the injected adjoints), and None removes it."""
+    term (it belongs to the physics objective, not to the injected adjoints), mass_loss() reports
+    the loss without it, and None removes it."""
     cfg = cfg64(substeps=2, mass_loss="log")
     s = make(cfg, state)
     s.set_control(random_control(cfg, state.n))
@@ -1226,6 +1227,8 @@ def test_position_anchors_add_their_term_and_match_fd(state):
     pull = (weight * ((end - anchor) ** 2).sum(axis=1)).sum()
     assert pull > 0.05 * plain
     assert L == pytest.approx(plain + pull, rel=1e-10)
+    # the loss is reported whole and without the anchors' term (the run's physics_loss and mass_loss)
+    assert s.loss() == L and s.mass_loss() == pytest.approx(plain, rel=1e-12)
     _fd_check(s, state, n_checks=6, seed=12)
     s.forward()
     s.backward()
@@ -1236,7 +1239,7 @@ def test_position_anchors_add_their_term_and_match_fd(state):
     s.backward(None, None, include_mass_loss=False)  # the injected adjoints alone: none here
     assert not s.control_gradient().any()
     s.set_position_anchors(None)
-    assert s.forward() == pytest.approx(plain, rel=1e-12)
+    assert s.forward() == pytest.approx(plain, rel=1e-12) and s.mass_loss() == s.loss()
     with pytest.raises(MPMStateError, match="anchor weights"):
         s.set_position_anchors(anchor, -weight - 1.0)
 

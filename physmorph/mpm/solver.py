@@ -171,6 +171,7 @@ class MPMSolver:
         self._grad_norm = float("nan")
         self._Fp = None
         self._last_loss: float | None = None
+        self._last_mass_loss: float | None = None  # the last forward's loss without the anchors' term
         self._adam_step = 0
         self._log_eps = 0.0
         self._overfill_weight = float(self.cfg.overfill_weight)
@@ -1059,11 +1060,14 @@ class MPMSolver:
             self._clear_grid()
             self._splat_mass(self.cfg.substeps)
             self._loss_with_adjoint()
+            self._last_mass_loss = float(self.loss_acc[None])
             if self._anchored:
                 self._anchor_loss()
-            self._last_loss = float(self.loss_acc[None])
+                self._last_loss = float(self.loss_acc[None])
+            else:
+                self._last_loss = self._last_mass_loss
         else:
-            self._last_loss = float("nan")
+            self._last_loss = self._last_mass_loss = float("nan")
         return self._last_loss
 
     def backward(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
@@ -1365,11 +1369,18 @@ class MPMSolver:
             self.forward()
         return self.state_at(self.cfg.substeps)
 
-    def mass_loss(self) -> float:
-        """End-layer mass loss of the last forward."""
+    def loss(self) -> float:
+        """The last forward's loss: the end-layer mass loss plus the anchors' term
+        (set_position_anchors), what forward() returned."""
         if self._last_loss is None:
-            raise RuntimeError("mass_loss needs a forward first")
+            raise RuntimeError("loss needs a forward first")
         return self._last_loss
+
+    def mass_loss(self) -> float:
+        """The last forward's end-layer mass loss (with the packing term), without the anchors' term."""
+        if self._last_mass_loss is None:
+            raise RuntimeError("mass_loss needs a forward first")
+        return self._last_mass_loss
 
     def state_at(self, t: int) -> ParticleState:
         """Stored particle state at substep t (0..T) of the last forward, float64."""
