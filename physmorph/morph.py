@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from physmorph.frame_measures import DeformationMeasures, deformation_measures, grid_mass
+from physmorph.frame_measures import DeformationMeasures, deformation_measures, frame_strain, grid_mass
 from physmorph.grid import grid_average
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
@@ -227,6 +227,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 log(f"[{name}] {status} (recorded; position injection is the negative control)")
                 break
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
+        strain = frame_strain(st.F, new.F)
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
         if cfg.volume_averaging > 0:
             st = dataclasses.replace(st, F=averaged_volume(st.F, grid_average(st.x, st.mass, det3(st.F), target.grid),
@@ -245,7 +246,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         t2 = time.time()
         # B. render (gradients only where a method uses them)
         scal = {"injection_scale": scale if want_grad else np.nan, "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
-                "mass_loss": solver.mass_loss(),
+                "mass_loss": solver.mass_loss(), "frame_strain": strain,
                 "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": frame_step,
                 # the normalised step the line search kept (0: none lowered the objective; Adam: NaN)
                 "step_accepted": (stats["step"] if stats["iters"] > 0 else 0.0) if "step" in stats else np.nan}
@@ -311,6 +312,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             rose = scal["physics_loss"] > loss_before
             step = step * cfg.step_backoff if rose else min(step * cfg.step_growth, cfg.mpm.step_size)
         loss_before = scal["physics_loss"]
+        if cfg.strain_rate_cap > 0 and strain > 0:  # the body's strain rate steers the next step
+            step = min(step * cfg.strain_rate_cap / strain, cfg.mpm.step_size)
         new_warnings = monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic, fp_anisotropy=dm.anisotropy_plastic)
         # the render's images and gradient and the metrics' arrays are done with: the frame's freed
         # heap goes back to the system, so the checkpoint's buffers do not sit on top of it. Not

@@ -94,6 +94,13 @@ class MorphConfig:
     # plasticity cannot carry a region over (docs/study/log.md). 0 = off. Not in the paper.
     stray_pull: float = 1.0  # history: docs/study/CHANGELOG.md
     stray_pull_onset: float = 1.0
+    # A step that follows the body's strain rate: after a frame whose 99th-percentile strain
+    # |F_T F_0^-1 - I| (the deformation over the frame, physmorph.frame_measures.frame_strain)
+    # exceeded strain_rate_cap, the next frame's step is scaled by cap / strain; after one under
+    # it, it grows back by the same ratio, up to mpm.learning_rate (and the bold driver's step). A
+    # distant source's body that is strained faster than the cap is slowed where a body that
+    # only moves keeps the whole step (docs/study/log.md). 0 = off. Not in the paper.
+    strain_rate_cap: float = 0.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
@@ -130,6 +137,8 @@ class MorphConfig:
             raise ValueError(f"stray_pull must be finite and >= 0, got {self.stray_pull}")
         if not (math.isfinite(self.stray_pull_onset) and self.stray_pull_onset >= 0.0):
             raise ValueError(f"stray_pull_onset must be finite and >= 0 cells, got {self.stray_pull_onset}")
+        if not (math.isfinite(self.strain_rate_cap) and self.strain_rate_cap >= 0.0):
+            raise ValueError(f"strain_rate_cap must be finite and >= 0 (0 = off), got {self.strain_rate_cap}")
         if self.release_frames < 0:
             raise ValueError(f"release_frames must be >= 0, got {self.release_frames}")
 

@@ -58,7 +58,7 @@ SCALARS = (
     "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", "loss_dt", "loss_iou",
     "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
-    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "step_size", "step_accepted", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "step_size", "step_accepted", "frame_strain", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 # How saved states are stored: gzip at level 1 on byte-shuffled floats. A paper-scale state

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from physmorph.frame_measures import deformation_measures, grid_mass, voxel_density
+from physmorph.frame_measures import deformation_measures, frame_strain, grid_mass, voxel_density
 from physmorph.grid import Grid, splat_mass
 from physmorph.linalg3 import det3, singular_values, signed_singular_values
 from physmorph.mpm import MPMConfig, ParticleState, elastic_energy
@@ -85,3 +85,20 @@ def test_measures_name_mismatched_inputs():
         deformation_measures(F, Fp[:5])
     with pytest.raises(ValueError, match="masses"):
         grid_mass(np.zeros((4, 3)), np.ones(3), Grid(16))
+
+
+def test_frame_strain_is_the_quantile_of_each_particles_frame_deformation():
+    """|F_end F_start^-1 - I|_F per particle, one particle at a time with np.linalg.inv, then the
+    quantile; a rotation-free stretch of every F by the same matrix A gives |A - I| whatever F was;
+    an unchanged F gives 0."""
+    rng = np.random.default_rng(3)
+    F0 = np.eye(3) + 0.2 * rng.standard_normal((200, 3, 3))
+    F1 = F0 + 0.05 * rng.standard_normal((200, 3, 3))
+    per = [np.linalg.norm(F1[p] @ np.linalg.inv(F0[p]) - np.eye(3)) for p in range(len(F0))]
+    assert frame_strain(F0, F1) == pytest.approx(np.quantile(per, 0.99), rel=1e-12)
+    assert frame_strain(F0, F1, quantile=0.5) == pytest.approx(np.median(per), rel=1e-12)
+    A = np.diag([1.1, 0.95, 1.0])
+    assert frame_strain(F0, A @ F0) == pytest.approx(np.linalg.norm(A - np.eye(3)), rel=1e-12)
+    assert frame_strain(F0, F0) < 1e-12
+    with pytest.raises(ValueError, match="must match"):
+        frame_strain(F0, F1[:10])

@@ -318,6 +318,33 @@ def test_step_backoff_halves_the_step_after_a_rise_and_regrows_it_to_the_configu
     assert np.all(m_fixed["step_size"][1:] == lr) and handed == [lr] * (len(m_fixed["step_size"]) - 1)
 
 
+def test_strain_rate_cap_scales_the_next_step_by_cap_over_the_frames_strain(tiny, monkeypatch):
+    """morph.strain_rate_cap: frame 1 takes mpm's step; frame k + 1's step is frame k's times
+    cap / frame_strain(k), at most mpm's step; the optimiser is handed exactly that. Each frame
+    records its strain (the 99th percentile of |F_T F_0^-1 - I| over the particles), the same
+    with the cap off, where the step stays mpm's."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_physics_only")
+    assert base.strain_rate_cap == 0.0
+    m_off = read_metrics(_run(tiny, "iso_bunny_physics_only", "uncapped.h5"))
+    strain_off = m_off["frame_strain"][1:]
+    assert np.all(strain_off > 0) and np.all(m_off["step_size"][1:] == base.mpm.step_size)
+    cap = 0.5 * float(np.median(strain_off))  # below most frames' strain: the step must shrink
+    handed = _spy_learning_rates(monkeypatch)
+    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "capped.h5", strain_rate_cap=cap))
+    step, strain = m["step_size"][1:], m["frame_strain"][1:]
+    np.testing.assert_allclose(handed, step, rtol=0, atol=0)
+    # frame 1 is the same frame (to float32 atomics added in another order by the threads)
+    assert strain[0] == pytest.approx(strain_off[0], rel=1e-4)
+    expect = [base.mpm.step_size]
+    for j in range(1, len(step)):
+        expect.append(min(expect[-1] * cap / strain[j - 1], base.mpm.step_size))
+    np.testing.assert_allclose(step, expect, rtol=1e-12)
+    assert step[-1] < base.mpm.step_size
+    with pytest.raises(ValueError, match="strain_rate_cap"):
+        dataclasses.replace(base, strain_rate_cap=-1.0)
+
+
 def test_step_schedule_hands_the_optimiser_a_linear_ramp_from_step_first_to_step_last(tiny, monkeypatch):
     """morph.step_first / step_last: frame k's step is mpm.step_size x (first + (k - 1) / (K - 1) x
     (last - first)), exactly what the optimiser is handed and what the frame records; the
