@@ -137,13 +137,17 @@ def point_row(name: str, point: TradeoffPoint, metrics: dict, dx: float) -> dict
 def summarize_points(rows: list[dict]) -> pd.DataFrame:
     """rows: name, knob, value, time_to_90_s, gap_last, time_s (and more). Adds the Pareto flag
     (wall time against the gap left at the last frame) and, per point, the final gap closed per
-    extra second relative to the base; sorted by time to 90 % (never last)."""
+    extra second relative to the base (as knob_ranking: a point faster than the base and better
+    has no cost to divide by, inf; one faster and no better bought nothing, NaN); sorted by time to
+    90 % (never last)."""
     df = pd.DataFrame(rows)
     df["pareto"] = pareto_front(df["time_s"].to_numpy(), 1.0 - df["gap_last"].to_numpy())
     base = df[df["name"] == "base"].iloc[0]
     dt = df["time_s"] - base["time_s"]
     gain = df["gap_last"] - base["gap_last"]
-    df["gap_gain_per_s"] = np.where(np.abs(dt) > 1e-9, gain / dt.where(np.abs(dt) > 1e-9, 1.0), 0.0)
+    costs = dt > 1e-9
+    df["gap_gain_per_s"] = np.where(costs, gain / dt.where(costs, 1.0),
+                                    np.where(gain > 0, np.inf, np.where(dt.abs() <= 1e-9, 0.0, np.nan)))
     return df.sort_values(["time_to_90_s", "time_s"], na_position="last", ignore_index=True)
 
 

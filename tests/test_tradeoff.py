@@ -114,7 +114,10 @@ def test_summary_ranks_by_time_to_quality_and_marks_the_front():
     assert df["name"].tolist() == ["image-80x45", "base", "grad_iters-2", "grid_res-48", "cameras-4"]  # never: last
     front = set(df[df["pareto"]]["name"])
     assert front == {"cameras-4", "image-80x45", "grad_iters-2"}
-    assert df.set_index("name").loc["grid_res-48", "gap_gain_per_s"] == pytest.approx(0.02 / 20)
+    per_s = df.set_index("name")["gap_gain_per_s"]
+    assert per_s["grid_res-48"] == pytest.approx(0.02 / 20)
+    # faster and better: nothing to divide by; faster and worse: bought nothing (not -0.01 / -2 s)
+    assert per_s["image-80x45"] == np.inf and np.isnan(per_s["cameras-4"]) and per_s["base"] == 0.0
 
 
 def test_knob_ranking_gap_per_second():
