@@ -99,7 +99,8 @@ class MorphConfig:
     # exceeded strain_rate_cap, the next frame's step is scaled by cap / strain; after one under
     # it, it grows back by the same ratio, up to mpm.learning_rate (and the bold driver's step). A
     # distant source's body that is strained faster than the cap is slowed where a body that
-    # only moves keeps the whole step (docs/study/log.md). 0 = off. Not in the paper.
+    # only moves keeps the whole step. Measured, it does not: at twice the step it takes mid's
+    # cow -> bunny lower (docs/study/log.md finding 197). 0 = off. Not in the paper.
     strain_rate_cap: float = 0.0
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
