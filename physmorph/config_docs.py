@@ -110,8 +110,9 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "mpm.adam_beta1": ("Adam's first-moment decay", "", "[0, 1)"),
     "mpm.adam_beta2": ("Adam's second-moment decay", "", "[0, 1)"),
     "mpm.adam_eps": ("Adam's epsilon", "", POS),
-    "mpm.mass_loss": ("form of the grid-mass loss: squared difference, log difference, sqrt (Hellinger) or "
-                      "log below the target and sqrt above", "", ""),
+    "mpm.mass_loss": ("form of the grid-mass loss: squared difference, log difference, sqrt (Hellinger), "
+                      "log below the target and sqrt above, or log continued linearly where it turns concave "
+                      "(log_convex)", "", ""),
     "mpm.log_mass_eps": ("eps of the log and sqrt losses, in mean particle masses", "particle masses", POS),
     "mpm.mass_loss_levels": ("levels of a grid-mass pyramid the loss is summed over; 1 = the grid alone", "",
                              ">= 1, 2^(levels-1) divides grid_res"),

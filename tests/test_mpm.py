@@ -1176,6 +1176,58 @@ def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
     _loss_control_gradient_matches_autograd(s, state, ctrl, t, eps)
 
 
+def _log_convex(m, t, eps):  # the documented per-node log_convex term, in NumPy
+    r = np.log(m + eps) - np.log(t + eps)
+    m1 = (t + eps) * np.e - eps
+    return np.where(r <= 1.0, r ** 2, 1.0 + 2.0 * (m - m1) / (m1 + eps))
+
+
+def test_log_convex_loss_matches_reference_and_fd_and_does_not_reward_packing(state):
+    """mass_loss = "log_convex" (a two-level pyramid and the overfill term): the log loss up to r = 1
+    and its tangent above, the overfill term the same above its cap; the documented formula on the
+    reference grid mass with nodes on both branches, the control gradient against central finite
+    differences and torch autograd. The term is continuous with its slope at r = 1 and convex, so
+    where the target is empty one node of mass 2M costs at least two of mass M, where the log
+    loss makes the packed node cheaper."""
+    eps = 0.1
+    grid_m = np.linspace(0.0, 40.0, 4001)
+    for t in (0.0, 0.3, 5.0):
+        f = _log_convex(grid_m, t, eps)
+        assert np.all(np.diff(f, 2) >= -1e-12)  # convex
+        r1 = (t + eps) * np.e - eps
+        left, right = _log_convex(np.array([r1 - 1e-7, r1 + 1e-7]), t, eps)
+        assert right - left == pytest.approx(2e-7 * 2.0 / (r1 + eps), rel=1e-4)
+    M = np.array([1.0, 4.0, 20.0])
+    log_form = lambda m: (np.log(m + eps) - np.log(eps)) ** 2  # noqa: E731
+    assert np.all(log_form(2 * M) < 2 * log_form(M))
+    assert np.all(_log_convex(2 * M, 0.0, eps) >= 2 * _log_convex(M, 0.0, eps))
+
+    cfg = cfg64(substeps=2, mass_loss="log_convex", log_mass_eps=0.1, mass_loss_levels=2, overfill_weight=2.0,
+                overfill_ratio=0.4)
+    s = make(cfg, state)
+    half = s.target_m.to_numpy()
+    half[: cfg.grid_res // 2] = 0.0  # the target leaves half of the ball's nodes empty: r > 1 there
+    s.set_target_grid_mass(half)
+    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
+    L = s.forward()
+    end = s.state_at(cfg.substeps)
+    m = splat_mass(end.x, end.mass, s.grid)
+    t = s.target_m.to_numpy()
+    e = cfg.log_mass_eps * state.mass.mean()
+    R = cfg.grid_res
+    blocks = lambda a: a.reshape(R // 2, 2, R // 2, 2, R // 2, 2).sum(axis=(1, 3, 5))  # noqa: E731
+    r = np.log(m + e) - np.log(t + e)
+    assert (r > 1).sum() > 5 and ((r > 0) & (r <= 1)).sum() > 5  # both branches
+    cap = np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t)
+    over = np.where(m > cap, _log_convex(m, cap, e), 0.0)
+    want = (_log_convex(m, t, e).sum() + _log_convex(blocks(m), blocks(t), 8 * e).sum() + 2.0 * over.sum())
+    assert L == pytest.approx(want, rel=1e-10)
+    ctrl = random_control(cfg, state.n)
+    s.set_control(ctrl)
+    _fd_check(s, state, n_checks=6, seed=5)
+    _loss_control_gradient_matches_autograd(s, state, ctrl, t, e)
+
+
 def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
     """mass_loss_blur sigma > 0 adds weight x sum_I (log((B m)_I + e) - log((B m*)_I + e))^2, B the
     Gaussian blur truncated at 3 sigma, zero outside the grid: the loss against the formula with B

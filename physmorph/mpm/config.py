@@ -36,7 +36,7 @@ class CFLWarning(UserWarning):
 
 CONTROL_MODES = ("per_substep", "per_frame")
 SMOOTHING_MODES = ("full", "isochoric")
-MASS_LOSSES = ("squared", "log", "sqrt", "log_bounded")
+MASS_LOSSES = ("squared", "log", "sqrt", "log_bounded", "log_convex")
 OPTIMIZERS = ("adam", "normalized_gd")
 # MPMConfig.step_volume, in the order of the step kernels' volume_mode
 STEP_VOLUME_MODES = ("full", "particle", "body")
@@ -71,6 +71,11 @@ class MPMConfig:
         (4 / (m*_I + eps)) (sqrt(m_I + eps) - sqrt(m*_I + eps))^2, the sqrt loss scaled to the log
         loss's curvature at m = m* (C^2 there): an overfilled node pulls with up to 4 / (m* + eps)
         instead of the log loss's vanishing 2 log(m / m*) / m.
+        "log_convex": the log loss up to r = log((m_I + eps) / (m*_I + eps)) = 1, where r^2 turns
+        concave in m, and its tangent line above (the overfill term the same): where the target
+        leaves a node (nearly) empty that is from m_I ~ 1.7 eps on, so the log loss rewards packing
+        material the target does not hold into fewer nodes; the tangent's pull 2 / ((m* + eps) e)
+        is the largest the log loss has, and it no longer falls as 1/m (docs/study/log.md part 40).
     mass_loss_levels: the mass loss summed over a pyramid of grids: level 0 the grid, level l the
         grid mass summed over blocks of 2^l x 2^l x 2^l nodes, each level the same loss form (log:
         eps x 8^l) with weight 1. Coarse levels see a missing feature (an ear) from farther away
@@ -232,7 +237,7 @@ class MPMConfig:
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
-    mass_loss: Literal["squared", "log", "sqrt", "log_bounded"] = "log"
+    mass_loss: Literal["squared", "log", "sqrt", "log_bounded", "log_convex"] = "log"
     log_mass_eps: float = 0.1
     mass_loss_levels: int = 1
     mass_loss_blur: float = 2.0  # history: docs/study/CHANGELOG.md

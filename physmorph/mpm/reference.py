@@ -139,10 +139,18 @@ def blur_torch(a: torch.Tensor, sigma: float) -> torch.Tensor:
     return torch.nn.functional.conv3d(a[None, None], kernel[None, None], padding=r)[0, 0]
 
 
+def log_convex_torch(m, t, e) -> torch.Tensor:
+    """Per node: r^2 with r = log(m + e) - log(t + e) where r <= 1, else the tangent at r = 1,
+    1 + 2 (m - m1) / (m1 + e) with m1 = (t + e) exp(1) - e (MPMConfig.mass_loss = "log_convex")."""
+    r = torch.log(m + e) - torch.log(t + e)
+    m1 = (t + e) * np.e - e
+    return torch.where(r <= 1.0, r ** 2, 1.0 + 2.0 * (m - m1) / (m1 + e))
+
+
 def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> torch.Tensor:
     """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2; sqrt: sum (sqrt(m + e) -
-    sqrt(m* + e))^2; log_bounded: log where m <= m*, 4 (sqrt(m + e) - sqrt(m* + e))^2 / (m* + e) above
-    (see MPMConfig), summed
+    sqrt(m* + e))^2; log_bounded: log where m <= m*, 4 (sqrt(m + e) - sqrt(m* + e))^2 / (m* + e) above;
+    log_convex: log_convex_torch (see MPMConfig), summed
     over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l; plus, where
     mass_loss_blur > 0, mass_loss_blur_weight times the same form on the blurred grids (blur_torch)
     with eps; plus, where overfill_weight > 0, w sum_I max(0, log(m_I + e) - log(max(c density dx^3,
@@ -160,6 +168,8 @@ def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> to
             return torch.where(ml <= tl, below, above).sum()
         if cfg.mass_loss == "sqrt":
             return ((torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2).sum()
+        if cfg.mass_loss == "log_convex":
+            return log_convex_torch(ml, tl, e).sum()
         return ((torch.log(ml + e) - torch.log(tl + e)) ** 2).sum()
 
     total = torch.zeros((), dtype=m.dtype)
@@ -173,8 +183,11 @@ def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> to
                                                          blur_torch(t, cfg.mass_loss_blur), log_eps)
     if cfg.overfill_weight > 0:  # the packing term, on the grid itself (level 0)
         cap = torch.clamp(t, min=cfg.overfill_ratio * cfg.density * cfg.dx ** 3)
-        r = torch.clamp(torch.log(m + log_eps) - torch.log(cap + log_eps), min=0.0)
-        total = total + cfg.overfill_weight * (r ** 2).sum()
+        if cfg.mass_loss == "log_convex":
+            term = torch.where(m > cap, log_convex_torch(m, cap, log_eps), torch.zeros_like(m))
+        else:
+            term = torch.clamp(torch.log(m + log_eps) - torch.log(cap + log_eps), min=0.0) ** 2
+        total = total + cfg.overfill_weight * term.sum()
     return total
 
 

@@ -625,19 +625,27 @@ class MPMSolver:
     @ti.func
     def _overfill_term(self, m, mt, log_eps: ti.f64, overfill_w: ti.f64):
         """The packing term of MPMConfig.overfill_weight: w max(0, r)^2 with r = log(m + e) -
-        log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e)."""
+        log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e);
+        with mass_loss = "log_convex", r^2 continued linearly in m above r = 1 (_log_convex_term)."""
         e = ti.cast(log_eps, self.dtype)
         w = ti.cast(overfill_w, self.dtype)
         cap = ti.max(self.dtype(self.cfg.overfill_ratio * self.cfg.density * self.cfg.dx ** 3), mt)
-        r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
-        return ti.cast(w * r * r, ti.f64), 2.0 * w * r / (m + e)
+        r2 = ti.cast(0.0, ti.f64)
+        adj = ti.cast(0.0, self.dtype)
+        if ti.static(self.cfg.mass_loss == "log_convex"):
+            if m > cap:
+                r2, adj = self._log_convex_term(m, cap, e)
+        else:
+            r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
+            r2, adj = ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
+        return ti.cast(w, ti.f64) * r2, w * adj
 
     @ti.func
     def _node_loss(self, m, mt, log_eps: ti.f64):
         """One node's loss term and its derivative dL/dm: squared (m - m*)^2, 2 (m - m*); log
         (log(m + e) - log(m* + e))^2, 2 r / (m + e); sqrt (sqrt(m + e) - sqrt(m* + e))^2,
         r / sqrt(m + e); log_bounded: log for m <= m*, else k r^2 and k r / sqrt(m + e) with
-        r = sqrt(m + e) - sqrt(m* + e) and k = 4 / (m* + e)."""
+        r = sqrt(m + e) - sqrt(m* + e) and k = 4 / (m* + e); log_convex: _log_convex_term."""
         r2 = ti.cast(0.0, ti.f64)
         adj = ti.cast(0.0, self.dtype)
         e = ti.cast(log_eps, self.dtype)
@@ -654,6 +662,8 @@ class MPMSolver:
                 r2, adj = ti.cast(k, ti.f64) * r2, k * adj
         elif ti.static(self.cfg.mass_loss == "sqrt"):
             r2, adj = self._sqrt_term(m, mt, e)
+        elif ti.static(self.cfg.mass_loss == "log_convex"):
+            r2, adj = self._log_convex_term(m, mt, e)
         else:
             r2, adj = self._log_term(m, mt, e)
         return r2, adj
@@ -663,6 +673,21 @@ class MPMSolver:
         """(log(m + e) - log(m* + e))^2 and its derivative 2 r / (m + e)."""
         r = ti.log(m + e) - ti.log(mt + e)
         return ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
+
+    @ti.func
+    def _log_convex_term(self, m, mt, e):
+        """The log term r^2, r = log(m + e) - log(m* + e), up to r = 1, where it turns concave in m,
+        and its tangent above: 1 + s (m - m1), m1 = (m* + e) exp(1) - e, s = 2 / (m1 + e); its
+        derivative 2 r / (m + e), then s. Convex in m, so packing mass into fewer nodes never lowers it."""
+        r = ti.log(m + e) - ti.log(mt + e)
+        r2 = ti.cast(r * r, ti.f64)
+        adj = 2.0 * r / (m + e)
+        if r > 1.0:
+            m1 = (mt + e) * self.dtype(np.e) - e
+            s = 2.0 / (m1 + e)
+            r2 = ti.cast(1.0 + s * (m - m1), ti.f64)
+            adj = s
+        return r2, adj
 
     @ti.func
     def _sqrt_term(self, m, mt, e):
