@@ -94,6 +94,12 @@ class MorphConfig:
     # plasticity cannot carry a region over (docs/study/log.md). 0 = off. Not in the paper.
     stray_pull: float = 1.0  # history: docs/study/CHANGELOG.md
     stray_pull_onset: float = 1.0
+    # Where the stray pull draws a stray particle: "nearest", its nearest target surface point;
+    # "transport", its optimal-transport destination in the target's mass (the plasticity's
+    # correspondence, physmorph.transport: every destination region receives its own mass, so
+    # material from a part the target lacks is sent where the target lacks material, not piled
+    # at the nearest stretch of surface). Not in the paper.
+    stray_pull_anchor: Literal["nearest", "transport"] = "nearest"
     # A step that follows the body's strain rate: after a frame whose 99th-percentile strain
     # |F_T F_0^-1 - I| (the deformation over the frame, physmorph.frame_measures.frame_strain)
     # exceeded strain_rate_cap, the next frame's step is scaled by cap / strain; after one under
@@ -138,6 +144,8 @@ class MorphConfig:
             raise ValueError(f"stray_pull must be finite and >= 0, got {self.stray_pull}")
         if not (math.isfinite(self.stray_pull_onset) and self.stray_pull_onset >= 0.0):
             raise ValueError(f"stray_pull_onset must be finite and >= 0 cells, got {self.stray_pull_onset}")
+        if self.stray_pull_anchor not in ("nearest", "transport"):
+            raise ValueError(f"stray_pull_anchor must be nearest or transport, got {self.stray_pull_anchor!r}")
         if not (math.isfinite(self.strain_rate_cap) and self.strain_rate_cap >= 0.0):
             raise ValueError(f"strain_rate_cap must be finite and >= 0 (0 = off), got {self.strain_rate_cap}")
         if self.release_frames < 0:

@@ -662,8 +662,19 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     x += np.array([[0.4, -0.4, 0.4], [-0.4, 0.4, -0.4], [0.4, 0.4, -0.4]]) * g.dx
     mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), stray_pull=2.0, stray_pull_onset=1.0)
     near_d = np.array([5.0, 5.0, 0.5]) * g.dx  # the third is outside but within the onset
-    _, w = morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, mc)
+    anchor, w = morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, mc)
     np.testing.assert_allclose(w, [0.0, 2.0 * 0.5 / (mc.mpm.density * g.dx ** 3) / g.dx ** 2, 0.0])
+    np.testing.assert_array_equal(anchor, target.surface_points[[0, 0, 0]])
+    # stray_pull_anchor "transport": the same selection and weights, the destinations as anchors
+    dest = x + np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0]])
+    to_dest = dataclasses.replace(mc, stray_pull_anchor="transport")
+    anchor_t, w_t = morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, to_dest, dest)
+    np.testing.assert_array_equal(w_t, w)
+    np.testing.assert_array_equal(anchor_t, dest)
+    with pytest.raises(ValueError, match="destinations"):
+        morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, to_dest)
+    with pytest.raises(ValueError, match="stray_pull_anchor"):
+        dataclasses.replace(mc, stray_pull_anchor="farthest")
 
 
 def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny):
