@@ -168,7 +168,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "plasticity.update": ("incremental: eq. 4 as printed; target_rest: relax toward the rest state on the "
                           "target", "", ""),
     "plasticity.correspondence": ("where each particle is pulled: nearest target surface point (the paper) or "
-                                  "its optimal-transport destination in the target's mass", "", ""),
+                                  "its optimal-transport destination in the target's mass, or toward that destination as far "
+                                "as the nearest surface point", "", ""),
     "plasticity.continuous_stress": ("re-base the control so an Fp update leaves the elastic Fe unchanged", "",
                                      ""),
     "plasticity.absorb_control": ("commit the achieved shape (or control) to the rest state Fp at the updates "
@@ -215,8 +216,9 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                          "surface point (a cell of material one cell out costs this; 0: off)", "", ">= 0"),
     "morph.strain_rate_cap": ("the next frame's step is scaled by this over the frame's strain (99th percentile of "
                               "|F_T F_0^-1 - I|), up to learning_rate; 0: off", "per frame", ">= 0"),
-    "morph.stray_pull_anchor": ("where the stray pull draws a stray particle: its nearest target surface point, or "
-                                "its optimal-transport destination in the target's mass", "", ""),
+    "morph.stray_pull_anchor": ("where the stray pull draws a stray particle: its nearest target surface point, "
+                                "its optimal-transport destination in the target's mass, or toward that destination as far "
+                                "as the nearest surface point", "", ""),
     "morph.stray_pull_onset": ("the stray pull acts on particles more than this far from the target's surface", "cells", ">= 0"),
     "morph.volume_averaging": ("share of each particle's det F moved to its grid average between frames (0: off)", "", R01),
     # experiments

@@ -193,7 +193,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         if stray_pull:
             if nearest_d is None:
                 nearest_d, nearest_i = tree.query(st.x, k=1, workers=-1)
-            if cfg.stray_pull_anchor == "transport" and destination is None:
+            if cfg.stray_pull_anchor != "nearest" and destination is None:
                 destination = destinations_in_grid_mass(parts.x, parts.mass, target.grid_mass, target.grid,
                                                           cfg.plasticity.transport_blur)
             solver.set_position_anchors(*stray_pull_anchors(st.x, st.mass, nearest_d, nearest_i, target, cfg,
@@ -384,20 +384,27 @@ def stray_pull_anchors(x: np.ndarray,  # [N, 3]
                        ) -> tuple[np.ndarray, np.ndarray]:  # [N, 3], [N]
     """The stray pull's anchors and weights (MorphConfig.stray_pull): a particle whose nearest grid
     node holds no target mass and which lies more than stray_pull_onset cells from the target's
-    surface gets the anchor s_p, its nearest surface point (stray_pull_anchor "nearest") or its
-    destination (stray_pull_anchor "transport", ``destination`` required), and the weight
-    stray_pull m_p / (density dx^3) / dx^2 (the solver adds w_p |x_T,p - s_p|^2); every other
-    particle weight 0."""
+    surface gets the anchor s_p, its nearest surface point (stray_pull_anchor "nearest"), its
+    destination T_p (stray_pull_anchor "transport", ``destination`` required) or x_p + d_p (T_p -
+    x_p) / |T_p - x_p|, d_p the distance to the nearest surface point ("toward_transport"), and the
+    weight stray_pull m_p / (density dx^3) / dx^2 (the solver adds w_p |x_T,p - s_p|^2); every
+    other particle weight 0."""
     grid = target.grid
     node = np.clip(np.rint((x - np.asarray(grid.lo)) / grid.dx).astype(np.int64), 0, grid.res - 1)
     outside = target.grid_mass[node[:, 0], node[:, 1], node[:, 2]] <= 0.0
     stray = outside & (nearest_d > cfg.stray_pull_onset * grid.dx)
     cell_mass = cfg.mpm.density * grid.dx ** 3
     weight = np.where(stray, cfg.stray_pull * mass / cell_mass / grid.dx ** 2, 0.0)
-    if cfg.stray_pull_anchor == "transport":
+    if cfg.stray_pull_anchor != "nearest":
         if destination is None:
-            raise ValueError("stray_pull_anchor 'transport' needs the particles' destinations")
-        return np.asarray(destination, dtype=np.float64), weight
+            raise ValueError(f"stray_pull_anchor {cfg.stray_pull_anchor!r} needs the particles' destinations")
+        destination = np.asarray(destination, dtype=np.float64)
+        if cfg.stray_pull_anchor == "transport":
+            return destination, weight
+        way = destination - x
+        length = np.linalg.norm(way, axis=1)
+        reach = np.divide(nearest_d, length, out=np.zeros_like(length), where=length > 0)
+        return x + way * np.minimum(reach, 1.0)[:, None], weight
     return np.asarray(target.surface_points)[nearest_i], weight
 
 

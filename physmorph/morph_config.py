@@ -98,8 +98,11 @@ class MorphConfig:
     # "transport", its optimal-transport destination in the target's mass (the plasticity's
     # correspondence, physmorph.transport: every destination region receives its own mass, so
     # material from a part the target lacks is sent where the target lacks material, not piled
-    # at the nearest stretch of surface). Not in the paper.
-    stray_pull_anchor: Literal["nearest", "transport"] = "nearest"
+    # at the nearest stretch of surface); "toward_transport", the point along the way to that
+    # destination as far from the particle as its nearest surface point (the nearest anchor's
+    # pull, the transport's direction: a far destination's pull would take the normalised
+    # step's scale from the rest of the body). Not in the paper.
+    stray_pull_anchor: Literal["nearest", "transport", "toward_transport"] = "nearest"
     # A step that follows the body's strain rate: after a frame whose 99th-percentile strain
     # |F_T F_0^-1 - I| (the deformation over the frame, physmorph.frame_measures.frame_strain)
     # exceeded strain_rate_cap, the next frame's step is scaled by cap / strain; after one under
@@ -144,8 +147,8 @@ class MorphConfig:
             raise ValueError(f"stray_pull must be finite and >= 0, got {self.stray_pull}")
         if not (math.isfinite(self.stray_pull_onset) and self.stray_pull_onset >= 0.0):
             raise ValueError(f"stray_pull_onset must be finite and >= 0 cells, got {self.stray_pull_onset}")
-        if self.stray_pull_anchor not in ("nearest", "transport"):
-            raise ValueError(f"stray_pull_anchor must be nearest or transport, got {self.stray_pull_anchor!r}")
+        if self.stray_pull_anchor not in ("nearest", "transport", "toward_transport"):
+            raise ValueError(f"stray_pull_anchor must be nearest, transport or toward_transport, got {self.stray_pull_anchor!r}")
         if not (math.isfinite(self.strain_rate_cap) and self.strain_rate_cap >= 0.0):
             raise ValueError(f"strain_rate_cap must be finite and >= 0 (0 = off), got {self.strain_rate_cap}")
         if self.release_frames < 0:

@@ -673,6 +673,14 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     np.testing.assert_array_equal(anchor_t, dest)
     with pytest.raises(ValueError, match="destinations"):
         morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, to_dest)
+    # "toward_transport": toward the destination, as far as the nearest surface point (at most
+    # the destination itself)
+    toward = dataclasses.replace(mc, stray_pull_anchor="toward_transport")
+    anchor_w, w_w = morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, toward, dest)
+    np.testing.assert_array_equal(w_w, w)
+    reach = np.minimum(near_d / np.array([1.0, 2.0, 3.0]), 1.0)
+    np.testing.assert_allclose(anchor_w, x + (dest - x) * reach[:, None], rtol=1e-12)
+    assert np.linalg.norm(anchor_w[1] - x[1]) == pytest.approx(min(near_d[1], 2.0))
     with pytest.raises(ValueError, match="stray_pull_anchor"):
         dataclasses.replace(mc, stray_pull_anchor="farthest")
 
