@@ -68,7 +68,7 @@ class MorphConfig:
     # whole). control_decay: every frame starts with dFc scaled by this (a leaky integrator; 1 =
     # the control is carried whole, warm_start). Neither is in the paper.
     restart_control_keep: float = 1.0
-    control_decay: float = 0.95
+    control_decay: float = 0.975  # history: docs/study/CHANGELOG.md
     # The leak follows the bold driver's step: a frame starts with 1 - (1 - control_decay) x
     # (step / mpm's step) of the control, so as the step backs off the control leaks less and is
     # held rather than lost (docs/study/log.md finding 170: the body still flows under it). Not in

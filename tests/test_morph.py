@@ -387,10 +387,10 @@ def _spy_controls(monkeypatch) -> tuple[list, list]:
 def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
     """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
     morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
-    (0.95, 1) leak 5 % a frame and keep it whole at a restart."""
+    (0.975, 1) leak 2.5 % a frame and keep it whole at a restart."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
-    assert (base.control_decay, base.restart_control_keep) == (0.95, 1.0)
+    assert (base.control_decay, base.restart_control_keep) == (0.975, 1.0)
     entry, end = _spy_controls(monkeypatch)
     mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)  # forces restarts
     for decay, keep in ((0.9, 1.0), (1.0, 0.5), (1.0, 1.0)):
@@ -421,7 +421,7 @@ def test_control_decay_follows_step_leaks_in_proportion_to_the_backed_off_step(t
     assert (ratio < 1).any(), "the step never backed off: the test needs a run whose mass loss rises"
     assert np.abs(end[0]).max() > 0
     for k in range(1, len(entry)):
-        np.testing.assert_allclose(entry[k], (1 - 0.05 * ratio[k]) * end[k - 1], rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(entry[k], (1 - (1 - base.control_decay) * ratio[k]) * end[k - 1], rtol=1e-6, atol=1e-12)
 
 
 def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_first_restart(tiny, monkeypatch):
@@ -541,7 +541,8 @@ def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
     control re-based at each Fp update (plasticity.continuous_stress) the morph keeps closing its
     gap with no rebound. With a stress step at each update, the paper's loop (its F smoothing, no
     momentum restart) rings and ends worse than it started (64 % rebound, 20 % closed against
-    81 %, measured 2026-11-24); the default's restart damps that ringing (4 % rebound). The paper's
+    81 %, measured 2026-11-24); the default's restart damps that ringing (4 % rebound with the
+    control leaking 5 % a frame, 13 % with the present 2.5 %, measured 2026-11-28). The paper's
     plasticity: each particle pulled toward its nearest target surface point."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
@@ -558,8 +559,11 @@ def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
         assert steady["gap_closed"][-1] >= TINY_CLOSED_FINAL
         assert not json.loads(steady["attrs"].get("warnings", "[]"))
     assert out["paper", False]["gap_closed"][-1] < out["paper", True]["gap_closed"][-1] - 0.3
-    assert rebound_percent(out["paper", False]["alpha_mse"]) > 30.0
-    assert rebound_percent(out[False]["alpha_mse"]) < 10.0
+    ringing = rebound_percent(out["paper", False]["alpha_mse"])
+    damped = rebound_percent(out[False]["alpha_mse"])
+    print("rebound with a stress step at each update: paper's loop", ringing, "default loop", damped)
+    assert ringing > 30.0
+    assert damped < 15.0 and damped < ringing / 2
 
 
 def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
@@ -585,7 +589,9 @@ def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
     rebound = {}
     for key, m in runs.items():
         release = json.loads(m["attrs"]["release_alpha_mse"])
-        assert len(release) == 13 and release[0] == pytest.approx(m["alpha_mse"][-1], rel=1e-6)
+        # the run's last metric reuses the loss's render (float32, another summation order than
+        # the metric's own render, which the release curve's first value comes from)
+        assert len(release) == 13 and release[0] == pytest.approx(m["alpha_mse"][-1], rel=1e-5)
         rebound[key] = release_rebound_percent(m["alpha_mse"], release)
     print("release rebound", rebound, "closed", {k: m["gap_closed"][-1] for k, m in runs.items()})
     assert runs["absorb"]["gap_closed"][-1] >= TINY_CLOSED_FINAL
