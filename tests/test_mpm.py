@@ -1151,6 +1151,18 @@ def _loss_control_gradient_matches_autograd(s: MPMSolver, state: ParticleState, 
     np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
 
 
+def _loss_at_zero_control(s: MPMSolver, cfg: MPMConfig, state: ParticleState):
+    """The solver's loss with dFc = 0, the reference grid masses it compares (end state, target),
+    eps in mass units and the 2x2x2 block sum of the pyramid's second level."""
+    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
+    L = s.forward()
+    end = s.state_at(cfg.substeps)
+    R = cfg.grid_res
+    blocks = lambda a: a.reshape(R // 2, 2, R // 2, 2, R // 2, 2).sum(axis=(1, 3, 5))  # noqa: E731
+    return (L, splat_mass(end.x, end.mass, s.grid), s.target_m.to_numpy(), cfg.log_mass_eps * state.mass.mean(),
+            blocks)
+
+
 @pytest.mark.parametrize("kind", ["sqrt", "log_bounded"])
 def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
     """mass_loss = "sqrt" / "log_bounded" (with a two-level pyramid): the documented formula on the
@@ -1158,14 +1170,7 @@ def test_sqrt_and_log_bounded_losses_match_reference_and_fd(state, kind):
     cfg = cfg64(substeps=2, mass_loss=kind, mass_loss_levels=2)
     s = make(cfg, state)
     s.load_state(state)
-    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
-    L = s.forward()
-    end = s.state_at(cfg.substeps)
-    m = splat_mass(end.x, end.mass, s.grid)
-    t = s.target_m.to_numpy()
-    eps = cfg.log_mass_eps * state.mass.mean()
-    R = cfg.grid_res
-    blocks = lambda a: a.reshape(R // 2, 2, R // 2, 2, R // 2, 2).sum(axis=(1, 3, 5))  # noqa: E731
+    L, m, t, eps, blocks = _loss_at_zero_control(s, cfg, state)
     want = _node_losses(m, t, eps, kind).sum() + _node_losses(blocks(m), blocks(t), 8 * eps, kind).sum()
     if kind == "log_bounded":  # the test's state has nodes on both branches
         assert (m > t).any() and (m < t).any()
@@ -1208,14 +1213,7 @@ def test_log_convex_loss_matches_reference_and_fd_and_does_not_reward_packing(st
     half = s.target_m.to_numpy()
     half[: cfg.grid_res // 2] = 0.0  # the target leaves half of the ball's nodes empty: r > 1 there
     s.set_target_grid_mass(half)
-    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
-    L = s.forward()
-    end = s.state_at(cfg.substeps)
-    m = splat_mass(end.x, end.mass, s.grid)
-    t = s.target_m.to_numpy()
-    e = cfg.log_mass_eps * state.mass.mean()
-    R = cfg.grid_res
-    blocks = lambda a: a.reshape(R // 2, 2, R // 2, 2, R // 2, 2).sum(axis=(1, 3, 5))  # noqa: E731
+    L, m, t, e, blocks = _loss_at_zero_control(s, cfg, state)
     r = np.log(m + e) - np.log(t + e)
     assert (r > 1).sum() > 5 and ((r > 0) & (r <= 1)).sum() > 5  # both branches
     cap = np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t)
