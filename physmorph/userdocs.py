@@ -187,6 +187,15 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     return "\n".join(out)
 
 
+def results_doc_paths(profile: str) -> tuple[Path, Path]:
+    """Where ``python -m physmorph.userdocs results PROFILE`` writes: docs/results.md and docs/images/
+    for the default profile, docs/results_{profile}.md and docs/images/{profile}/ for any other, so
+    regenerating one profile's page never overwrites another's."""
+    if profile == "default":
+        return RESULTS_MD, REPO_ROOT / "docs" / "images"
+    return REPO_ROOT / "docs" / f"results_{profile}.md", REPO_ROOT / "docs" / "images" / profile
+
+
 def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, figures_dir: str | Path | None = None,
                       images_dir: str | Path | None = None, command: str | None = None,
                       code: str | None = None, title: str | None = None) -> Path:
@@ -477,11 +486,13 @@ def _checkout() -> str | None:
 def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a maintenance command
     parser = argparse.ArgumentParser(prog="python -m physmorph.userdocs", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="what", required=True)
-    res = sub.add_parser("results", help="docs/results.md from results/{profile}/tables/")
+    res = sub.add_parser("results", help="docs/results.md (docs/results_{profile}.md for another profile) "
+                                         "from results/{profile}/tables/")
     res.add_argument("profile", nargs="?", default="default")
-    res.add_argument("--out", default=str(RESULTS_MD))
-    res.add_argument("--images", default=str(REPO_ROOT / "docs" / "images"),
-                     help="copy the profile's figures here and link them ('' links them in place)")
+    res.add_argument("--out", default=None, help="default: docs/results.md, or docs/results_{profile}.md")
+    res.add_argument("--images", default=None,
+                     help="copy the profile's figures here and link them ('' links them in place); "
+                          "default: docs/images/, or docs/images/{profile}/")
     pm = sub.add_parser("paper_main", help="docs/paper_scale.md from results/{profile}/main_tables/ and main_figures/")
     pm.add_argument("profile", nargs="?", default="paper")
     sub.add_parser("config", help="config/README.md from the settings")
@@ -493,7 +504,10 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a mainten
     args = parser.parse_args(argv)
     if args.what == "results":
         tree = REPO_ROOT / "results" / args.profile
-        path = write_results_doc(tree / "tables", args.out, args.profile, tree / "figures", args.images or None,
+        out_md, images = results_doc_paths(args.profile)
+        out_md = args.out or out_md
+        images = images if args.images is None else (args.images or None)
+        path = write_results_doc(tree / "tables", out_md, args.profile, tree / "figures", images,
                                  command=f"python -m physmorph.userdocs results {args.profile}",
                                  code=runs_code(tree / "tables", tree / "runs") or _checkout())
     elif args.what == "paper_main":

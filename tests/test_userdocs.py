@@ -10,6 +10,7 @@ from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.userdocs import (CAPTIONS_DIR, CONFIG_README, OUTPUTS_MD, caption_rst, config_reference,
                                 output_captions, results_markdown, runs_code, schema_keys, tradeoff_code,
                                 write_results_doc)
+from physmorph import userdocs
 
 
 def _fake_tables(d):
@@ -65,6 +66,27 @@ def test_results_page_links_and_copies_figures(tmp_path):
     assert "![sequences_main](images/sequences_main.png)" in text
     assert (tmp_path / "docs" / "images" / "sequences_main.png").read_bytes() == b"png"
     assert "drag_ablation" not in text  # a figure not made is not linked
+
+
+def test_each_profile_regenerates_its_own_page(tmp_path, monkeypatch):
+    """python -m physmorph.userdocs results PROFILE: the default profile writes docs/results.md and
+    docs/images/, any other docs/results_PROFILE.md and docs/images/PROFILE/, so regenerating mid's
+    page leaves the default page and its images alone."""
+    monkeypatch.setattr(userdocs, "REPO_ROOT", tmp_path)
+    monkeypatch.setattr(userdocs, "RESULTS_MD", tmp_path / "docs" / "results.md")
+    for profile in ("default", "mid"):
+        _fake_tables(tmp_path / "results" / profile / "tables")
+        figures = tmp_path / "results" / profile / "figures"
+        figures.mkdir()
+        (figures / "sequences_main.png").write_bytes(profile.encode())
+    userdocs.main(["results"])
+    userdocs.main(["results", "mid"])
+    docs = tmp_path / "docs"
+    assert "results/default/tables/" in (docs / "results.md").read_text()
+    assert "results/mid/tables/" in (docs / "results_mid.md").read_text()
+    assert "![sequences_main](images/mid/sequences_main.png)" in (docs / "results_mid.md").read_text()
+    assert (docs / "images" / "sequences_main.png").read_bytes() == b"default"
+    assert (docs / "images" / "mid" / "sequences_main.png").read_bytes() == b"mid"
 
 
 def test_main_table_page_names_its_tables_and_title(tmp_path):
