@@ -483,7 +483,7 @@ def _checkout() -> str | None:
     return f"commit {rev}" + (" + local changes" if dirty.strip() else "")
 
 
-def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a maintenance command
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m physmorph.userdocs", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="what", required=True)
     res = sub.add_parser("results", help="docs/results.md (docs/results_{profile}.md for another profile) "
