@@ -83,3 +83,17 @@ def test_readme_runfile_summary_runs(tmp_path):
                          capture_output=True, text=True, timeout=120, env=env)
     assert res.returncode == 0, res.stderr
     assert "iso_bunny_full.h5: complete, 2 frames, alpha MSE 0.06 -> 0.04" in res.stdout, res.stdout
+
+
+def test_readme_mesh_size_command_runs(tmp_path, mesh_dir):
+    """The README's size helper, as written, on a real mesh: it prints YAML for mine.yaml."""
+    command = re.findall(r"`(python -m physmorph\.meshes\.fit [^`]*)`", README.read_text())[0]
+    (tmp_path / "config").symlink_to(REPO / "config")
+    (tmp_path / "path" / "to").mkdir(parents=True)
+    (tmp_path / "path" / "to" / "mesh.obj").symlink_to(mesh_dir / "stanford-bunny.obj")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run(command.replace("python", shlex.quote(sys.executable), 1), shell=True, cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    # the bunny is compact: its size for the iso's volume fits, the value config/config.yaml uses
+    assert "mesh: {kind: file, path: path/to/mesh.obj, size: 18.0}" in res.stdout, res.stdout

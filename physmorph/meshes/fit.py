@@ -1,0 +1,187 @@
+"""Choosing ``size`` for a user's mesh: the volume of the source, inside the particles' region.
+
+MPM keeps volume, so a target reachable from a source holds the source's volume (the benchmark
+shapes hold ~1170 units^3). A long, thin mesh scaled to that volume can be wider than the part of
+the domain particles may occupy (``BOUNDARY_CELLS`` cells from each face, so it depends on the
+grid), and sampling then refuses it. The way out is to shrink both: the target to the largest size
+that fits, and the source to the target's volume.
+
+    python -m physmorph.meshes.fit path/to/mesh.obj [--configfile config/config.yaml ...] [--source iso]
+
+prints the size for the source's volume, the largest size that fits the configured grid, and,
+where the first does not fit, the shapes a config needs (target and a volume-matched isosphere).
+The mesh is repaired exactly as the prepare_mesh stage repairs it, so the volume is the one the
+workflow will see (a mesh that is not watertight still gets a size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from physmorph.grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
+
+from .prepare import normalize_mesh
+from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
+from .shapes import isosphere
+
+# Sizes are rounded down to this many domain units, so a printed size always fits.
+SIZE_STEP = 0.1
+# A target that fits at this share of the source's volume keeps the source as it is (a few per cent
+# is inside what the morph's mass loss already forgives: the repair tolerance is the same 3 %).
+VOLUME_SLACK = 0.03
+
+
+@dataclass(frozen=True)
+class SizeAdvice:
+    """What size a mesh needs: ``size_for_volume`` holds ``volume``; ``max_size`` is the largest
+    size whose normalised mesh (volume centroid at the origin, as prepare_mesh places it) stays in
+    the particles' region of a ``grid_res`` grid. ``size`` is the one to use; where the volume's
+    size does not fit, ``source_size`` is the isosphere size that holds the target's volume at
+    ``size``."""
+
+    volume: float  # units^3 the target should hold (the source's)
+    unit_volume: float  # the mesh's volume at size 1
+    size_for_volume: float
+    max_size: float
+    grid_res: int
+    region: tuple[float, float]  # the particles' region on each axis
+    repair: tuple[str, ...]  # the repair steps prepare_mesh will log
+
+    @property
+    def keeps_source(self) -> bool:
+        """Whether the source can stay: the target fits at the source's volume, or within VOLUME_SLACK of it."""
+        return self.target_volume >= (1.0 - VOLUME_SLACK) * self.volume
+
+    @property
+    def size(self) -> float:
+        return min(self.size_for_volume, self.max_size)
+
+    @property
+    def target_volume(self) -> float:
+        """The target's volume at ``size``."""
+        return self.unit_volume * self.size ** 3
+
+    @property
+    def source_size(self) -> float | None:
+        return None if self.keeps_source else isosphere_size_for_volume(self.target_volume)
+
+
+def _floor_step(x: float) -> float:
+    return math.floor(x / SIZE_STEP + 1e-9) * SIZE_STEP
+
+
+def isosphere_volume(size: float) -> float:
+    """Volume of the source isosphere of longest extent ``size`` (it scales as size^3)."""
+    return float(isosphere(radius=0.5).volume) * size ** 3
+
+
+def isosphere_size_for_volume(volume: float) -> float:
+    """The isosphere size holding ``volume``, rounded to ``SIZE_STEP`` (nearest: a source is not
+    bound by the region the way a long target is)."""
+    s = (volume / isosphere_volume(1.0)) ** (1.0 / 3.0)
+    return round(s / SIZE_STEP) * SIZE_STEP
+
+
+def advise_size(
+    mesh: trimesh.Trimesh,
+    volume: float,
+    grid_res: int,
+    domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI),
+    repair: tuple[str, ...] = (),
+) -> SizeAdvice:
+    """Size advice for a watertight ``mesh`` (any scale): see :class:`SizeAdvice`."""
+    if not volume > 0:
+        raise ValueError(f"volume must be > 0, got {volume!r}")
+    unit, _, _ = normalize_mesh(mesh, 1.0)
+    unit_volume = abs(float(unit.volume))
+    if not unit_volume > 0:
+        raise ValueError("the mesh encloses no volume")
+    lo, hi = float(domain[0]), float(domain[1])
+    margin = BOUNDARY_CELLS * (hi - lo) / grid_res
+    region = (lo + margin, hi - margin)
+    # At size s the normalised bounds are s * unit.bounds; both faces of every axis must stay inside.
+    b_lo, b_hi = unit.bounds
+    limits = [region[0] / v for v in b_lo if v < 0] + [region[1] / v for v in b_hi if v > 0]
+    return SizeAdvice(volume=float(volume), unit_volume=unit_volume,
+                      size_for_volume=_floor_step((volume / unit_volume) ** (1.0 / 3.0)),
+                      max_size=_floor_step(min(limits)), grid_res=int(grid_res), region=region,
+                      repair=tuple(repair))
+
+
+def advise_size_for_file(
+    path: str | os.PathLike,
+    volume: float,
+    grid_res: int,
+    domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI),
+    volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
+) -> SizeAdvice:
+    """Load and repair ``path`` as prepare_mesh does, then :func:`advise_size`."""
+    raw = load_raw_mesh(path)
+    repaired, steps, _ = repair_mesh(raw, str(path), volume_tolerance=volume_tolerance)
+    return advise_size(repaired, volume, grid_res, domain, tuple(steps))
+
+
+def shape_name(stem: str) -> str:
+    """A valid shape name (letters and digits, starting with a letter) from a file's stem."""
+    name = "".join(c for c in stem if c.isascii() and c.isalnum())
+    return name if name[:1].isalpha() else "mesh" + name
+
+
+def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
+    """The advice as a user reads it, with the YAML to paste."""
+    a = advice
+    lines = [f"{path}: {'repaired (' + '; '.join(a.repair) + ')' if a.repair else 'watertight as read'}",
+             f"  size for the source's volume ({a.volume:.0f} units^3): {a.size_for_volume:.1f}",
+             f"  largest size that fits grid {a.grid_res} (particles stay in [{a.region[0]:g}, {a.region[1]:g}]^3): "
+             f"{a.max_size:.1f}"]
+    if a.keeps_source:
+        if a.size < a.size_for_volume:
+            lines.append(f"  at size {a.size:.1f} it holds {a.target_volume:.0f} units^3, within "
+                         f"{100 * VOLUME_SLACK:.0f} % of the source's: the source stays")
+        lines += ["", "shapes:", f"  {name}: {{kind: file, path: {path}, size: {a.size:.1f}}}",
+                  f"experiments: {{{source}_{name}: {{source: {source}, target: {name}, method: full}}}}"]
+    else:
+        small = f"{source}small"  # shape names are letters and digits
+        lines += [f"  the volume's size does not fit: at size {a.size:.1f} the mesh holds {a.target_volume:.0f} units^3, "
+                  f"so the source shrinks to it (an isosphere of size {a.source_size:.1f})",
+                  "", "shapes:", f"  {name}: {{kind: file, path: {path}, size: {a.size:.1f}}}",
+                  f"  {small}: {{kind: isosphere, size: {a.source_size:.1f}}}",
+                  f"experiments: {{{small}_{name}: {{source: {small}, target: {name}, method: full}}}}"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from physmorph.config import load_settings
+
+    ap = argparse.ArgumentParser(prog="python -m physmorph.meshes.fit", description=__doc__.split("\n\n")[0])
+    ap.add_argument("mesh", help="the mesh file (anything trimesh reads)")
+    ap.add_argument("--configfile", nargs="+", default=["config/config.yaml"],
+                    help="the profile's config files, merged as the workflow merges them (default: config/config.yaml)")
+    ap.add_argument("--source", default="iso", help="the source shape whose volume the target should hold (default: iso)")
+    ap.add_argument("--name", default=None, help="the shape's name in the printed YAML (default: the file's stem)")
+    args = ap.parse_args(argv)
+
+    settings = load_settings(*args.configfile)
+    if args.source not in settings.shapes:
+        ap.error(f"--source {args.source!r} is not a shape of {' + '.join(args.configfile)} "
+                 f"(shapes: {', '.join(sorted(settings.shapes))})")
+    src = settings.shapes[args.source]
+    if src.kind != "isosphere":
+        ap.error(f"--source {args.source!r} is a {src.kind}; name an isosphere (the advice shrinks it when the mesh "
+                 "does not fit)")
+    volume = isosphere_volume(src.size)
+    name = args.name or shape_name(Path(args.mesh).stem)
+    advice = advise_size_for_file(args.mesh, volume, settings.sampling.grid_res, settings.domain)
+    print(advice_text(advice, args.mesh, name, args.source))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,118 @@
+"""Size advice for a user's mesh (physmorph.meshes.fit): the volume of the source, inside the
+particles' region, with the source shrunk where a long mesh cannot hold it."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from physmorph.config import load_settings
+from physmorph.grid import BOUNDARY_CELLS, Grid
+from physmorph.meshes import MeshError, normalize_mesh
+from physmorph.meshes.fit import (SIZE_STEP, VOLUME_SLACK, advise_size, isosphere_size_for_volume, isosphere_volume,
+                                  main, shape_name)
+from physmorph.particles import sample_volume
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _cone() -> trimesh.Trimesh:
+    """Its volume centroid sits a quarter of the height from the base: bounds are not symmetric about it."""
+    return trimesh.creation.cone(radius=1.0, height=5.0, sections=32)
+
+
+def test_a_compact_mesh_keeps_the_source_and_holds_its_volume():
+    a = advise_size(trimesh.creation.box(extents=(1.0, 2.0, 1.5)), volume=1170.0, grid_res=32)
+    assert a.keeps_source and a.source_size is None
+    assert a.size == a.size_for_volume
+    mesh, _, _ = normalize_mesh(trimesh.creation.box(extents=(1.0, 2.0, 1.5)), a.size)
+    # rounded down to SIZE_STEP: at most one step's worth of volume short, never over
+    assert 1170.0 * (1 - 3 * SIZE_STEP / a.size) <= mesh.volume <= 1170.0
+
+
+def test_a_long_mesh_gets_the_largest_size_that_fits_and_a_source_of_its_volume():
+    box = trimesh.creation.box(extents=(1.0, 1.0, 6.0))
+    a = advise_size(box, volume=1170.0, grid_res=32)
+    assert a.size_for_volume == pytest.approx((1170.0 * 36) ** (1 / 3), abs=SIZE_STEP)
+    # the region is 3 cells of dx = 1 from each face of [-16, 16]: the box's half-length is 13
+    assert a.region == (-13.0, 13.0) and a.max_size == pytest.approx(26.0)
+    assert not a.keeps_source and a.size == a.max_size
+    assert a.target_volume == pytest.approx(26.0 ** 3 / 36)
+    assert isosphere_volume(a.source_size) == pytest.approx(a.target_volume, rel=3 * SIZE_STEP / a.source_size)
+
+
+def test_the_largest_size_is_where_sampling_starts_to_refuse(tmp_path):
+    """The advice places the mesh as prepare_mesh does (volume centroid at the origin), so its
+    largest size is accepted by particle sampling and one step more is not."""
+    cone = _cone()
+    a = advise_size(cone, volume=5000.0, grid_res=32)
+    assert not a.keeps_source
+    grid = Grid(res=32)
+    mesh, _, _ = normalize_mesh(cone, a.max_size)
+    x, _, _ = sample_volume(mesh, grid, ppc_surface=1, ppc_interior=1, seed=0)
+    assert len(x) > 0
+    too_big, _, _ = normalize_mesh(cone, a.max_size + 2 * SIZE_STEP)
+    with pytest.raises(MeshError, match="particle region"):
+        sample_volume(too_big, grid, ppc_surface=1, ppc_interior=1, seed=0)
+    # the centroid is off the bounding box's centre, so a symmetric bound would be wrong
+    assert a.max_size < 2 * 13.0 - SIZE_STEP
+
+
+def test_a_finer_grid_leaves_more_room():
+    box = trimesh.creation.box(extents=(1.0, 1.0, 6.0))
+    coarse, fine = advise_size(box, 1170.0, grid_res=24), advise_size(box, 1170.0, grid_res=64)
+    assert coarse.max_size == pytest.approx(2 * (16 - BOUNDARY_CELLS * 32 / 24), abs=SIZE_STEP)
+    assert fine.max_size == pytest.approx(2 * (16 - BOUNDARY_CELLS * 32 / 64), abs=SIZE_STEP)
+
+
+@pytest.mark.parametrize("need, keeps", [(26.2, True), (27.0, False)])
+def test_a_few_percent_short_keeps_the_source(need, keeps):
+    """A box whose size for 1170 units^3 is ``need``: at the 26 that fits it holds 97.7 % of the
+    volume (inside VOLUME_SLACK: the source stays) or 89 % (the source shrinks)."""
+    length = np.sqrt(need ** 3 / 1170.0)
+    a = advise_size(trimesh.creation.box(extents=(1.0, 1.0, length)), volume=1170.0, grid_res=32)
+    assert a.max_size == pytest.approx(26.0) and a.size_for_volume > a.max_size
+    assert a.keeps_source == keeps
+    assert a.keeps_source == (a.target_volume >= (1 - VOLUME_SLACK) * 1170.0)
+    assert a.size == a.max_size
+
+
+def test_shape_names_are_valid():
+    assert shape_name("rocker-arm") == "rockerarm"
+    assert shape_name("3d_model") == "mesh3dmodel"
+
+
+def test_isosphere_size_for_volume_inverts_isosphere_volume():
+    for s in (8.0, 13.7, 20.0):
+        assert isosphere_size_for_volume(isosphere_volume(s)) == pytest.approx(s)
+
+
+def test_the_printed_config_is_valid_and_matches_volumes(tmp_path, capsys, monkeypatch):
+    """As a user runs it: an open mesh file (repaired as prepare_mesh repairs it), the YAML pasted
+    into a config that the workflow's loader accepts, source and target of one volume."""
+    open_box = trimesh.creation.box(extents=(1.0, 1.0, 8.0))
+    open_box = trimesh.Trimesh(open_box.vertices, open_box.faces[:-1], process=False)  # one triangle missing
+    path = tmp_path / "long.obj"
+    open_box.export(path)
+    monkeypatch.chdir(tmp_path)
+    assert main([str(path.name), "--configfile", str(REPO / "config/config.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "repaired" in out
+    snippet = yaml.safe_load(out[out.index("shapes:"):])
+    (tmp_path / "mine.yaml").write_text(yaml.safe_dump(snippet))
+    s = load_settings(REPO / "config/config.yaml", tmp_path / "mine.yaml")
+    (exp,) = snippet["experiments"].values()
+    src, tgt = s.shapes[exp["source"]], s.shapes[exp["target"]]
+    assert src.kind == "isosphere" and tgt.path == "long.obj"
+    assert tgt.size == pytest.approx(26.0)
+    assert isosphere_volume(src.size) == pytest.approx(26.0 ** 3 / 64, rel=0.02)
+
+
+def test_a_source_that_is_not_an_isosphere_is_refused(tmp_path, capsys):
+    path = tmp_path / "b.obj"
+    trimesh.creation.box().export(path)
+    with pytest.raises(SystemExit):
+        main([str(path), "--configfile", str(REPO / "config/config.yaml"), "--source", "A"])
+    assert "isosphere" in capsys.readouterr().err
