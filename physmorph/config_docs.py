@@ -51,7 +51,7 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                            "path", "exactly one of file, path"),
     "shapes.<name>.glyph": ("kind letter: the character", "", "one character"),
     "shapes.<name>.size": ("longest extent after normalisation; choose it so the shape holds ~1170 units^3 "
-                           "like the benchmark shapes (MPM keeps volume)", "domain units", POS),
+                           "like the benchmark shapes (MPM keeps volume); python -m physmorph.meshes.fit MESH prints it", "domain units", POS),
     "shapes.<name>.depth": ("kind letter: extrusion depth", "domain units", POS),
     # sampling
     "sampling.grid_res": ("MPM grid cells per axis (also the sampling grid)", "cells", ">= 8"),
