@@ -32,6 +32,29 @@ def _plt():
     return plt
 
 
+# PNG text key listing the runs a figure draws (empty: none of its runs exist in this profile), so
+# a results page can leave out a figure with nothing in it (physmorph.userdocs).
+RUNS_KEY = "physmorph runs"
+
+
+def _save(fig, out_png: Path, runs) -> None:
+    fig.savefig(out_png, dpi=110, metadata={RUNS_KEY: ", ".join(runs)})
+
+
+def figure_runs(png: str | Path) -> list[str] | None:
+    """The runs a figure made here draws (from its PNG text); None for a PNG without the record."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(png) as im:
+            text = getattr(im, "text", {}) or {}
+    except (OSError, UnidentifiedImageError):
+        return None
+    if RUNS_KEY not in text:
+        return None
+    return [r for r in text[RUNS_KEY].split(", ") if r]
+
+
 def _saved_frames(f: h5py.File) -> list[str]:
     return sorted(f["states"]) if "states" in f else []
 
@@ -39,6 +62,14 @@ def _saved_frames(f: h5py.File) -> list[str]:
 def figure_cameras(target: TargetConfig | dict, scale: int = 2):
     t = target if isinstance(target, TargetConfig) else TargetConfig(**target)
     return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
+
+
+def run_method(f: h5py.File) -> str:
+    """A run's method from its config record ("" where it has none)."""
+    try:
+        return str(json.loads(f.attrs["config_record"])["experiment"]["method"])
+    except (KeyError, TypeError, ValueError):
+        return ""
 
 
 def run_target_shape(f: h5py.File, name: str) -> str:
@@ -117,7 +148,7 @@ def sequence_figure(runs: dict[str, Path], target_cfg: dict, out_png: Path, view
     if not rows:
         axes[0, 0].text(0, 0.5, "no runs of this figure in this profile", fontsize=8)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=110)
+    _save(fig, out_png, [n for n, _ in rows])
     titles = [[ax.get_title() for ax in row] for row in axes]
     plt.close(fig)
     return titles
@@ -146,7 +177,7 @@ def curves_figure(runs: dict[str, Path], panels: list[tuple[str, str]], out_png:
         axes[0, 0].legend(fontsize=7)
     fig.suptitle(title if data else f"{title} (no runs of this figure in this profile)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=110)
+    _save(fig, out_png, list(data))
     plt.close(fig)
 
 
@@ -159,7 +190,7 @@ def coverage_figure(run: Path | None, target_h5: Path | None, out_png: Path, cam
     fig, axes = plt.subplots(1, len(camera_counts), figsize=(3.6 * len(camera_counts), 3.2), squeeze=False)
     if run is None or not Path(run).exists() or target_h5 is None:
         axes[0, 0].text(0, 0.5, "run not made in this profile", fontsize=8)
-        fig.savefig(out_png, dpi=110)
+        _save(fig, out_png, [])
         plt.close(fig)
         return
     t = load_target(target_h5)
@@ -184,8 +215,30 @@ def coverage_figure(run: Path | None, target_h5: Path | None, out_png: Path, cam
         fig.colorbar(sc, ax=ax, fraction=0.04, label="log10 |dL/dF|")
     fig.suptitle(f"render-gradient coverage on {Path(run).stem} ({last})", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=110)
+    _save(fig, out_png, [Path(run).stem])
     plt.close(fig)
+
+
+SEQUENCE_FIGURES = ("sequences_main", "sequences_cross_shape", "sequences_letters", "sequences_other")
+
+
+def other_sequence_runs(runs: dict[str, Path], sel: dict[str, dict[str, Path]]) -> dict[str, Path]:
+    """The full-method runs whose target no other sequence figure shows, in ``runs``' order: a
+    profile's own targets (held-out shapes, a user's mesh) get their picture too."""
+    def existing(d):
+        return {n: p for n, p in d.items() if p is not None and Path(p).exists()}
+
+    shown = set()
+    for name in SEQUENCE_FIGURES[:-1]:
+        for n, p in existing(sel.get(name, {})).items():
+            with h5py.File(p) as f:
+                shown.add(run_target_shape(f, n))
+    out = {}
+    for n, p in existing(runs).items():
+        with h5py.File(p) as f:
+            if run_method(f) == "full" and run_target_shape(f, n) not in shown:
+                out[n] = p
+    return out
 
 
 def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: dict, out_dir: Path,
@@ -198,6 +251,7 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sel = {name: {r: runs.get(r) for r in layout.figures.get(name, ())} for name in FIGURE_NAMES}
+    sel["sequences_other"] = other_sequence_runs(runs, sel)
 
     def coverage(png: Path) -> None:
         name = next(iter(layout.figures.get("gradient_coverage", ())), None)
@@ -210,7 +264,7 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
 
     makers = {
         **{name: (lambda png, name=name: sequence_figure(sel[name], target_cfg, png, targets=targets))
-           for name in ("sequences_main", "sequences_cross_shape", "sequences_letters")},
+           for name in SEQUENCE_FIGURES},
         "drag_ablation": lambda png: curves_figure(sel["drag_ablation"], [("alpha_mse", "alpha MSE")], png,
                                                    "drag ablation: iso -> bunny"),
         "trajectory_divergence": lambda png: curves_figure(

@@ -13,7 +13,7 @@ from pathlib import Path
 import yaml
 
 from physmorph.config import ConfigError, build
-from physmorph.metrics import FIGURE_NAMES
+from physmorph.metrics import CHOSEN_FIGURES, FIGURE_NAMES
 
 
 @dataclass(frozen=True)
@@ -82,6 +82,10 @@ class PaperLayout:
         unknown = sorted(set(self.figures) - set(FIGURE_NAMES))
         if unknown:
             raise ValueError(f"figures: unknown figure {unknown[0]!r} (known: {', '.join(FIGURE_NAMES)})")
+        chosen = sorted(set(self.figures) & set(CHOSEN_FIGURES))
+        if chosen:
+            raise ValueError(f"figures: {chosen[0]!r} takes no list: its runs are chosen from the profile's runs "
+                             "(the full runs whose target no other sequence figure shows)")
 
     def experiments(self) -> set[str]:
         """Every experiment name the layout refers to."""

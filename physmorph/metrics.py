@@ -18,9 +18,12 @@ import numpy as np
 TABLE_NAMES = ("main", "ablation_components", "ablation_drag", "source_invariance", "plasticity", "shapes", "timing",
                "convergence", "directions")
 # The figures `snakemake figures` writes (physmorph.figures builds them).
-FIGURE_NAMES = ("sequences_main", "sequences_cross_shape", "sequences_letters", "drag_ablation",
+FIGURE_NAMES = ("sequences_main", "sequences_cross_shape", "sequences_letters", "sequences_other", "drag_ablation",
                 "trajectory_divergence", "trajectory_frames", "plasticity_effect", "optimization_traces",
                 "gradient_coverage")
+# Figures whose runs are chosen from the profile's runs rather than listed in the layout
+# (sequences_other: the full runs whose target no other sequence figure shows).
+CHOSEN_FIGURES = ("sequences_other",)
 
 
 def matched_convergence_frame(baseline: np.ndarray, fraction: float = 0.9) -> int:  # baseline [K+1]

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from physmorph.figures import figure_runs
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -40,6 +41,7 @@ FIGURE_TITLES = {
     "sequences_main": "iso -> bunny, cow, duck (full method), frames 0 to the last and the target",
     "sequences_cross_shape": "cross-shape morphs (full method) and their targets",
     "sequences_letters": "letters (full method) and their targets",
+    "sequences_other": "the profile's other targets (full method), frames 0 to the last and the target",
     "drag_ablation": "drag ablation, iso -> bunny: alpha MSE per frame",
     "trajectory_divergence": "physics-only vs full, iso -> duck: mass loss and alpha MSE per frame",
     "trajectory_frames": "physics-only vs full, iso -> duck, frames 10, 15 and 19",
@@ -79,6 +81,14 @@ def _read(tables_dir: Path, name: str) -> pd.DataFrame:
         return pd.read_csv(path)
     except pd.errors.EmptyDataError:
         return pd.DataFrame()
+
+
+def _with_data(df: pd.DataFrame, column: str) -> pd.DataFrame:
+    """The rows of ``df`` with a number in ``column`` (a table lists the paper's cases whether or not
+    this profile ran them; their measured columns are empty, or absent when none was run)."""
+    if column not in df:
+        return df.iloc[0:0]
+    return df[pd.to_numeric(df[column], errors="coerce").notna()]
 
 
 def _wall_time_s(results_dir: Path) -> float:
@@ -140,14 +150,18 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "volume IoU", "overfilled"],
                       rows))
 
-    out.append("## The paper's three directions\n")
-    out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, `holds` is yes "
-               "when ours is lower.\n")
-    rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
-             _pct(r["ours_vs_baseline_%"]), _fmt(r["holds"]) if isinstance(r["holds"], str) else "",
-             _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
-    out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain", "holds", "paper"], rows))
+    # rows whose runs this profile does not have are left out, and a section with none
+    direc = _with_data(direc, "ours")
+    if len(direc):
+        out.append("## The paper's three directions\n")
+        out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, `holds` is yes "
+                   "when ours is lower.\n")
+        rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
+                 _pct(r["ours_vs_baseline_%"]), _fmt(r["holds"]) if isinstance(r["holds"], str) else "",
+                 _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
+        out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain", "holds", "paper"], rows))
 
+    main, source, plast = _with_data(main, "ours"), _with_data(source, "best"), _with_data(plast, "rebound_%")
     if len(main):
         out.append("## Main table: full vs physics-only at the matched frame\n")
         rows = [[str(r["target"]), _fmt(r.get("frame"), 3), _fmt(r.get("physics_only")), _fmt(r.get("ours")),
@@ -207,7 +221,7 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
     if figures_dir is not None:
         for name in FIGURE_NAMES:
             src = Path(figures_dir) / f"{name}.png"
-            if not src.exists():
+            if not src.exists() or figure_runs(src) == []:  # [] : made, with none of its runs in this profile
                 continue
             if images_dir is not None:
                 Path(images_dir).mkdir(parents=True, exist_ok=True)

@@ -70,3 +70,35 @@ def test_build_figures_makes_the_figures_asked_for(tmp_path):
     assert made == [out / "sequences_main.png"] and sorted(p.name for p in out.iterdir()) == ["sequences_main.png"]
     with pytest.raises(ValueError, match="unknown figures.*sequences_main"):
         build_figures(runs, {}, {}, out, load_layout("config/paper_results.yaml"), names=("sequence_main",))
+
+
+def _write_method_run(path, target, method):
+    _write_run(path, target, np.linspace(0.06, 0.02, 11), ceiling=0.01)
+    with h5py.File(path, "a") as f:
+        f.attrs["config_record"] = json.dumps({"experiment": {"source": "iso", "target": target, "method": method}})
+    return path
+
+
+def test_other_sequences_show_the_full_runs_of_targets_no_other_sequence_shows(tmp_path):
+    """A profile's own targets (held-out shapes, a user's mesh) get a sequence figure; a target the
+    paper's sequences already show does not appear twice, nor does a physics-only run; each figure
+    records the runs it draws, and one with none records that (the results page leaves it out)."""
+    from physmorph.figures import build_figures, figure_runs
+    from physmorph.layout import load_layout
+
+    runs = {n: _write_method_run(tmp_path / f"{n}.h5", t, m) for n, t, m in [
+        ("iso_bunny_full", "bunny", "full"),          # sequences_main shows the bunny
+        ("cow_bunny_full", "bunny", "full"),          # another source, the same target: shown there
+        ("iso_torus_full", "torus", "full"),          # a profile's own target
+        ("iso_torus_physics_only", "torus", "physics_only"),
+        ("iso_mine_full", "mine", "full"),
+    ]}
+    out = tmp_path / "figs"
+    build_figures(runs, {}, dict(cameras=2, width=16, height=12), out, load_layout("config/paper_results.yaml"),
+                  names=("sequences_main", "sequences_other", "sequences_letters", "drag_ablation"))
+    assert figure_runs(out / "sequences_other.png") == ["iso_torus_full", "iso_mine_full"]
+    assert figure_runs(out / "sequences_main.png") == ["iso_bunny_full"]
+    assert figure_runs(out / "sequences_letters.png") == []
+    assert figure_runs(out / "drag_ablation.png") == ["iso_bunny_full"]
+    (tmp_path / "plain.png").write_bytes(b"not a png")
+    assert figure_runs(tmp_path / "plain.png") is None

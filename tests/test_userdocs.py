@@ -68,6 +68,43 @@ def test_results_page_links_and_copies_figures(tmp_path):
     assert "drag_ablation" not in text  # a figure not made is not linked
 
 
+def test_a_profile_without_the_papers_runs_gets_no_empty_sections_or_figures(tmp_path):
+    """A held-out or user profile: the tables still list the paper's cases with empty measured
+    columns (or none at all), and the figures stage draws a placeholder for a figure with none of
+    its runs. The page leaves those out and keeps the rest."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from physmorph.figures import RUNS_KEY
+
+    tables = tmp_path / "tree" / "tables"
+    _fake_tables(tables)
+    pd.DataFrame([{"direction": "full beats physics-only at matched convergence", "case": "bunny",
+                   "measure": "alpha MSE at the matched frame", "ours": None, "baseline": None,
+                   "ours_vs_baseline_%": None, "holds": None, "paper": "+25.8 %"}]).to_csv(tables / "directions.csv",
+                                                                                     index=False)
+    pd.DataFrame([{"target": "bunny", "paper_physics_only": 0.0799, "paper_ours": 0.0593,
+                   "paper_improvement_%": 25.8}]).to_csv(tables / "main.csv", index=False)  # no measured column
+    pd.DataFrame([{"experiment": "iso_bunny_full", "paper_best": 0.0546, "best": None, "closed_best_%": None,
+                   "closed_final_%": None}]).to_csv(tables / "source_invariance.csv", index=False)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "variant": "with plasticity", "paper_rebound_%": "< 8"}]
+                 ).to_csv(tables / "plasticity.csv", index=False)
+    figures = tmp_path / "tree" / "figures"
+    figures.mkdir()
+    for name, runs in (("sequences_main", ""), ("sequences_other", "iso_torus_full")):
+        fig = plt.figure(figsize=(1, 1))
+        fig.savefig(figures / f"{name}.png", metadata={RUNS_KEY: runs})
+        plt.close(fig)
+    text = write_results_doc(tables, tmp_path / "docs" / "results_heldout.md", "heldout", figures,
+                             images_dir=tmp_path / "docs" / "images" / "heldout").read_text()
+    for gone in ("three directions", "Main table", "Source invariance", "Does the morph persist", "sequences_main"):
+        assert gone not in text, gone
+    assert "## How far each run got" in text and "## Time per frame" in text
+    assert "![sequences_other](images/heldout/sequences_other.png)" in text
+    assert not (tmp_path / "docs" / "images" / "heldout" / "sequences_main.png").exists()
+
+
 def test_each_profile_regenerates_its_own_page(tmp_path, monkeypatch):
     """python -m physmorph.userdocs results PROFILE: the default profile writes docs/results.md and
     docs/images/, any other docs/results_PROFILE.md and docs/images/PROFILE/, so regenerating mid's
