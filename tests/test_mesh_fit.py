@@ -116,3 +116,26 @@ def test_a_source_that_is_not_an_isosphere_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([str(path), "--configfile", str(REPO / "config/config.yaml"), "--source", "A"])
     assert "isosphere" in capsys.readouterr().err
+
+
+def test_the_size_also_keeps_the_target_whole_in_every_view():
+    """A tall mesh at the default grid: the 26-unit particle region would take it, but the target's
+    cameras (fov 40 degrees at distance 36, from 21 degrees above) cut off its ends, and the render
+    loss would never see them. The advice stops where the last vertex leaves a view."""
+    from physmorph.cameras import ring_cameras
+
+    cams = ring_cameras(8, 21.0, 40.0, 160, 90, 36.0)
+    tall = trimesh.creation.box(extents=(1.0, 6.0, 1.0))
+    a = advise_size(tall, volume=1170.0, grid_res=32, cameras=cams)
+    assert a.max_size == pytest.approx(26.0) and a.view_size < a.max_size
+    assert a.size == a.view_size == a.largest and not a.keeps_source
+
+    def inside(size):
+        mesh, _, _ = normalize_mesh(tall, size)
+        uv, z = cams.project(mesh.vertices)
+        return bool(np.all(z > 0) and np.all((uv >= 0) & (uv <= [cams.width, cams.height])))
+
+    assert inside(a.view_size) and not inside(a.view_size + 2 * SIZE_STEP)
+    # a compact mesh holds the volume well inside the views
+    cube = advise_size(trimesh.creation.box(), 1170.0, 32, cameras=cams)
+    assert cube.keeps_source and cube.size == cube.size_for_volume < cube.view_size

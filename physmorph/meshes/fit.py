@@ -8,7 +8,8 @@ that fits, and the source to the target's volume.
 
     python -m physmorph.meshes.fit path/to/mesh.obj [--configfile config/config.yaml ...] [--source iso]
 
-prints the size for the source's volume, the largest size that fits the configured grid, and,
+prints the size for the source's volume, the largest size that fits the configured grid (and the
+target's camera views, so the render loss sees all of it), and,
 where the first does not fit, the shapes a config needs (target and a volume-matched isosphere).
 The mesh is repaired exactly as the prepare_mesh stage repairs it, so the volume is the one the
 workflow will see (a mesh that is not watertight still gets a size).
@@ -53,6 +54,12 @@ class SizeAdvice:
     grid_res: int
     region: tuple[float, float]  # the particles' region on each axis
     repair: tuple[str, ...]  # the repair steps prepare_mesh will log
+    view_size: float = math.inf  # the largest size whose every vertex is inside every target view
+
+    @property
+    def largest(self) -> float:
+        """The largest size that fits both the particles' region and the target's views."""
+        return min(self.max_size, self.view_size)
 
     @property
     def keeps_source(self) -> bool:
@@ -61,7 +68,7 @@ class SizeAdvice:
 
     @property
     def size(self) -> float:
-        return min(self.size_for_volume, self.max_size)
+        return min(self.size_for_volume, self.largest)
 
     @property
     def target_volume(self) -> float:
@@ -89,14 +96,36 @@ def isosphere_size_for_volume(volume: float) -> float:
     return round(s / SIZE_STEP) * SIZE_STEP
 
 
+def largest_size_in_views(unit: trimesh.Trimesh, cameras, upper: float, iterations: int = 40) -> float:
+    """The largest size s <= ``upper`` at which every vertex of ``unit`` (the mesh at size 1, placed
+    as prepare_mesh places it) scaled by s projects inside every view of ``cameras`` (in front of
+    it). Perspective makes the test non-linear in s, so it is bisected; it is monotone because the
+    cameras look at the origin, which the scaled mesh grows from."""
+    def inside(size: float) -> bool:
+        uv, z = cameras.project(unit.vertices * size)
+        return bool(np.all(z > 0) and np.all((uv[..., 0] >= 0) & (uv[..., 0] <= cameras.width)
+                                              & (uv[..., 1] >= 0) & (uv[..., 1] <= cameras.height)))
+
+    if inside(upper):
+        return math.inf
+    lo, hi = 0.0, upper
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if inside(mid) else (lo, mid)
+    return _floor_step(lo)
+
+
 def advise_size(
     mesh: trimesh.Trimesh,
     volume: float,
     grid_res: int,
     domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI),
     repair: tuple[str, ...] = (),
+    cameras=None,
 ) -> SizeAdvice:
-    """Size advice for a watertight ``mesh`` (any scale): see :class:`SizeAdvice`."""
+    """Size advice for a watertight ``mesh`` (any scale): see :class:`SizeAdvice`. With ``cameras``
+    (physmorph.cameras.Cameras: the target's views) the size is also kept inside every view, so
+    the render loss sees the whole target."""
     if not volume > 0:
         raise ValueError(f"volume must be > 0, got {volume!r}")
     unit, _, _ = normalize_mesh(mesh, 1.0)
@@ -109,10 +138,12 @@ def advise_size(
     # At size s the normalised bounds are s * unit.bounds; both faces of every axis must stay inside.
     b_lo, b_hi = unit.bounds
     limits = [region[0] / v for v in b_lo if v < 0] + [region[1] / v for v in b_hi if v > 0]
-    return SizeAdvice(volume=float(volume), unit_volume=unit_volume,
-                      size_for_volume=_floor_step((volume / unit_volume) ** (1.0 / 3.0)),
-                      max_size=_floor_step(min(limits)), grid_res=int(grid_res), region=region,
-                      repair=tuple(repair))
+    size_for_volume = _floor_step((volume / unit_volume) ** (1.0 / 3.0))
+    max_size = _floor_step(min(limits))
+    view_size = math.inf if cameras is None else largest_size_in_views(unit, cameras, max(size_for_volume, max_size))
+    return SizeAdvice(volume=float(volume), unit_volume=unit_volume, size_for_volume=size_for_volume,
+                      max_size=max_size, grid_res=int(grid_res), region=region, repair=tuple(repair),
+                      view_size=view_size)
 
 
 def advise_size_for_file(
@@ -121,11 +152,12 @@ def advise_size_for_file(
     grid_res: int,
     domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI),
     volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
+    cameras=None,
 ) -> SizeAdvice:
     """Load and repair ``path`` as prepare_mesh does, then :func:`advise_size`."""
     raw = load_raw_mesh(path)
     repaired, steps, _ = repair_mesh(raw, str(path), volume_tolerance=volume_tolerance)
-    return advise_size(repaired, volume, grid_res, domain, tuple(steps))
+    return advise_size(repaired, volume, grid_res, domain, tuple(steps), cameras)
 
 
 def shape_name(stem: str) -> str:
@@ -141,6 +173,8 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
              f"  size for the source's volume ({a.volume:.0f} units^3): {a.size_for_volume:.1f}",
              f"  largest size that fits grid {a.grid_res} (particles stay in [{a.region[0]:g}, {a.region[1]:g}]^3): "
              f"{a.max_size:.1f}"]
+    if math.isfinite(a.view_size):
+        lines.append(f"  largest size every target view shows whole: {a.view_size:.1f}")
     if a.keeps_source:
         if a.size < a.size_for_volume:
             lines.append(f"  at size {a.size:.1f} it holds {a.target_volume:.0f} units^3, within "
@@ -178,7 +212,11 @@ def main(argv: list[str] | None = None) -> int:
                  "does not fit)")
     volume = isosphere_volume(src.size)
     name = args.name or shape_name(Path(args.mesh).stem)
-    advice = advise_size_for_file(args.mesh, volume, settings.sampling.grid_res, settings.domain)
+    from physmorph.cameras import ring_cameras
+
+    t = settings.target
+    cameras = ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance)
+    advice = advise_size_for_file(args.mesh, volume, settings.sampling.grid_res, settings.domain, cameras=cameras)
     print(advice_text(advice, args.mesh, name, args.source))
     return 0
 
