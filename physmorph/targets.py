@@ -13,6 +13,7 @@ file so every later stage uses the same ones.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +26,17 @@ from physmorph.config import SamplingConfig, TargetConfig
 from physmorph.grid import Grid, splat_mass
 from physmorph.render import RenderConfig
 from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
+
+
+class TargetCropWarning(UserWarning):
+    """The target's silhouette reaches the image border: the part beyond it is invisible to the
+    render loss and to the alpha-MSE metric (only the mass loss sees it)."""
+
+
+def cropped_views(alpha: np.ndarray) -> list[int]:  # alpha [V, H, W]
+    """The views whose silhouette touches the image border (coverage >= 0.5 on an edge pixel)."""
+    edge = np.concatenate([alpha[:, 0, :], alpha[:, -1, :], alpha[:, :, 0], alpha[:, :, -1]], axis=1)
+    return [int(v) for v in np.flatnonzero((edge >= 0.5).any(axis=1))]
 
 
 @dataclass(frozen=True)
@@ -121,6 +133,12 @@ def rasterize_target(
     cams = ring_cameras(target_cfg.cameras, target_cfg.elevation_deg, target_cfg.fov_y_deg,
                         target_cfg.width, target_cfg.height, target_cfg.distance)
     alpha, depth = rasterize_mesh(mesh, cams, target_cfg.supersample)
+    cropped = cropped_views(alpha)
+    if cropped:
+        warnings.warn(f"{mesh_h5} (shape '{shape}'): the silhouette touches the image border in views "
+                      f"{cropped} of {cams.count}; what lies beyond is invisible to the render loss and the alpha "
+                      "MSE. Shrink the shape (python -m physmorph.meshes.fit prints a size that fits the views)",
+                      TargetCropWarning, stacklevel=2)
     sdt = np.stack([signed_distance_transform(a >= 0.5) for a in alpha])
     x, vol, _ = sample_volume(mesh, grid, sampling.ppc_surface, sampling.ppc_interior, seed)
     grid_mass = splat_mass(x, sampling.density * vol, grid)
@@ -131,7 +149,7 @@ def rasterize_target(
     surface_points, _ = trimesh.sample.sample_surface(mesh, target_cfg.surface_points, seed=seed)
     summary = dict(shape=shape, views=cams.count, width=cams.width, height=cams.height,
                    coverage=[float(a.mean()) for a in alpha], grid_mass_total=float(grid_mass.sum()),
-                   surface_points=int(len(surface_points)), volume=float(mesh.volume),
+                   surface_points=int(len(surface_points)), volume=float(mesh.volume), cropped_views=cropped,
                    ceiling_alpha_mse=ceiling["alpha_mse"], ceiling_iou=ceiling["iou"], ceiling_sigma0=float(ceiling_sigma0),
                    ceiling_alpha_mse_views=[float(v) for v in ceiling["alpha_mse_views"]],
                    ceiling_iou_views=[float(v) for v in ceiling["iou_views"]])
@@ -147,7 +165,8 @@ def rasterize_target(
         f.attrs.update(ceiling_alpha_mse=ceiling["alpha_mse"], ceiling_iou=ceiling["iou"], ceiling_sigma0=ceiling_sigma0)
         f.attrs.update(shape=shape, grid_res=grid.res, lo=grid.lo, hi=grid.hi, dx=grid.dx,
                        sdt_units="pixels", depth_convention="z_cam of first hit at pixel centre, 0 = no hit",
-                       volume=float(mesh.volume), density=sampling.density, seed=seed)
+                       volume=float(mesh.volume), density=sampling.density, seed=seed,
+                       cropped_views=np.asarray(cropped, dtype=np.int64))
     if preview_png is not None:
         silhouette_preview(alpha, preview_png, title=f"target {shape}: {cams.count} views")
     return summary

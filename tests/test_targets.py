@@ -226,3 +226,30 @@ def test_target_carries_its_ceiling(tmp_path):
         stamp_checksum(f)
     with pytest.raises(StageInputError, match=r"t_op\.h5.*missing field 'ceiling_iou_views'"):
         load_target(out2)
+
+
+def test_a_target_cut_off_by_the_image_border_is_named(tmp_path):
+    """A shape taller than the cameras frame: the stage warns, naming the file, the shape and the
+    views, and records them; a shape inside every view does neither."""
+    import h5py
+
+    from physmorph.config import SamplingConfig, TargetConfig
+    from physmorph.meshes import ShapeSpec, prepare_mesh
+    from physmorph.targets import TargetCropWarning, rasterize_target
+
+    tc = TargetConfig(cameras=4, width=24, height=16, supersample=1, surface_points=100)
+    sampling = SamplingConfig(16, 1, 1, 75.0, 0.7)
+    prepare_mesh(ShapeSpec("small", "isosphere", size=10.0), None, tmp_path / "small.h5")
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TargetCropWarning)
+        summary = rasterize_target(tmp_path / "small.h5", tmp_path / "ts.h5", sampling, tc)
+    assert summary["cropped_views"] == []
+    tall = trimesh.creation.box(extents=(2.0, 25.0, 2.0))
+    tall.export(tmp_path / "tall.obj")
+    prepare_mesh(ShapeSpec("tall", "file", size=25.0, file="tall.obj"), tmp_path / "tall.obj", tmp_path / "tall.h5")
+    with pytest.warns(TargetCropWarning, match=r"tall\.h5 \(shape 'tall'\).*views \[0, 1, 2, 3\] of 4"):
+        summary = rasterize_target(tmp_path / "tall.h5", tmp_path / "tt.h5", SamplingConfig(32, 1, 1, 75.0, 0.7), tc)
+    assert summary["cropped_views"] == [0, 1, 2, 3]
+    with h5py.File(tmp_path / "tt.h5") as f:
+        assert list(f.attrs["cropped_views"]) == [0, 1, 2, 3]
