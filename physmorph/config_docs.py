@@ -203,6 +203,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.momentum_restart": ("start the next frame at rest when the frame's physics loss (the mass loss, with the full method's stray pull) or alpha MSE rose; "
                                "off: the paper's loop", "", ""),
     "morph.restart_keep": ("share of the velocity a restart keeps", "", R01),
+    "morph.restart_reference": ("what a frame's objective must rise above for a restart: the previous frame's "
+                                "(previous) or the one before it (two_back)", "", "previous or two_back"),
     "morph.step_backoff": ("step multiplier after a frame whose physics loss rose; 1 = fixed step", "", "(0, 1]"),
     "morph.step_growth": ("step multiplier after a frame whose loss fell, up to learning_rate", "", ">= 1"),
     "morph.step_first": ("the step at the first frame, in learning rates (linear to step_last); 1 = fixed step", "", "> 0"),

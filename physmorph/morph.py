@@ -171,6 +171,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     # where the restart is off, so the onset does not depend on it)
     rise_on = restart_on or "physics_loss"
     previous = run.frame_metric(start - 1, rise_on)
+    before_previous = run.frame_metric(start - 2, rise_on) if start >= 2 else float("nan")
     # the adaptive step (MorphConfig.step_backoff): this frame's step, and the mass loss it is judged against
     step = cfg.mpm.step_size if resumed_from is None else float(ck.get("next_step", cfg.mpm.step_size))
     loss_before = run.frame_metric(start - 1, "physics_loss")
@@ -299,16 +300,19 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         scal.update(m)
         now = scal[rise_on]
         objective_rose = bool(np.isfinite(previous) and now > previous)
-        previous = now
+        # MorphConfig.restart_reference: the level a restart is judged against
+        reference = before_previous if cfg.restart_reference == "two_back" and np.isfinite(before_previous) else previous
+        restart = bool(np.isfinite(reference) and now > reference)
+        before_previous, previous = previous, now
         if restart_on:
             # the objective rose over this frame: the state is moving away from the target, so
             # the next frame starts with (most of) that momentum removed
-            if objective_rose:
+            if restart:
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
                 if cfg.restart_control_keep < 1.0:
                     solver.scale_control(cfg.restart_control_keep)
-            scal["momentum_restart"] = float(objective_rose)
+            scal["momentum_restart"] = float(restart)
         if objective_rose and solver.overfill_weight != cfg.mpm.overfill_weight:
             solver.set_overfill_weight(cfg.mpm.overfill_weight)
             log(f"[{name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")

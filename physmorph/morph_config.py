@@ -51,6 +51,12 @@ class MorphConfig:
     # Not in the paper; "off" is the paper's loop.
     momentum_restart: Literal["off", "mass_loss", "alpha_mse"] = "mass_loss"
     restart_keep: float = 0.0
+    # What a frame's objective must rise above for a restart: "previous", the frame before's;
+    # "two_back", the one before that, so a frame that starts at rest after a restart and falls
+    # is not followed by another restart merely for rebounding (near the target the restart
+    # otherwise fires every other frame: docs/study/log.md finding 208). The packing term's onset
+    # keeps the previous frame's comparison. Not in the paper.
+    restart_reference: Literal["previous", "two_back"] = "previous"
     # The step adapts to the run (the "bold driver" rule of Vogl et al. 1988): after a frame whose
     # mass loss rose, the next frame's normalised step (mpm.learning_rate at most) is multiplied
     # by step_backoff; after one whose loss fell it grows by step_growth, back up to
@@ -128,6 +134,8 @@ class MorphConfig:
             raise ValueError(f"momentum_restart must be off, mass_loss or alpha_mse, got {self.momentum_restart!r}")
         if not 0.0 <= self.restart_keep <= 1.0:
             raise ValueError(f"restart_keep must be in [0, 1], got {self.restart_keep}")
+        if self.restart_reference not in ("previous", "two_back"):
+            raise ValueError(f"restart_reference must be previous or two_back, got {self.restart_reference!r}")
         if not 0.0 < self.step_backoff <= 1.0:
             raise ValueError(f"step_backoff must be in (0, 1], got {self.step_backoff}")
         if not self.step_growth >= 1.0:

@@ -281,6 +281,29 @@ def test_momentum_restart_starts_the_next_frame_at_rest_when_the_mass_loss_rose(
     assert np.isnan(m_off["momentum_restart"]).all() and np.all(start_off[1:] > 0)
 
 
+def test_restart_against_two_frames_back(tiny):
+    """morph.restart_reference: two_back: a frame is flagged when its mass loss ends above the
+    frame's two before (the previous frame's where that one has no value), not merely above the
+    previous one."""
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_full")
+    assert base.restart_reference == "previous"
+    mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)
+    m = read_metrics(_run(tiny, "iso_bunny_full", "restart_two_back.h5", mpm=mpm, frames=24,
+                          restart_reference="two_back"))
+    loss = m["physics_loss"]  # [K + 1]; frame 0's has no value
+    flagged = m["momentum_restart"][1:] == 1.0
+    expected = []
+    for k in range(1, len(loss)):
+        ref = loss[k - 2] if k >= 2 and np.isfinite(loss[k - 2]) else loss[k - 1]
+        expected.append(bool(np.isfinite(ref) and loss[k] > ref))
+    np.testing.assert_array_equal(flagged, expected)
+    rose_only = [k for k in range(2, len(loss)) if loss[k] > loss[k - 1] and not expected[k - 1]]
+    assert rose_only, "the test needs a frame that rose over the previous one but not over the one before"
+    with pytest.raises(ValueError, match="restart_reference"):
+        dataclasses.replace(base, restart_reference="last")
+
+
 def _spy_learning_rates(monkeypatch) -> list[float]:
     """The learning rate the morph loop hands MPMSolver.optimize_control, one entry a call."""
     handed: list[float] = []
