@@ -37,6 +37,9 @@ SIZE_STEP = 0.1
 # A target that fits at this share of the source's volume keeps the source as it is (a few per cent
 # is inside what the morph's mass loss already forgives: the repair tolerance is the same 3 %).
 VOLUME_SLACK = 0.03
+# The silhouette keeps this many pixels from the image edge, so the edge pixels stay empty and the
+# target stage's crop warning (physmorph.targets.cropped_views) stays silent at the advised size.
+VIEW_MARGIN_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -98,13 +101,15 @@ def isosphere_size_for_volume(volume: float) -> float:
 
 def largest_size_in_views(unit: trimesh.Trimesh, cameras, upper: float, iterations: int = 40) -> float:
     """The largest size s <= ``upper`` at which every vertex of ``unit`` (the mesh at size 1, placed
-    as prepare_mesh places it) scaled by s projects inside every view of ``cameras`` (in front of
-    it). Perspective makes the test non-linear in s, so it is bisected; it is monotone because the
+    as prepare_mesh places it) scaled by s projects inside every view of ``cameras``, VIEW_MARGIN_PX
+    from its edges (and in front of it). Perspective makes the test non-linear in s, so it is bisected; it is monotone because the
     cameras look at the origin, which the scaled mesh grows from."""
+    m = VIEW_MARGIN_PX
+
     def inside(size: float) -> bool:
         uv, z = cameras.project(unit.vertices * size)
-        return bool(np.all(z > 0) and np.all((uv[..., 0] >= 0) & (uv[..., 0] <= cameras.width)
-                                              & (uv[..., 1] >= 0) & (uv[..., 1] <= cameras.height)))
+        return bool(np.all(z > 0) and np.all((uv[..., 0] >= m) & (uv[..., 0] <= cameras.width - m)
+                                              & (uv[..., 1] >= m) & (uv[..., 1] <= cameras.height - m)))
 
     if inside(upper):
         return math.inf
