@@ -11,8 +11,8 @@ import yaml
 from physmorph.config import load_settings
 from physmorph.grid import BOUNDARY_CELLS, Grid
 from physmorph.meshes import MeshError, normalize_mesh
-from physmorph.meshes.fit import (SIZE_STEP, VOLUME_SLACK, advise_size, isosphere_size_for_volume, isosphere_volume,
-                                  main, shape_name)
+from physmorph.meshes.fit import (SIZE_STEP, VIEW_MARGIN_PX, VOLUME_SLACK, advise_size, isosphere_size_for_volume,
+                                  isosphere_volume, main, shape_name)
 from physmorph.particles import sample_volume
 
 REPO = Path(__file__).resolve().parent.parent
@@ -133,9 +133,36 @@ def test_the_size_also_keeps_the_target_whole_in_every_view():
     def inside(size):
         mesh, _, _ = normalize_mesh(tall, size)
         uv, z = cams.project(mesh.vertices)
-        return bool(np.all(z > 0) and np.all((uv >= 0) & (uv <= [cams.width, cams.height])))
+        m = VIEW_MARGIN_PX
+        return bool(np.all(z > 0) and np.all((uv >= m) & (uv <= [cams.width - m, cams.height - m])))
 
     assert inside(a.view_size) and not inside(a.view_size + 2 * SIZE_STEP)
     # a compact mesh holds the volume well inside the views
     cube = advise_size(trimesh.creation.box(), 1170.0, 32, cameras=cams)
     assert cube.keeps_source and cube.size == cube.size_for_volume < cube.view_size
+
+
+def test_at_the_advised_size_the_target_stage_sees_no_crop(tmp_path):
+    """The fit and the target stage agree: at the advised size the silhouette keeps off the image
+    edge in every view (no TargetCropWarning); half a unit larger it reaches it."""
+    import warnings
+
+    from physmorph.cameras import ring_cameras
+    from physmorph.config import SamplingConfig, TargetConfig
+    from physmorph.meshes import ShapeSpec, prepare_mesh
+    from physmorph.targets import TargetCropWarning, rasterize_target
+
+    tc = TargetConfig(surface_points=100)  # the default views: 8 x 160x90
+    cams = ring_cameras(tc.cameras, tc.elevation_deg, tc.fov_y_deg, tc.width, tc.height, tc.distance)
+    tall = trimesh.creation.box(extents=(1.0, 6.0, 1.0))
+    tall.export(tmp_path / "tall.obj")
+    size = advise_size(tall, volume=1170.0, grid_res=32, cameras=cams).size
+    sampling = SamplingConfig(32, 1, 1, 75.0, 0.7)
+    for s, cropped in ((size, False), (size + 0.5, True)):
+        spec = ShapeSpec("tall", "file", size=s, file="tall.obj")
+        prepare_mesh(spec, tmp_path / "tall.obj", tmp_path / f"tall_{s}.h5")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            summary = rasterize_target(tmp_path / f"tall_{s}.h5", tmp_path / f"t_{s}.h5", sampling, tc)
+        assert bool(summary["cropped_views"]) == cropped, (s, summary["cropped_views"])
+        assert any(issubclass(w.category, TargetCropWarning) for w in caught) == cropped
