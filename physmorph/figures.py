@@ -64,22 +64,27 @@ def figure_cameras(target: TargetConfig | dict, scale: int = 2):
     return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
 
 
+def _experiment_field(f: h5py.File, key: str) -> str | None:
+    """One field of the experiment in a run's config record (None where the run has none)."""
+    try:
+        return str(json.loads(f.attrs["config_record"])["experiment"][key])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 def run_method(f: h5py.File) -> str:
     """A run's method from its config record ("" where it has none)."""
-    try:
-        return str(json.loads(f.attrs["config_record"])["experiment"]["method"])
-    except (KeyError, TypeError, ValueError):
-        return ""
+    return _experiment_field(f, "method") or ""
 
 
 def run_target_shape(f: h5py.File, name: str) -> str:
     """The target shape of a run: its config record's experiment, else the name's second part
     (experiments are named {source}_{target}_{method}...)."""
-    try:
-        return str(json.loads(f.attrs["config_record"])["experiment"]["target"])
-    except (KeyError, TypeError, ValueError):
-        parts = name.split("_")
-        return parts[1] if len(parts) > 1 else ""
+    target = _experiment_field(f, "target")
+    if target is not None:
+        return target
+    parts = name.split("_")
+    return parts[1] if len(parts) > 1 else ""
 
 
 def _share_closed(f: h5py.File, k: int) -> float:

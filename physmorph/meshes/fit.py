@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from physmorph.grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
+from physmorph.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
 from .prepare import normalize_mesh
 from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
@@ -137,9 +137,7 @@ def advise_size(
     unit_volume = abs(float(unit.volume))
     if not unit_volume > 0:
         raise ValueError("the mesh encloses no volume")
-    lo, hi = float(domain[0]), float(domain[1])
-    margin = BOUNDARY_CELLS * (hi - lo) / grid_res
-    region = (lo + margin, hi - margin)
+    region = Grid(int(grid_res), float(domain[0]), float(domain[1])).interior_bounds()
     # At size s the normalised bounds are s * unit.bounds; both faces of every axis must stay inside.
     b_lo, b_hi = unit.bounds
     limits = [region[0] / v for v in b_lo if v < 0] + [region[1] / v for v in b_hi if v > 0]
