@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from physmorph.config import load_settings
+from physmorph.metrics import sign_changes, swing_percent
 from physmorph.morph import morph_config, read_metrics, run_morph
 from physmorph.quality import gap_closed
 from physmorph.runfile import partial_dir
@@ -34,7 +35,8 @@ REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "study" / "runs.csv"
 COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_frame", "a_final", "ceiling",
            "closed_best", "closed_final", "iou0", "iou_best", "iou_final", "ceiling_iou", "chamfer0",
-           "chamfer_final", "fp_det_min", "status", "wall_s", "volume_iou0", "volume_iou_final", "overfilled_final"]
+           "chamfer_final", "fp_det_min", "status", "wall_s", "volume_iou0", "volume_iou_final", "overfilled_final",
+           "swing_percent", "sign_changes", "drop_points"]
 
 
 def parse_set(items: list[str]) -> dict:
@@ -94,7 +96,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
             out.unlink(missing_ok=True)
             shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
         t0 = time.time()
-        run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True))
+        run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True),
+                  target_size=cfg.shape(exp.target).size)
         wall = time.time() - t0
         m = read_metrics(out)
         # The ceiling stored by the target stage (the target's own particles at rest, its sigma0);
@@ -111,7 +114,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
                "chamfer0": m["chamfer"][0], "chamfer_final": m["chamfer"][-1],
                "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall,
                "volume_iou0": m["volume_iou"][0], "volume_iou_final": m["volume_iou"][-1],
-               "overfilled_final": m["overfilled_mass"][-1]}
+               "overfilled_final": m["overfilled_mass"][-1],
+               # how still the last frames are (physmorph.metrics)
+               "swing_percent": swing_percent(a), "sign_changes": sign_changes(a),
+               "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"]))}
         row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
         print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
         curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])

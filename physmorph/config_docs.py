@@ -205,6 +205,14 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
     "morph.restart_keep": ("share of the velocity a restart keeps", "", R01),
     "morph.restart_reference": ("what a frame's objective must rise above for a restart: the previous frame's "
                                 "(previous) or the one before it (two_back)", "", "previous or two_back"),
+    "morph.settle": ("the last phase: from the frame after the objective first rose (after_first_rise) or after the "
+                     "restart fired twice one frame apart (after_cycle) every frame starts at rest, and one whose "
+                     "settle_objective rises is undone (the body holds still); off: the restart alone", "",
+                     "off, after_cycle or after_first_rise"),
+    "morph.settle_backoff": ("step multiplier after a frame the settle phase undid", "", "(0, 1]"),
+    "morph.settle_objective": ("what the settle phase judges a frame by: its alpha MSE (every view), its render loss, "
+                               "or its physics loss; physics_only is gated on the physics loss only", "",
+                               "render, alpha_mse or physics"),
     "morph.step_backoff": ("step multiplier after a frame whose physics loss rose; 1 = fixed step", "", "(0, 1]"),
     "morph.step_growth": ("step multiplier after a frame whose loss fell, up to learning_rate", "", ">= 1"),
     "morph.step_first": ("the step at the first frame, in learning rates (linear to step_last); 1 = fixed step", "", "> 0"),

@@ -43,6 +43,7 @@ from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
 from physmorph.linalg3 import det3
 from physmorph.memory import release_free_memory
+from physmorph.meshes.fit import volume_mismatch
 from physmorph.morph_config import METHODS, MorphConfig  # noqa: F401 (re-exported)
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, kinetic_energy, total_volume
 from physmorph.particles import load_particles
@@ -50,6 +51,7 @@ from physmorph.quality import gap_closed, silhouette_iou, volume_metrics
 from physmorph.plasticity import absorbed_rest, chamfer_plasticity_step, neighbour_pool, rebase_reference
 from physmorph.render import RenderTarget, render_and_grad, render_views
 from physmorph.stability import MorphDivergenceError, StabilityMonitor, anisotropy, check_state  # noqa: F401 (re-exported)
+from physmorph.settle import AcceptedFrame, settle_gate
 from physmorph.runfile import SCALARS, RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (re-exported)
 from physmorph.surface import update_surface_mask
 from physmorph.targets import load_target
@@ -57,8 +59,9 @@ from physmorph.transport import destinations_in_grid_mass
 
 
 def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
-              name: str = "", config_record: dict | None = None, log=None) -> dict:
-    """Run (or resume) one morph experiment; returns a summary dict. See the module docstring."""
+              name: str = "", config_record: dict | None = None, log=None, target_size: float | None = None) -> dict:
+    """Run (or resume) one morph experiment; returns a summary dict. See the module docstring.
+    ``target_size``: the target shape's configured size, for the size a volume warning advises."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     started = time.time()
     out_h5 = Path(out_h5)
@@ -67,11 +70,12 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     # A partial run resumes only with the same settings and the same input content.
     key = RunKey(record, (("particles", stored_checksum(particles_h5)), ("target", stored_checksum(target_h5))))
     with RunWriter(out_h5, key, started) as run:  # one writer per run: a second one is refused
-        _morph_loop(particles_h5, target_h5, cfg, name, record, log, run)
+        _morph_loop(particles_h5, target_h5, cfg, name, record, log, run, target_size)
     return summarize_run(out_h5)
 
 
-def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: str, log, run: RunWriter) -> None:
+def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: str, log, run: RunWriter,
+                target_size: float | None = None) -> None:
     partial = run.dir
     parts = load_particles(particles_h5)
     target = load_target(target_h5)
@@ -97,6 +101,11 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     # rescaled to the source's total mass (its shape is what is matched).
     mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
     solver.set_target_grid_mass(target.grid_mass * mass_ratio)
+    # a target of another volume is named once in the log and in the run file's warnings
+    source_volume = parts.mesh_volume if np.isfinite(parts.mesh_volume) else float(parts.volume.sum())
+    volume_note = volume_mismatch(name or str(target_h5), source_volume, float(target.volume), target_size)
+    if volume_note:
+        log(f"[{name}] warning: {volume_note}")
     lo, hi = cfg.mpm.domain_lo, cfg.mpm.domain_hi
 
     # The mask is only built where something uses it (a switched-off component costs nothing).
@@ -144,14 +153,15 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                            mass=parts.mass.copy(), volume=parts.volume.copy())
         mask = update_surface_mask(st.x, st.volume, tree, cfg.surface, lo, hi) if need_mask else np.zeros(N, bool)
         g_F, g_x = np.zeros((N, 3, 3)), np.zeros((N, 3))
-        run.set_meta({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio, "n_particles": N,
+        run.set_meta({"experiment": name, "method": cfg.method, "target_mass_ratio": mass_ratio,
+                      "target_volume_ratio": float(target.volume) / source_volume, "n_particles": N,
                       "sigma0": parts.sigma0, "views": V, "loss_views": views, "frames_planned": cfg.frames,
                       "ceiling_alpha_mse": ceiling, "ceiling_iou": float(getattr(target, "ceiling_iou", np.nan))})
         m, per_view, _ = metrics_for(st, mask)
         a0 = m["alpha_mse"]
         m["gap_closed"] = 0.0
         # Frame 0 is the unmoved source: it has metrics but no physics step (its losses are NaN).
-        run.commit(0, m, per_view, asdict_state(st), [], {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
+        run.commit(0, m, per_view, asdict_state(st), [volume_note] if volume_note else [], {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x,
                                                           "injection_scale": float("nan"), **solver.optimizer_state(),
                                                           **monitor.state()})
         start = 1
@@ -184,6 +194,12 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
     want_grad = inject_F or inject_x
     # the stray pull is the Chamfer guidance's (component C, with the plasticity): the full method's
     stray_pull = cfg.stray_pull > 0 and cfg.method == "full"
+    # MorphConfig.settle: the last phase's gate over frames (physmorph.settle)
+    gate = settle_gate(cfg.settle, cfg.settle_objective, want_grad, cfg.settle_backoff)
+    if resumed_from is not None:
+        gate.restore(ck)
+        if gate.at_rest_after(start - 1):  # the checkpoint's state is the last accepted frame's
+            gate.accepted = _accepted_from_run(run, start - 1, st, solver, mask, g_F, g_x, scale, gate.objective_key)
     status = "complete"
     frame_times = []
     nearest_d = nearest_i = None  # the state's nearest target surface points, kept from the last frame's end
@@ -233,6 +249,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 break
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
         strain = frame_strain(st.F, new.F)
+
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
         if cfg.volume_averaging > 0:
             st = dataclasses.replace(st, F=averaged_volume(st.F, grid_average(st.x, st.mass, det3(st.F), target.grid),
@@ -298,6 +315,19 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                                   target_distance=nearest_d)
         m["gap_closed"] = gap_closed(a0, m["alpha_mse"], ceiling) if np.isfinite(ceiling) else np.nan
         scal.update(m)
+        rejected = gate.rejects(k, scal.get(gate.objective_key, np.nan))
+        if rejected:  # the frame is undone: the body holds still at the last accepted frame
+            back = gate.accepted
+            st, mask, g_F, g_x, scale = back.state, back.mask, back.g_F, back.g_x, back.injection_scale
+            solver.set_optimizer_state(back.optimizer)
+            scal, per_view, m = dict(back.scalars), back.per_view, back.scalars
+            nearest_d = nearest_i = None
+            scal["step_size"] = frame_step  # the step the undone frame tried
+            step *= gate.backoff
+            if k == cfg.frames and cfg.method == "full" and cfg.plasticity.absorbs_at(k, cfg.frames):
+                st = _absorb_at_rest(st, solver, cfg)  # the last update's absorption, on the accepted body
+        if gate.gates(k):
+            scal["settling"] = 2.0 if rejected else 1.0
         now = scal[rise_on]
         objective_rose = bool(np.isfinite(previous) and now > previous)
         # MorphConfig.restart_reference: the level a restart is judged against
@@ -307,12 +337,18 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         if restart_on:
             # the objective rose over this frame: the state is moving away from the target, so
             # the next frame starts with (most of) that momentum removed
-            if restart:
+            if gate.note_restart(k, restart):
+                log(f"[{name}] frame {k}: the restart fired ({cfg.settle}); from frame {k + 1} every "
+                    f"frame starts at rest, and one whose {gate.objective_key} rises is undone")
+            if restart or gate.at_rest_after(k):
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
                 if cfg.restart_control_keep < 1.0:
                     solver.scale_control(cfg.restart_control_keep)
             scal["momentum_restart"] = float(restart)
+        if gate.at_rest_after(k) and not rejected:
+            gate.accepted = AcceptedFrame(st, solver.optimizer_state(), mask, g_F, g_x, scale, dict(scal), per_view,
+                                          float(scal.get(gate.objective_key, np.nan)))
         if objective_rose and solver.overfill_weight != cfg.mpm.overfill_weight:
             solver.set_overfill_weight(cfg.mpm.overfill_weight)
             log(f"[{name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")
@@ -322,7 +358,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         loss_before = scal["physics_loss"]
         if cfg.strain_rate_cap > 0 and strain > 0:  # the body's strain rate steers the next step
             step = min(step * cfg.strain_rate_cap / strain, cfg.mpm.step_size)
-        new_warnings = monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic, fp_anisotropy=dm.anisotropy_plastic)
+        new_warnings = [] if rejected else monitor.update(k, st.Fp, m["alpha_mse"], det=dm.det_plastic,
+                                                          fp_anisotropy=dm.anisotropy_plastic)
         # the render's images and gradient and the metrics' arrays are done with: the frame's freed
         # heap goes back to the system, so the checkpoint's buffers do not sit on top of it. Not
         # after every stage: memory returned is faulted in again by the next stage (on the 2-core
@@ -335,6 +372,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         run.commit(k, scal, per_view, asdict_state(st) if save else None, new_warnings,
                    lambda: {**asdict_state(st), "mask": mask, "g_F": g_F, "g_x": g_x, "injection_scale": scale,
                             "next_step": step, "overfill_weight": solver.overfill_weight,
+                            **gate.checkpoint(),
                             **solver.optimizer_state(), **monitor.state()},
                    last=k == cfg.frames)
         frame_times.append(scal["t_frame"])
@@ -410,6 +448,25 @@ def stray_pull_anchors(x: np.ndarray,  # [N, 3]
         reach = np.divide(nearest_d, length, out=np.zeros_like(length), where=length > 0)
         return x + way * np.minimum(reach, 1.0)[:, None], weight
     return np.asarray(target.surface_points)[nearest_i], weight
+
+
+def _accepted_from_run(run: RunWriter, frame: int, st: ParticleState, solver: MPMSolver, mask, g_F, g_x,
+                       scale: float, objective_key: str) -> AcceptedFrame:
+    """A resumed run's last accepted frame: its loop state is the checkpoint's (after a settling
+    frame the state is the accepted one) and its metrics the committed frame's."""
+    scalars, per_view = run.frame_metrics(frame)
+    return AcceptedFrame(st, solver.optimizer_state(), mask, g_F, g_x, scale, scalars, per_view,
+                         float(scalars.get(objective_key, np.nan)))
+
+
+def _absorb_at_rest(st: ParticleState, solver: MPMSolver, cfg: MorphConfig) -> ParticleState:
+    """The shape absorbed into the rest state (plasticity.absorb_control) without a Chamfer step: the
+    last frame's absorption when that frame was undone, so the run still ends with its shape in Fp."""
+    Fp = absorbed_rest(st.F, solver.control_mean(), st.Fp, cfg.plasticity)
+    rebase_to = rebase_reference(cfg.plasticity, True, Fp, Fp)
+    if rebase_to is not None:
+        solver.rebase_control(st.F, np.linalg.solve(st.Fp, rebase_to))
+    return dataclasses.replace(st, Fp=Fp)
 
 
 def averaged_volume(F: np.ndarray,  # [N, 3, 3]

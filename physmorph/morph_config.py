@@ -23,7 +23,7 @@ class MorphConfig:
     # always in a run's params (physmorph.config.without_defaults), so its record names the method
     # (and, for control_decay, because its default changed since runs were first made)
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
-                                                              "stray_pull"})
+                                                              "stray_pull", "settle"})
     method: Literal["physics_only", "f_inject", "full", "position_inject"] = "full"
     frames: int = 40
     gamma: float = 0.1  # render-F gain, relative (see calibrate_injection)
@@ -57,6 +57,18 @@ class MorphConfig:
     # otherwise fires every other frame: docs/study/log.md finding 208). The packing term's onset
     # keeps the previous frame's comparison. Not in the paper.
     restart_reference: Literal["previous", "two_back"] = "previous"
+    # settle: "after_cycle": once the restart has fired on two frames one apart (the period-two
+    # cycle near the target), every later frame starts at rest, and a frame whose objective (the
+    # render loss where the method renders, else the physics loss) ends above the last accepted
+    # frame's is undone: the body holds still for that frame, and the next frame's step is
+    # multiplied by settle_backoff (physmorph.settle). "off": the restart alone. Not in the paper.
+    settle: Literal["off", "after_cycle", "after_first_rise"] = "after_first_rise"  # history: docs/study/CHANGELOG.md
+    settle_backoff: float = 0.5
+    # what the gate judges: "render", the frame's render loss; "alpha_mse", the alpha MSE against
+    # the target's images (every view, every particle: the silhouette the tables report); both
+    # only where the method renders (physics_only is never gated); "physics", the physics loss
+    # (the mass loss, with the full method's stray pull), for every method
+    settle_objective: Literal["render", "alpha_mse", "physics"] = "alpha_mse"
     # The step adapts to the run (the "bold driver" rule of Vogl et al. 1988): after a frame whose
     # mass loss rose, the next frame's normalised step (mpm.learning_rate at most) is multiplied
     # by step_backoff; after one whose loss fell it grows by step_growth, back up to
@@ -134,6 +146,12 @@ class MorphConfig:
             raise ValueError(f"momentum_restart must be off, mass_loss or alpha_mse, got {self.momentum_restart!r}")
         if not 0.0 <= self.restart_keep <= 1.0:
             raise ValueError(f"restart_keep must be in [0, 1], got {self.restart_keep}")
+        if self.settle not in ("off", "after_cycle", "after_first_rise"):
+            raise ValueError(f"settle must be off, after_cycle or after_first_rise, got {self.settle!r}")
+        if self.settle_objective not in ("render", "alpha_mse", "physics"):
+            raise ValueError(f"settle_objective must be render, alpha_mse or physics, got {self.settle_objective!r}")
+        if not 0.0 < self.settle_backoff <= 1.0:
+            raise ValueError(f"settle_backoff must be in (0, 1], got {self.settle_backoff}")
         if self.restart_reference not in ("previous", "two_back"):
             raise ValueError(f"restart_reference must be previous or two_back, got {self.restart_reference!r}")
         if not 0.0 < self.step_backoff <= 1.0:

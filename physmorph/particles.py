@@ -161,6 +161,7 @@ class Particles:
     is_surface: np.ndarray  # [N] bool
     sigma0: float
     grid: Grid
+    mesh_volume: float = float("nan")  # the sampled mesh's volume (NaN in files written before it was stored)
 
     @property
     def count(self) -> int:
@@ -259,7 +260,8 @@ def load_particles(path: str | os.PathLike) -> Particles:
             fields[name] = arr
         sigma0 = float(read_attr(f, "sigma0"))
         grid = Grid(int(read_attr(f, "grid_res")), float(read_attr(f, "lo")), float(read_attr(f, "hi")))
+        mesh_volume = float(f.attrs.get("mesh_volume", np.nan))
     if not np.all(np.isfinite(x)):
         raise StageInputError(f"{path}: field 'x' has non-finite values")
     return Particles(x=x, volume=fields["volume"].astype(np.float64), mass=fields["mass"].astype(np.float64),
-                     is_surface=fields["is_surface"].astype(bool), sigma0=sigma0, grid=grid)
+                     is_surface=fields["is_surface"].astype(bool), sigma0=sigma0, grid=grid, mesh_volume=mesh_volume)

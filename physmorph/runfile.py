@@ -58,7 +58,7 @@ SCALARS = (
     "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", "loss_dt", "loss_iou",
     "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
-    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "step_size", "step_accepted", "frame_strain", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 # How saved states are stored: gzip at level 1 on byte-shuffled floats. A paper-scale state
@@ -352,6 +352,12 @@ class RunWriter:
             if int(f.attrs["frame"]) != frame or str(f.attrs["run_key"]) != self.key.digest:
                 raise RunFileError(f"{path}: belongs to another run or frame (frame {int(f.attrs['frame'])}); {remedy}")
             return _frame_content(f)
+
+    def frame_metrics(self, frame: int) -> tuple[dict, np.ndarray]:  # {name: value}, [V]
+        """A committed frame's scalars and its alpha MSE per view."""
+        with h5py.File(self.dir / frame_name(frame), "r") as f:
+            g = f["metrics"]
+            return {k: float(g[k][()]) for k in SCALARS if k in g}, np.asarray(g["alpha_mse_views"][()])
 
     def frame_metric(self, frame: int, name: str) -> float:
         with h5py.File(self.dir / frame_name(frame), "r") as f:

@@ -128,9 +128,10 @@ def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling, ta
 
 
 def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: str, threads: int | None = None,
-                log=None, experiment: dict | None = None) -> dict:
+                log=None, experiment: dict | None = None, target_size: float | None = None) -> dict:
     """One morph run. ``settings``: its MorphConfig or that config's params JSON
-    (physmorph.config.morph_params); ``experiment``: what the run file records about it."""
+    (physmorph.config.morph_params); ``experiment``: what the run file records about it;
+    ``target_size``: the target shape's configured size (named by a volume warning)."""
     from physmorph.morph import MorphConfig, run_morph
 
     mcfg = typed(MorphConfig, settings, "morph")
@@ -140,7 +141,8 @@ def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: 
         mcfg = replace(mcfg, mpm=replace(mcfg.mpm, threads=int(threads)))
     set_threads(threads)
     with stage_log(log, echo=True):
-        return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record)
+        return run_morph(particles_h5, target_h5, output, mcfg, name=name, config_record=record,
+                         target_size=target_size)
 
 
 def tables_stage(names: list[str], runs: list[str], layout: str, out_dir: str, log=None) -> dict:

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
-                               rebound_percent, release_rebound_percent, spread)
+                               rebound_percent, release_rebound_percent, sign_changes, spread, swing_percent)
 from physmorph.layout import PaperLayout, TableLayout
 from physmorph.runfile import read_metrics
 from physmorph.quality import gap_closed
@@ -115,8 +115,11 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
     at the best and final frame (%), silhouette IoU at frame 0, its maximum and final frame, the
     ceiling IoU, the 3D checks (physmorph.quality.volume_metrics): the volume IoU at frame 0 and
     the final frame (1 for the target's own sampling) and the final share of the mass packed above
-    twice the target's density (0 for it), and the paper's alpha MSE for the experiment where it
-    has one (and which one). Runs written before a metric existed show it as NaN."""
+    twice the target's density (0 for it), how still the last frames are (physmorph.metrics: the
+    swing %, the sign changes of the alpha MSE's frame-to-frame change over the last 10 frames,
+    and the drop, the best frame's share of the gap minus the last's, in points), and the
+    paper's alpha MSE for the experiment where it has one (and which one). Runs written before a
+    metric existed show it as NaN."""
     rows = []
     for name, r in m.items():
         a = np.asarray(r["alpha_mse"], dtype=float)
@@ -131,10 +134,12 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
                      "iou_0": iou[0], "iou_best": float(np.nanmax(iou)) if has_iou else np.nan, "iou_final": iou[-1],
                      "ceiling_iou": float(r["attrs"].get("ceiling_iou", np.nan)),
                      "volume_iou_0": viou[0], "volume_iou_final": viou[-1], "overfilled_mass_final": over[-1],
-                     "paper_alpha_mse": paper, "paper_which": paper_which})
+                     "swing_%": swing_percent(a), "sign_changes": sign_changes(a),
+                     "drop_points": closed_best - closed_final, "paper_alpha_mse": paper, "paper_which": paper_which})
     columns = ["experiment", "method", "frames", "alpha_mse_0", "alpha_mse_best", "best_frame", "alpha_mse_final",
                "ceiling", "closed_best_%", "closed_final_%", "iou_0", "iou_best", "iou_final", "ceiling_iou",
-               "volume_iou_0", "volume_iou_final", "overfilled_mass_final", "paper_alpha_mse", "paper_which"]
+               "volume_iou_0", "volume_iou_final", "overfilled_mass_final", "swing_%", "sign_changes", "drop_points",
+               "paper_alpha_mse", "paper_which"]
     return pd.DataFrame(rows, columns=columns)
 
 

@@ -140,15 +140,19 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
 
     out.append("## How far each run got\n")
     out.append("Share of the reachable gap closed at the best and the last frame (100 % = the target's own "
-               "particles rendered at rest), the volume IoU at the first and last frame (1 = the target's own "
+               "particles rendered at rest), the drop between them (points), how still the last 10 frames are "
+               "(swing: the median frame-to-frame change of the alpha MSE; sign changes: how often it turned), "
+               "the volume IoU at the first and last frame (1 = the target's own "
                "sampling) and the share of the mass packed above twice the target's density at the end.\n")
     rows = []
     for _, r in conv.iterrows():
         rows.append([str(r["experiment"]), str(r["method"]), f"{_pct(r['closed_best_%'])} (frame {int(r['best_frame'])})",
-                     _pct(r["closed_final_%"]), f"{_fmt(r['volume_iou_0'], 2)} -> {_fmt(r['volume_iou_final'], 2)}",
+                     _pct(r["closed_final_%"]), _pct(r.get("drop_points", np.nan)).replace(" %", ""),
+                     _pct(r.get("swing_%", np.nan)), _pct(r.get("sign_changes", np.nan)).replace(".0 %", ""),
+                     f"{_fmt(r['volume_iou_0'], 2)} -> {_fmt(r['volume_iou_final'], 2)}",
                      _pct(100 * r["overfilled_mass_final"]) if np.isfinite(r["overfilled_mass_final"]) else ""])
-    out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "volume IoU", "overfilled"],
-                      rows))
+    out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "drop", "swing",
+                       "sign changes", "volume IoU", "overfilled"], rows))
 
     # rows whose runs this profile does not have are left out, and a section with none
     direc = _with_data(direc, "ours")

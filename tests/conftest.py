@@ -71,3 +71,20 @@ def mesh_dir() -> Path:
 @pytest.fixture(scope="session")
 def raw_mesh_sha256() -> dict[str, str]:
     return dict(RAW_MESH_SHA256)
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory, mesh_dir):
+    """iso particles and a bunny target at the test profile's resolution (config/test.yaml), with
+    that profile's settings: (settings, the folder holding p_iso.h5 and t_bunny.h5)."""
+    from physmorph.config import load_settings
+    from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
+
+    d = tmp_path_factory.mktemp("tiny")
+    cfg = load_settings(REPO_ROOT / "config" / "config.yaml", REPO_ROOT / "config" / "test.yaml")
+    s = cfg.sampling
+    prepare_mesh_stage("iso", cfg.shapes["iso"], None, d / "iso.h5")
+    prepare_mesh_stage("bunny", cfg.shapes["bunny"], mesh_dir / "stanford-bunny.obj", d / "bunny.h5")
+    sample_particles_stage(d / "iso.h5", d / "p_iso.h5", d / "p_iso.png", s, 0)
+    rasterize_target_stage(d / "bunny.h5", d / "t_bunny.h5", d / "t_bunny.png", s, cfg.target, 0)
+    return cfg, d

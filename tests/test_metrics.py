@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from physmorph.metrics import (delta_e_percent, improvement_percent, matched_convergence_frame,
-                               rebound_percent, release_rebound_percent, spread)
+from physmorph.metrics import (at_rest, delta_e_percent, improvement_percent, matched_convergence_frame,
+                               rebound_percent, release_rebound_percent, sign_changes, spread, swing_percent)
 
 
 def test_matched_convergence_frame():
@@ -49,3 +49,36 @@ def test_spread_reproduces_paper_source_invariance():
 def test_delta_e():
     assert delta_e_percent(14079, 1167) == pytest.approx(91.7, abs=0.05)  # the paper's "92 %"
     assert delta_e_percent(0.0, 1.0) == 0.0
+
+
+def test_swing_and_sign_changes_of_a_period_two_cycle():
+    """The issue's own numbers: the last eight frames of a target of 58 % of the source's volume
+    (alpha MSE x 1e-3), after a descent: a period-two cycle, every step changes sign."""
+    tail = [29.4, 12.3, 27.6, 10.5, 25.6, 8.9, 23.9, 7.6]
+    a = np.array([60.0, 50.0, 40.0, 33.0, 31.0] + tail)
+    # the last 10 steps: 40 -> 33 -> 31 -> 29.4 -> 12.3 fall, then 6 alternations
+    assert sign_changes(a) == 6
+    steps = np.abs(np.diff(a))[-10:] / a[-10:]
+    assert swing_percent(a) == pytest.approx(100 * np.median(steps))
+    assert swing_percent(a) > 60
+    assert not at_rest(a)
+
+
+def test_a_descending_run_is_at_rest_and_a_still_one_too():
+    descending = np.linspace(1.0, 0.5, 41)
+    assert sign_changes(descending) == 0 and at_rest(descending)
+    assert swing_percent(descending) == pytest.approx(100 * np.median(0.0125 / descending[-10:]))
+    # a tiny cycle (0.2 % of alpha) is still: the swing bound, not the sign count, lets it pass
+    tiny = np.concatenate([np.linspace(1.0, 0.5, 31), 0.5 + 0.001 * (np.arange(10) % 2)])
+    assert sign_changes(tiny) >= 8 and swing_percent(tiny) < 1.0 and at_rest(tiny)
+    # two sign changes (a dip and a rise back) are still at rest; three are not, with a swing over 1 %
+    dip = np.array([1.0] * 5 + [0.9, 0.8, 0.7, 0.6, 0.5, 0.55, 0.6, 0.65, 0.6, 0.55, 0.5])
+    assert sign_changes(dip) == 2 and at_rest(dip)
+    assert sign_changes(np.append(dip, 0.6)) == 3 and not at_rest(np.append(dip, 0.6))
+
+
+def test_rest_measures_of_short_runs():
+    assert np.isnan(swing_percent(np.array([1.0])))
+    assert sign_changes(np.array([1.0])) == 0
+    assert sign_changes(np.array([1.0, 0.5, 0.7])) == 1  # fewer frames than the window: all of them
+    assert sign_changes(np.array([1.0, 0.5, 0.5, 0.7])) == 1  # a zero step keeps the sign before it

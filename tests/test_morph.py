@@ -28,19 +28,6 @@ def checkpoint_every_frame(monkeypatch):
     monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory, mesh_dir):
-    """iso particles and a bunny target at the test profile's resolution."""
-    d = tmp_path_factory.mktemp("tiny")
-    cfg = load_settings("config/config.yaml", "config/test.yaml")
-    s = cfg.sampling
-    prepare_mesh_stage("iso", cfg.shapes["iso"], None, d / "iso.h5")
-    prepare_mesh_stage("bunny", cfg.shapes["bunny"], mesh_dir / "stanford-bunny.obj", d / "bunny.h5")
-    sample_particles_stage(d / "iso.h5", d / "p_iso.h5", d / "p_iso.png", s, 0)
-    rasterize_target_stage(d / "bunny.h5", d / "t_bunny.h5", d / "t_bunny.png", s, cfg.target, 0)
-    return cfg, d
-
-
 def _run(tiny, experiment, out_name, **changes):
     """One tiny run; without the experiment's release frames unless a test asks for them."""
     cfg, d = tiny

@@ -19,7 +19,8 @@ def _fake_tables(d):
                    "alpha_mse_best": 0.011, "best_frame": 37, "alpha_mse_final": 0.0112, "ceiling": 0.0101,
                    "closed_best_%": 98.04, "closed_final_%": 97.6, "iou_0": 0.6, "iou_best": 0.9, "iou_final": 0.9,
                    "ceiling_iou": 0.91, "volume_iou_0": 0.53, "volume_iou_final": 0.95,
-                   "overfilled_mass_final": 0.012, "paper_alpha_mse": 0.0546, "paper_which": "best"}]
+                   "overfilled_mass_final": 0.012, "swing_%": 0.31, "sign_changes": 3, "drop_points": 0.44,
+                   "paper_alpha_mse": 0.0546, "paper_which": "best"}]
                  ).to_csv(d / "convergence.csv", index=False)
     pd.DataFrame([{"direction": "full beats physics-only at matched convergence", "case": "bunny",
                    "measure": "alpha MSE at the matched frame (frame 9)", "ours": 0.01306, "baseline": 0.01569,
@@ -46,7 +47,7 @@ def test_results_page_carries_the_tables_numbers(tmp_path):
     text = results_markdown(tables, "default", date="2026-11-24", code="commit abc1234")
     assert "Generated on 2026-11-24" in text and "results/default/tables/" in text
     assert "made by the code at commit abc1234" in text
-    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.53 -> 0.95 | 1.2 % |" in text
+    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.4 | 0.3 % | 3 | 0.53 -> 0.95 | 1.2 % |" in text
     assert "| 0.01306 | 0.01569 | 16.8 % | yes | +25.8 % |" in text      # a direction and whether it holds
     assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text  # the main table beside the paper
     assert "| sigma/mu % | 8.4 | 10.25 | 1.5 % |" in text                   # source invariance

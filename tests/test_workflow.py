@@ -52,6 +52,20 @@ def planned_outputs(out: subprocess.CompletedProcess) -> list[str]:
 
 # ---------------------------------------------------------------------------------- DAG only
 
+def test_dry_run_names_a_target_of_another_volume_before_any_job(tmp_path, mesh_dir):
+    """The morph's volume warning, at DAG time: the isosphere shrunk to 12.4 (its volume from its
+    formula) against the bunny (the raw mesh repaired, before any job) holds 134 % of its volume."""
+    wd = _workdir(tmp_path)
+    out = _run(wd, "-n", "results/default/runs/iso_bunny_full.h5", "--config", f"mesh_dir={mesh_dir}",
+               "shapes={iso: {kind: isosphere, size: 12.4}}")
+    lines = [line for line in (out.stdout + out.stderr).splitlines() if "of the source's volume" in line]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("warning: iso_bunny_full: the target holds 13")
+    assert "a target size of 16.3 (now 18) would hold the source's volume" in lines[0]
+    plain = _run(wd, "-n", "results/default/runs/iso_bunny_full.h5", "--config", f"mesh_dir={mesh_dir}")
+    assert "of the source's volume" not in plain.stdout + plain.stderr
+
+
 def test_dry_run_shows_the_dag(tmp_path):
     out = _run(_workdir(tmp_path), "-n", "tables")
     for rule in ("fetch_mesh", "prepare_mesh", "sample_particles", "rasterize_target", "morph", "make_tables"):

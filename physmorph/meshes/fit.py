@@ -83,6 +83,107 @@ class SizeAdvice:
         return None if self.keeps_source else isosphere_size_for_volume(self.target_volume)
 
 
+# A morph whose target holds more than this share more or less than its source's volume warns.
+VOLUME_MISMATCH = 0.10
+
+
+def volume_mismatch(experiment: str, source_volume: float, target_volume: float,
+                    target_size: float | None = None) -> str | None:
+    """One line when a target holds more than VOLUME_MISMATCH more or less than its source's volume
+    (None otherwise): MPM keeps volume, so such a target cannot be filled exactly. It names the
+    experiment, the ratio and, with the target's configured ``target_size``, the size that holds the
+    source's volume (the fit helper's ``size_for_volume``: volume scales with size^3)."""
+    ratio = float(target_volume) / float(source_volume)
+    if abs(ratio - 1.0) <= VOLUME_MISMATCH:
+        return None
+    text = (f"{experiment}: the target holds {100 * ratio:.0f} % of the source's volume ({target_volume:.0f} against "
+            f"{source_volume:.0f} units^3); MPM keeps volume, so the body cannot fill it exactly")
+    if target_size:
+        match = float(target_size) * ratio ** (-1.0 / 3.0)
+        text += (f"; a target size of {round(match / SIZE_STEP) * SIZE_STEP:.1f} (now {float(target_size):g}) would "
+                 "hold the source's volume (python -m physmorph.meshes.fit MESH)")
+    return text
+
+
+def shape_volume(spec, prepared_h5: str | os.PathLike | None = None,
+                 raw_path: str | os.PathLike | None = None) -> float | None:
+    """A shape's volume at its configured size (``spec``: physmorph.config.ShapeSettings) before any
+    job: the prepared mesh's when ``prepared_h5`` exists and was made at that size, an isosphere's
+    or a letter's from its formula and mesh, a raw mesh's when ``raw_path`` is on disk and closed
+    (before the repair prepare_mesh applies; None when it is not, or not there yet)."""
+    if prepared_h5 is not None and Path(prepared_h5).is_file():
+        import h5py
+        import json
+
+        with h5py.File(prepared_h5, "r") as f:
+            made = json.loads(str(f.attrs.get("config", "{}"))).get("shape", {})
+            if made.get("size") == spec.size and made.get("kind") == spec.kind and "volume" in f.attrs:
+                return float(f.attrs["volume"])
+    if spec.kind == "isosphere":
+        return isosphere_volume(spec.size)
+    if spec.kind == "letter":
+        from .shapes import letter_mesh
+
+        return float(letter_mesh(spec.glyph, spec.size, spec.depth).volume)
+    if raw_path is None or not Path(raw_path).is_file():
+        return None
+    unit = _unit_volume(Path(raw_path))
+    return None if unit is None else unit * spec.size ** 3
+
+
+def _volume_cache() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_unit_volumes.json"
+
+
+def _unit_volume(raw_path: Path) -> float | None:
+    """The volume at size 1 (longest extent 1) of a raw mesh repaired as prepare_mesh repairs it;
+    None when it cannot be read or repaired (its prepare_mesh job says why). Kept in a small cache
+    (XDG_CACHE_HOME/physmorph) by path, size and modification time: the repair of a large mesh takes
+    seconds, and every workflow invocation asks before its jobs."""
+    import json
+
+    stat = raw_path.stat()
+    key = f"{raw_path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
+    cache_file = _volume_cache()
+    try:
+        cache = json.loads(cache_file.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    if key in cache:
+        return cache[key]
+    try:
+        repaired, _, _ = repair_mesh(load_raw_mesh(raw_path), str(raw_path))
+        lo, hi = repaired.bounds
+        unit = float(repaired.volume / float(np.max(hi - lo)) ** 3) if repaired.is_volume else None
+    except Exception:  # unreadable or irreparable: the prepare_mesh job names it
+        unit = None
+    try:
+        cache_file.parent.mkdir(parents=True, exist_ok=True)
+        cache_file.write_text(json.dumps({**cache, key: unit}))
+    except OSError:  # a read-only home: the answer is still right, only not kept
+        pass
+    return unit
+
+
+def volume_warnings(settings, experiments, prepared_h5, raw_path, volumes: dict | None = None) -> list[str]:
+    """volume_mismatch's line for each of ``experiments`` whose source and target volumes are known
+    before any job (shape_volume; ``prepared_h5(shape)`` and ``raw_path(shape)`` give its files;
+    ``volumes``: shape -> volume already found, filled in): what the workflow prints at DAG time."""
+    volumes = {} if volumes is None else volumes
+    lines = []
+    for name in experiments:
+        exp = settings.experiment(name)
+        for shape in (exp.source, exp.target):
+            if shape not in volumes:
+                volumes[shape] = shape_volume(settings.shape(shape), prepared_h5(shape), raw_path(shape) or None)
+        src, tgt = volumes[exp.source], volumes[exp.target]
+        if src and tgt:
+            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size)
+            if line:
+                lines.append(line)
+    return lines
+
+
 def _floor_step(x: float) -> float:
     return math.floor(x / SIZE_STEP + 1e-9) * SIZE_STEP
 

@@ -3,6 +3,9 @@
 # runs). Rules get what they depend on as `params` (canonical JSON without the fields at their
 # defaults: physmorph.config.params_json), so changing a setting reruns
 # exactly the jobs that use it. Every output lives under results/{profile}/.
+import sys
+from pathlib import Path
+
 from physmorph.config import Settings, morph_params, params_json, particle_estimate, without_defaults
 from physmorph.config import morph_memory, sampling_memory, target_memory
 from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
@@ -34,6 +37,36 @@ def raw_mesh_path(shape):
     if spec.kind != "file":
         return []
     return spec.path if spec.path is not None else f"resources/meshes/{spec.file}"
+
+
+# A dry run names the experiments whose target holds another volume than their source (the morph's
+# log says it too, with the volumes of the prepared shapes).
+def _raw_mesh_here(shape):
+    """The raw mesh of a file shape where it is on disk before any job (the download or the mirror)."""
+    spec = S.shape(shape)
+    if spec.kind != "file" or spec.path is not None:
+        return raw_mesh_path(shape) or None
+    local = Path(raw_mesh_path(shape))
+    return local if local.is_file() or not S.mesh_dir else Path(S.mesh_dir) / spec.file
+
+
+_VOLUMES = {}  # shape -> its volume before any job (or None), for morph_particles' warnings
+_VOLUME_WARNED = set()
+
+
+def morph_particles(wc):
+    """The experiment's source particles (the morph rule's input); on the first call for an
+    experiment whose target holds another volume than its source, the warning its morph log will
+    give, while the DAG is built (so a dry run says it before any job)."""
+    from physmorph.meshes.fit import volume_warnings
+
+    exp = S.experiment(wc.experiment)
+    if wc.experiment not in _VOLUME_WARNED:
+        _VOLUME_WARNED.add(wc.experiment)
+        for line in volume_warnings(S, [wc.experiment], lambda shape: f"{R}/meshes/{shape}.h5", _raw_mesh_here,
+                                    _VOLUMES):
+            logger.warning(f"warning: {line}")
+    return particles_path(exp.source)
 
 
 def particles_path(shape, res=RES):

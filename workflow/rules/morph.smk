@@ -3,7 +3,9 @@
 # reruns this experiment, and nothing else. A killed run resumes from its last committed frame in {output}.partial/.
 rule morph:
     input:
-        particles=lambda wc: particles_path(S.experiment(wc.experiment).source),
+        # (an input function: evaluated while the DAG is built, so it also warns about a target of
+        # another volume than its source before any job, in a dry run too)
+        particles=morph_particles,
         target=lambda wc: target_path(S.experiment(wc.experiment).target),
     output:
         f"{R}/runs/{{experiment}}.h5",
@@ -11,6 +13,9 @@ rule morph:
         settings=lambda wc: morph_params(S.experiment_config(wc.experiment)),
         experiment=lambda wc: params_json(S.experiment(wc.experiment)),
         name=lambda wc: wc.experiment,
+        # the target's configured size: a target of another volume than its source is warned
+        # about with the size that would hold it (physmorph.meshes.fit.volume_mismatch)
+        target_size=lambda wc: S.shape(S.experiment(wc.experiment).target).size,
     log:
         f"{R}/logs/morph/{{experiment}}.log",
     benchmark:
