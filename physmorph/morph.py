@@ -381,7 +381,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             log(f"[{name}] frame {k}/{cfg.frames}  alpha_mse {scal['alpha_mse']:.4f} "
                 f"(gap closed {100 * scal['gap_closed']:.0f} %)  "
                 f"physics {stats['loss_initial']:.4g}->{stats['loss_final']:.4g}  "
-                f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s")
+                f"|gF| {scal.get('grad_F_norm', 0.0):.3g}  {scal['t_frame']:.1f} s/frame  ETA {eta:.0f} s"
+                + ("  (undone: the body holds still)" if rejected else ""))
     extra = {"injection_scale": scale}
     if cfg.release_frames and status == "complete":
         extra["release_alpha_mse"] = json.dumps(release_curve(solver, st, cfg.release_frames,
