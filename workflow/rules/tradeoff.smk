@@ -38,6 +38,7 @@ rule tradeoff_point:
         settings=lambda wc: morph_params(point_settings(wc.point)[2]),
         experiment=lambda wc: params_json({"tradeoff_point": wc.point, **without_defaults(S.experiment(S.tradeoff.experiment))}),
         name=lambda wc: f"tradeoff {wc.point}",
+        target_size=lambda wc: S.shape(S.experiment(S.tradeoff.experiment).target).size,
     log:
         f"{R}/logs/tradeoff/{{point}}.log",
     benchmark:
