@@ -249,7 +249,6 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                 break
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {partial})") from exc
         strain = frame_strain(st.F, new.F)
-
         st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
         if cfg.volume_averaging > 0:
             st = dataclasses.replace(st, F=averaged_volume(st.F, grid_average(st.x, st.mass, det3(st.F), target.grid),
@@ -343,7 +342,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
             if restart or gate.at_rest_after(k):
                 st = ParticleState(x=st.x, v=cfg.restart_keep * st.v, F=st.F, C=cfg.restart_keep * st.C, Fp=st.Fp,
                                    mass=st.mass, volume=st.volume)
-                if cfg.restart_control_keep < 1.0:
+                if restart and cfg.restart_control_keep < 1.0:  # a restart's, not the settle phase's rest
                     solver.scale_control(cfg.restart_control_keep)
             scal["momentum_restart"] = float(restart)
         if gate.at_rest_after(k) and not rejected:
