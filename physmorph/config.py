@@ -850,7 +850,8 @@ def morph_params(cfg) -> str:
 
     Settings at their defaults are left out (see ``without_defaults``: a new option reruns
     nothing), and so are settings the run's method never reads, so changing them reruns nothing:
-    plasticity and the stray pull outside ``full``, the injection gains and their calibration for ``physics_only``,
+    plasticity and the stray pull outside ``full``, the injection gains and their calibration (and the
+    settle phase, unless it judges the physics loss) for ``physics_only``,
     ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
     it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
     string (what is left out takes its default)."""
@@ -864,6 +865,9 @@ def morph_params(cfg) -> str:
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):
             d.pop(k, None)
+        if cfg.settle_objective != "physics":  # the settle phase judges the images, which it never reads
+            for k in ("settle", "settle_objective", "settle_backoff"):
+                d.pop(k, None)
         if cfg.metric_all_particles:
             d.pop("surface", None)
     else:
