@@ -318,7 +318,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
         if rejected:  # the frame is undone: the body holds still at the last accepted frame
             back = gate.accepted
             st, mask, g_F, g_x, scale = back.state, back.mask, back.g_F, back.g_x, back.injection_scale
-            solver.set_optimizer_state(back.optimizer)
+            solver.restore_kept_control()
             scal, per_view, m = dict(back.scalars), back.per_view, back.scalars
             nearest_d = nearest_i = None
             scal["step_size"] = frame_step  # the step the undone frame tried
@@ -346,7 +346,8 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                     solver.scale_control(cfg.restart_control_keep)
             scal["momentum_restart"] = float(restart)
         if gate.at_rest_after(k) and not rejected:
-            gate.accepted = AcceptedFrame(st, solver.optimizer_state(), mask, g_F, g_x, scale, dict(scal), per_view,
+            solver.keep_control()  # on the device: a host copy of the control costs 340 MB at the paper's scale
+            gate.accepted = AcceptedFrame(st, mask, g_F, g_x, scale, dict(scal), per_view,
                                           float(scal.get(gate.objective_key, np.nan)))
         if objective_rose and solver.overfill_weight != cfg.mpm.overfill_weight:
             solver.set_overfill_weight(cfg.mpm.overfill_weight)
@@ -455,7 +456,8 @@ def _accepted_from_run(run: RunWriter, frame: int, st: ParticleState, solver: MP
     """A resumed run's last accepted frame: its loop state is the checkpoint's (after a settling
     frame the state is the accepted one) and its metrics the committed frame's."""
     scalars, per_view = run.frame_metrics(frame)
-    return AcceptedFrame(st, solver.optimizer_state(), mask, g_F, g_x, scale, scalars, per_view,
+    solver.keep_control()
+    return AcceptedFrame(st, mask, g_F, g_x, scale, scalars, per_view,
                          float(scalars.get(objective_key, np.nan)))
 
 

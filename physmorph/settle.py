@@ -32,10 +32,10 @@ OBJECTIVES = {"render": "loss_render", "alpha_mse": "alpha_mse", "physics": "phy
 
 @dataclass
 class AcceptedFrame:
-    """What a rejected frame goes back to: the loop's state after the last accepted frame."""
+    """What a rejected frame goes back to: the loop's state after the last accepted frame (its
+    control is kept by the solver: MPMSolver.keep_control)."""
 
     state: ParticleState
-    optimizer: dict  # MPMSolver.optimizer_state()
     mask: np.ndarray  # [N] bool
     g_F: np.ndarray  # [N, 3, 3] the pending render gradient
     g_x: np.ndarray  # [N, 3]

@@ -620,6 +620,25 @@ def test_optimizer_state_round_trip(solver3, state):
         s.set_optimizer_state({**saved, "adam_m": saved["adam_m"][:, :1]})
 
 
+def test_kept_control_restores_the_next_step(solver3, state):
+    """keep_control / restore_kept_control (the settle phase's undo, on the device) put back the
+    control and Adam's moments: the next optimization step is the one taken from the kept point."""
+    s = solver3
+    s.reset_control()
+    s.load_state(state)
+    s.optimize_control(iters=2)
+    s.keep_control()
+    after_a = s.optimize_control(iters=1)["loss_final"]
+    ctrl_a = s.control()
+    s.optimize_control(iters=2)  # moves the control and the moments on
+    assert not np.array_equal(s.control(), ctrl_a)
+    s.restore_kept_control()
+    s.load_state(state)
+    after_b = s.optimize_control(iters=1)["loss_final"]
+    assert after_b == after_a
+    np.testing.assert_array_equal(s.control(), ctrl_a)
+
+
 def test_reused_solver_computes_what_a_new_one_does(state):
     """solver_for hands back the previous solver for an equal config and size, reset: after a
     run that moved dFc and the Adam moments, it optimizes exactly as a freshly built solver; given

@@ -139,7 +139,7 @@ def test_gate_starts_at_the_first_rise_or_the_cycle_and_judges_against_the_accep
     assert cycle.note_restart(12, True) and cycle.start == 13  # restarts at 10 and 12: the period-two cycle
     off = SettleGate("off", "alpha_mse", 0.5)
     assert not off.note_restart(7, True) and not off.note_restart(9, True) and off.start is None
-    gate.accepted = AcceptedFrame(None, {}, None, None, None, 0.0, {}, None, objective=1.0)
+    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=1.0)
     assert not gate.rejects(7, 2.0)  # before the phase
     assert gate.rejects(8, 1.5) and not gate.rejects(8, 1.0) and not gate.rejects(9, 0.5)
     restored = SettleGate("after_first_rise", "alpha_mse", 0.5)
