@@ -167,9 +167,8 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                             ""),
     "plasticity.update": ("incremental: eq. 4 as printed; target_rest: relax toward the rest state on the "
                           "target", "", ""),
-    "plasticity.correspondence": ("where each particle is pulled: nearest target surface point (the paper) or "
-                                  "its optimal-transport destination in the target's mass, or toward that destination as far "
-                                "as the nearest surface point", "", ""),
+    "plasticity.correspondence": ("where each particle is pulled: nearest, the nearest target surface point (the "
+                                  "paper); transport, its optimal-transport destination in the target's mass", "", ""),
     "plasticity.continuous_stress": ("re-base the control so an Fp update leaves the elastic Fe unchanged", "",
                                      ""),
     "plasticity.absorb_control": ("commit the achieved shape (or control) to the rest state Fp at the updates "

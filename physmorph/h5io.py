@@ -17,7 +17,6 @@ import hashlib
 import json
 import os
 import resource
-import subprocess
 import time
 from collections.abc import Mapping
 from contextlib import contextmanager
@@ -26,6 +25,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
+from physmorph.provenance import git_state, method_settings, method_sha
 
 CHECKSUM_ATTR = "content_sha256"
 # Attributes a checksum never covers (the checksums themselves).
@@ -47,14 +48,7 @@ def package_versions() -> dict[str, str]:
 
 def git_commit() -> str:
     """The commit of the physmorph checkout, or 'unknown' outside a git work tree."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-            capture_output=True, text=True, timeout=5, check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
+    return git_state()[0]
 
 
 def peak_rss_mb() -> float:
@@ -65,7 +59,10 @@ def peak_rss_mb() -> float:
 def write_provenance(f: h5py.File, config: dict | None, started: float) -> None:
     f.attrs["config"] = json.dumps(config or {}, sort_keys=True, default=str)
     f.attrs["package_versions"] = json.dumps(package_versions(), sort_keys=True)
-    f.attrs["git_commit"] = git_commit()
+    commit, dirty = git_state()
+    f.attrs["git_commit"] = commit
+    f.attrs["git_dirty"] = dirty  # "yes": made by a tree with local changes to the code
+    f.attrs["method_sha"] = method_sha(method_settings(config or {}))
     f.attrs["wall_time_s"] = float(time.time() - started)
     f.attrs["peak_rss_mb"] = peak_rss_mb()
     f.attrs["physmorph_version"] = __import__("physmorph").__version__

@@ -12,7 +12,9 @@
 Command line: ``python -m physmorph.userdocs results default`` (writes docs/results.md and copies the
 figures to docs/images/), ``python -m physmorph.userdocs config`` (config/README.md),
 ``python -m physmorph.userdocs captions`` (workflow/report/captions/),
-``python -m physmorph.userdocs tradeoff default mid`` (docs/tradeoff.md, docs/images/pareto_scales.png).
+``python -m physmorph.userdocs tradeoff default mid`` (docs/tradeoff.md, docs/images/pareto_scales.png),
+``python -m physmorph.userdocs readme`` (README.md's profile table, from the pages' records:
+physmorph.page_meta) and ``python -m physmorph.userdocs check`` (which pages ran another method).
 """
 
 from __future__ import annotations
@@ -21,7 +23,6 @@ import argparse
 import datetime as _dt
 import re
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,8 @@ import pandas as pd
 
 from physmorph.figures import figure_runs
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
+from physmorph.page_meta import PageProvenance, block, check_pages, from_checkout, from_runs, results_summary, \
+    update_readme
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 OUTPUTS_MD = REPO_ROOT / "docs" / "outputs.md"
@@ -107,11 +110,11 @@ def _wall_time_s(results_dir: Path) -> float:
 
 def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
                      date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md",
-                     code: str | None = None, title: str | None = None) -> str:
+                     provenance: PageProvenance | None = None, title: str | None = None) -> str:
     """A profile's results as Markdown, from the CSV tables in ``tables_dir`` (physmorph.tables).
     ``figures``: figure name -> link to its image (relative to the page); ``date``: when the tables
-    were made (default: the convergence table's modification date); ``code``: the checkout that
-    made them (e.g. its commit)."""
+    were made (default: the convergence table's modification date); ``provenance``: the code and
+    method settings of the runs (default: this checkout's, with the shipped method)."""
     tables_dir = Path(tables_dir)
     conv = _read(tables_dir, "convergence")
     direc = _read(tables_dir, "directions")
@@ -122,15 +125,16 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     if date is None:
         date = _dt.date.fromtimestamp((tables_dir / "convergence.csv").stat().st_mtime).isoformat()
     command = command or f"python -m physmorph.userdocs results {profile}"
+    provenance = provenance or from_checkout()
+    wall = _wall_time_s(tables_dir.parent)
     out = [f"# {title or f'Results of the `{profile}` profile'}\n",
            f"Generated on {date} by `{command}` from `results/{profile}/{tables_dir.name}/`"
-           + (f", made by the code at {code}" if code else "") + " (do not edit by hand: "
+           + f", {provenance.line()} (do not edit by hand: "
            "rebuild the tables, then run the command again). What each table and column means: "
            f"[docs/outputs.md]({outputs_link}).\n"]
     if len(timing):
         particles = sorted({int(p) for p in timing["particles"] if np.isfinite(p) and p > 0})
         frames = sorted({int(f) for f in timing["frames"]})
-        wall = _wall_time_s(tables_dir.parent)
         span = (f"{particles[0]:,}" if particles[0] == particles[-1] else f"{particles[0]:,}-{particles[-1]:,}"
                 ) if particles else "?"
         out.append(f"{len(timing)} runs of {span} particles and {'/'.join(map(str, frames))} frames")
@@ -190,10 +194,10 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
                           rows))
 
     if len(timing):
-        out.append("## Time per frame (seconds, median over runs, each run's mean after frame 0)\n")
+        out.append("## Time per frame (seconds, median over runs, each run's mean after frame 0) and memory\n")
         cols = ["physics_s", "render_s", "plasticity_s", "mask_s", "frame_s"]
         full = timing[[c for c in cols if c in timing]]
-        out.append(_table([c[:-2] for c in full.columns] + ["peak RSS (MB)"],
+        out.append(_table([c[:-2] for c in full.columns] + ["peak RSS, largest run (MB)"],
                           [[_fmt(float(np.nanmedian(full[c])), 3) for c in full.columns]
                            + [_fmt(float(np.nanmax(timing["peak_rss_mb"])), 4)]]))
 
@@ -202,6 +206,7 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
         for name in FIGURE_NAMES:
             if name in figures:
                 out.append(f"**{name}**: {FIGURE_TITLES.get(name, name)}.\n\n![{name}]({figures[name]})\n")
+    out.append(block("results", profile, provenance, results_summary(tables_dir, wall)))
     return "\n".join(out)
 
 
@@ -216,7 +221,7 @@ def results_doc_paths(profile: str) -> tuple[Path, Path]:
 
 def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, figures_dir: str | Path | None = None,
                       images_dir: str | Path | None = None, command: str | None = None,
-                      code: str | None = None, title: str | None = None) -> Path:
+                      provenance: PageProvenance | None = None, title: str | None = None) -> Path:
     """Write ``results_markdown`` to ``out_md``. Figures from ``figures_dir`` are linked; with
     ``images_dir`` they are first copied there (docs/images/ for docs/results.md)."""
     out_md = Path(out_md)
@@ -234,8 +239,8 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
                 src = dst
             figures[name] = Path(_relpath(src, out_md.parent)).as_posix()
     outputs = Path(_relpath(REPO_ROOT / "docs" / "outputs.md", out_md.parent)).as_posix()
-    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs, code=code,
-                            title=title)
+    text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs,
+                            provenance=provenance, title=title)
     tmp = out_md.with_suffix(".partial")
     tmp.write_text(text)
     tmp.replace(out_md)
@@ -243,7 +248,7 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
 
 
 def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: str | Path, out_png: str | Path,
-                       code: str | None = None) -> Path:
+                       provenance: PageProvenance | None = None) -> Path:
     """docs/tradeoff.md: for each profile whose study exists under ``results_root/{profile}/tradeoff/``
     its ranked points, knob ranking and budget recommendations, and one Pareto figure with every
     scale (``out_png``, linked relative to the page)."""
@@ -263,20 +268,22 @@ def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: st
     pareto_figure(frames, out_png, "speed / accuracy: one knob at a time around each profile's base")
     date = _dt.date.today().isoformat()
     lines = ["# The speed/accuracy study", "",
-             f"Generated {date}" + (f" from {code}" if code else "") + " by `python -m physmorph.userdocs tradeoff "
+             f"Generated {date} by `python -m physmorph.userdocs tradeoff "
              + " ".join(profiles) + "` from each profile's `snakemake --cores 2 tradeoff`. Each point is the base "
              "experiment with one knob changed; times are the morph's frame times on this machine; the gap is "
-             "the share of the reachable α-MSE gap closed; Chamfer is in grid cells of the point's own grid.", "",
+             "the share of the reachable α-MSE gap closed; Chamfer is in grid cells of the point's own grid. The "
+             f"points were {(provenance or from_checkout()).line()} (the bases').", "",
              f"![Pareto front per scale]({_relpath(out_png, out_md.parent)})", ""]
     for p, df in frames.items():
         lines += [f"# Profile `{p}` ({int(df.loc[df['name'] == 'base', 'particles'].iloc[0]):,} particles at the base)", "",
                   tradeoff_markdown(df).replace("## ", "### "), ""]
+    lines.append(block("tradeoff", " ".join(profiles), provenance or from_checkout()))
     out_md.write_text("\n".join(lines))
     return out_md
 
 
 def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Path, out_png: str | Path,
-                        code: str | None = None) -> Path:
+                        provenance: PageProvenance | None = None) -> Path:
     """docs/stability.md: the stability map of ``results_root/{profile}/stability_map/`` (its figure
     copied to ``out_png``), the outcome counts, and every cell's row."""
     import shutil
@@ -297,9 +304,10 @@ def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Pa
     failures = int(df["outcome"].isin(FAILURES).sum())
     knobs = df.groupby("knob", sort=False)["value"].count()
     lines = ["# The stability map of the extremes", "",
-             f"Generated {_dt.date.today().isoformat()}" + (f" from {code}" if code else "")
+             f"Generated {_dt.date.today().isoformat()}"
              + f" by `python -m physmorph.userdocs stability {profile}` from `snakemake --cores 2 stability_map"
-             + ("" if profile == "default" else f" --configfile config/{profile}.yaml") + "`.", "",
+             + ("" if profile == "default" else f" --configfile config/{profile}.yaml") + "`, "
+             + f"{(provenance or from_checkout()).line()} (the base experiment's).", "",
              "The base experiment (iso → bunny, full method) with one setting at a time moved from the profile's "
              "default to and past its limit. Every cell runs in its own process under a wall-clock limit and "
              "ends in one outcome: **converged** (every frame ran, metrics finite, the last frame closed at "
@@ -316,7 +324,8 @@ def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Pa
     cols = ["knob", "value", "particles", "frames", "outcome", "gap_closed_last_%", "detail", "wall_s"]
     table = df[cols].copy()
     table["gap_closed_last_%"] = [f"{float(v):.0f}" if str(v) not in ("", "nan") else "" for v in table["gap_closed_last_%"]]
-    out_md.write_text("\n".join(lines) + "\n" + markdown_table(table.astype(str)))
+    out_md.write_text("\n".join(lines) + "\n" + markdown_table(table.astype(str)) + "\n"
+                      + block("stability", profile, provenance or from_checkout()))
     return out_md
 
 
@@ -411,7 +420,9 @@ def config_reference() -> str:
         rows = []
         for key, sub in groups[section]:
             meaning, unit, rng = FIELD_DOCS[key]
-            rows.append(f"| `{key}` | {meaning} | {unit} | {rng} | {_type_text(sub)} | {_default_text(sub)} |")
+            cells = [f"`{key}`", meaning, unit, rng, _type_text(sub), _default_text(sub)]
+            # a literal | in a description would split its cell: escaped, as the type column's are
+            rows.append("| " + " | ".join(re.sub(r"(?<!\\)\|", r"\\|", c) for c in cells) + " |")
         out.append("| key | meaning | unit | range | type | default |\n|---|---|---|---|---|---|\n"
                    + "\n".join(rows) + "\n")
     return "\n".join(out)
@@ -453,52 +464,35 @@ def write_captions(outputs_md: str | Path = OUTPUTS_MD, out_dir: str | Path = CA
     return paths
 
 
-def commits_of(run_files, noun: str = "run") -> str | None:
-    """The commit(s) that made ``run_files`` (each run file's ``git_commit``; missing files and
-    files naming none are skipped), e.g. "commit f3d6064" or "commits a1b2c3d (12 runs), e4f5a6b
-    (6 runs)"; None when no file names one. A page generated from another checkout than the runs'
-    then still names the code that computed its numbers."""
-    from collections import Counter
-
-    import h5py
-
-    counts: Counter[str] = Counter()
-    for path in map(Path, run_files):
-        if path.exists():
-            with h5py.File(path, "r") as f:
-                rev = str(f.attrs.get("git_commit", "unknown"))
-            if rev != "unknown":
-                counts[rev[:7]] += 1
-    if len(counts) <= 1:
-        return f"commit {next(iter(counts))}" if counts else None
-    return "commits " + ", ".join(f"{rev} ({n} {noun}{'s' if n != 1 else ''})" for rev, n in counts.most_common())
+def runs_provenance(tables_dir: str | Path, runs_dir: str | Path) -> PageProvenance | None:
+    """The provenance of the runs behind ``tables_dir`` (its timing table's experiments in ``runs_dir``)."""
+    return from_runs(Path(runs_dir) / f"{exp}.h5" for exp in _read(Path(tables_dir), "timing").get("experiment", []))
 
 
-def runs_code(tables_dir: str | Path, runs_dir: str | Path) -> str | None:
-    """:func:`commits_of` the runs behind ``tables_dir`` (its timing table's experiments in ``runs_dir``)."""
-    return commits_of(Path(runs_dir) / f"{exp}.h5" for exp in _read(Path(tables_dir), "timing").get("experiment", []))
+def profile_provenance(profile: str) -> PageProvenance:
+    """This checkout with the method of ``profile``'s base experiment (config/config.yaml, then
+    config/{profile}.yaml where there is one): for a page whose cells vary the method on purpose."""
+    from physmorph.config import load_settings, to_plain
+    from physmorph.extremes import MAP_EXPERIMENT
+
+    files = [REPO_ROOT / "config" / "config.yaml"] + [p for p in [REPO_ROOT / "config" / f"{profile}.yaml"] if p.exists()]
+    settings = load_settings(*files)
+    return from_checkout(to_plain(settings.experiment_config(MAP_EXPERIMENT)))
 
 
-def tradeoff_code(profiles: list[str], results_root: str | Path) -> str | None:
-    """:func:`commits_of` the speed/accuracy points of ``profiles`` (results/{profile}/tradeoff/runs/)."""
-    files = []
+def tradeoff_provenance(profiles: list[str], results_root: str | Path) -> PageProvenance | None:
+    """The provenance of the speed/accuracy points of ``profiles``: the commits of every point,
+    the method of the bases (the points move one knob each, some of them the method's)."""
+    files, bases = [], []
     for p in profiles:
         csv = Path(results_root) / p / "tradeoff" / "tradeoff.csv"
         if csv.exists():
             files += [csv.parent / "runs" / f"{name}.h5" for name in pd.read_csv(csv)["name"]]
-    return commits_of(files, noun="point")
-
-
-def _checkout() -> str | None:
-    """This checkout's commit, with "+ local changes" when its tracked files differ (None without git)."""
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True,
-                             text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "physmorph", "workflow",
-                                "config", "Snakefile"], cwd=REPO_ROOT, capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return f"commit {rev}" + (" + local changes" if dirty.strip() else "")
+            bases.append(csv.parent / "runs" / "base.h5")
+    every, base = from_runs(files, noun="point"), from_runs(bases)
+    if every is None or base is None:
+        return every or base
+    return PageProvenance(every.commit, every.dirty, base.method)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -519,7 +513,14 @@ def main(argv: list[str] | None = None) -> None:
     tr.add_argument("profiles", nargs="+")
     st = sub.add_parser("stability", help="docs/stability.md from results/{profile}/stability_map/")
     st.add_argument("profile", nargs="?", default="test")
+    sub.add_parser("check", help="list the pages under docs/ made with other method settings than the shipped "
+                                 "ones (exit 1 when the default profile's page is one)")
+    sub.add_parser("readme", help="README.md's profile table from the results pages under docs/")
     args = parser.parse_args(argv)
+    if args.what == "check":
+        lines, default_bad = check_pages(REPO_ROOT / "docs")
+        print("\n".join(lines) if lines else "every page under docs/ was made with the shipped method settings")
+        raise SystemExit(1 if default_bad else 0)
     if args.what == "results":
         tree = REPO_ROOT / "results" / args.profile
         out_md, images = results_doc_paths(args.profile)
@@ -527,13 +528,13 @@ def main(argv: list[str] | None = None) -> None:
         images = images if args.images is None else (args.images or None)
         path = write_results_doc(tree / "tables", out_md, args.profile, tree / "figures", images,
                                  command=f"python -m physmorph.userdocs results {args.profile}",
-                                 code=runs_code(tree / "tables", tree / "runs") or _checkout())
+                                 provenance=runs_provenance(tree / "tables", tree / "runs"))
     elif args.what == "paper_main":
         tree = REPO_ROOT / "results" / args.profile
         path = write_results_doc(tree / "main_tables", REPO_ROOT / "docs" / "paper_scale.md", args.profile,
                                  tree / "main_figures", REPO_ROOT / "docs" / "images" / args.profile,
                                  command=f"python -m physmorph.userdocs paper_main {args.profile}",
-                                 code=runs_code(tree / "main_tables", tree / "runs") or _checkout(),
+                                 provenance=runs_provenance(tree / "main_tables", tree / "runs"),
                                  title=f"The main table at the `{args.profile}` profile's scale")
     elif args.what == "config":
         CONFIG_README.write_text(config_reference())
@@ -541,10 +542,14 @@ def main(argv: list[str] | None = None) -> None:
     elif args.what == "tradeoff":
         path = write_tradeoff_doc(args.profiles, REPO_ROOT / "results", TRADEOFF_MD,
                                   REPO_ROOT / "docs" / "images" / "pareto_scales.png",
-                                  code=tradeoff_code(args.profiles, REPO_ROOT / "results") or _checkout())
+                                  provenance=tradeoff_provenance(args.profiles, REPO_ROOT / "results"))
     elif args.what == "stability":
         path = write_stability_doc(args.profile, REPO_ROOT / "results", REPO_ROOT / "docs" / "stability.md",
-                                   REPO_ROOT / "docs" / "images" / "stability_map.png", code=_checkout())
+                                   REPO_ROOT / "docs" / "images" / "stability_map.png",
+                                   provenance=profile_provenance(args.profile))
+    elif args.what == "readme":
+        path = REPO_ROOT / "README.md"
+        update_readme(path, REPO_ROOT / "docs")
     else:
         path = CAPTIONS_DIR
         write_captions()

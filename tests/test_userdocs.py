@@ -8,8 +8,10 @@ import pandas as pd
 from physmorph.config_docs import FIELD_DOCS, SECTIONS
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.userdocs import (CAPTIONS_DIR, CONFIG_README, OUTPUTS_MD, caption_rst, config_reference,
-                                output_captions, results_markdown, runs_code, schema_keys, tradeoff_code,
-                                write_results_doc)
+                                output_captions, results_markdown, runs_provenance, schema_keys,
+                                tradeoff_provenance, write_results_doc)
+from physmorph.page_meta import PageProvenance, read_block
+from physmorph.provenance import shipped_method_settings
 from physmorph import userdocs
 
 
@@ -44,9 +46,16 @@ def _fake_tables(d):
 def test_results_page_carries_the_tables_numbers(tmp_path):
     tables = tmp_path / "results" / "default" / "tables"
     _fake_tables(tables)
-    text = results_markdown(tables, "default", date="2026-11-24", code="commit abc1234")
+    prov = PageProvenance("commit abc1234", "no", shipped_method_settings())
+    text = results_markdown(tables, "default", date="2026-11-24", provenance=prov)
     assert "Generated on 2026-11-24" in text and "results/default/tables/" in text
-    assert "made by the code at commit abc1234" in text
+    assert f"made by the code at commit abc1234 (no local changes), method settings `{prov.sha}`" in text
+    assert "not the shipped method" not in text
+    record = read_block(text)
+    assert (record["profile"], record["commit"], record["dirty"], record["method_sha"]) == \
+        ("default", "commit abc1234", "no", prov.sha)
+    assert record["summary"]["runs"] == 1 and record["summary"]["particles"] == [6736, 6736]
+    assert record["summary"]["iso_full_last"] == {"experiment": "iso_bunny_full", "closed_last_%": 97.6}
     assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.4 | 0.3 % | 3 | 0.53 -> 0.95 | 1.2 % |" in text
     assert "| 0.01306 | 0.01569 | 16.8 % | yes | +25.8 % |" in text      # a direction and whether it holds
     assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text  # the main table beside the paper
@@ -150,18 +159,20 @@ def test_results_page_names_the_commits_of_its_runs(tmp_path):
         with h5py.File(runs / f"{name}.h5", "w") as f:
             if rev is not None:
                 f.attrs["git_commit"] = rev
-    assert runs_code(tables, runs) == "commits 1234567 (2 runs), 89abcde (1 run)"
+    assert runs_provenance(tables, runs).commit == "commits 1234567 (2 runs), 89abcde (1 run)"
     pd.DataFrame({"experiment": ["a", "b"]}).to_csv(tables / "timing.csv", index=False)
-    assert runs_code(tables, runs) == "commit 1234567"
+    assert runs_provenance(tables, runs).commit == "commit 1234567"
     pd.DataFrame({"experiment": ["d", "e", "not_run"]}).to_csv(tables / "timing.csv", index=False)
-    assert runs_code(tables, runs) is None
+    assert runs_provenance(tables, runs).commit == "unknown"
+    pd.DataFrame({"experiment": ["not_run"]}).to_csv(tables / "timing.csv", index=False)
+    assert runs_provenance(tables, runs) is None
     # the speed/accuracy page: the points of every profile's study
     for profile, names in (("p1", ["a", "c"]), ("p2", ["b", "d"])):
         (tmp_path / profile / "tradeoff").mkdir(parents=True)
         (tmp_path / profile / "tradeoff" / "runs").symlink_to(runs)
         pd.DataFrame({"name": names}).to_csv(tmp_path / profile / "tradeoff" / "tradeoff.csv", index=False)
-    assert tradeoff_code(["p1", "p2"], tmp_path) == "commits 1234567 (2 points), 89abcde (1 point)"
-    assert tradeoff_code(["p2"], tmp_path) == "commit 1234567"
+    assert tradeoff_provenance(["p1", "p2"], tmp_path).commit == "commits 1234567 (2 points), 89abcde (1 point)"
+    assert tradeoff_provenance(["p2"], tmp_path).commit == "commit 1234567"
 
 
 def test_config_reference_documents_every_schema_key():

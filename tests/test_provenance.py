@@ -1,0 +1,149 @@
+"""Provenance that cannot lie: files and pages record the commit, whether the tree had local
+changes, and the method settings (physmorph.provenance, physmorph.page_meta)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import h5py
+import pytest
+
+from physmorph import h5io, page_meta
+from physmorph.config import load_settings, to_plain
+from physmorph.page_meta import PageProvenance, check_pages, from_runs, read_block, readme_table
+from physmorph.provenance import differing_keys, git_state, method_settings, method_sha, shipped_method_settings
+from physmorph.userdocs import results_markdown
+from test_userdocs import _fake_tables
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _profile_method(*profiles: str) -> dict:
+    files = [ROOT / "config" / "config.yaml"] + [ROOT / "config" / f"{p}.yaml" for p in profiles]
+    return method_settings(to_plain(load_settings(*files).experiment_config("iso_bunny_full")))
+
+
+def test_resolution_profiles_run_the_shipped_method():
+    """mid and paper set resolution only: their method settings are the default profile's, which
+    are the shipped ones; the test profile's differ in exactly the keys it sets."""
+    shipped = shipped_method_settings()
+    assert _profile_method() == shipped
+    assert method_sha(_profile_method("mid")) == method_sha(_profile_method("paper")) == method_sha(shipped)
+    assert differing_keys(_profile_method("test"), shipped) == ["mpm.learning_rate", "plasticity.k_neighbors",
+                                                                "plasticity.start_frame"]
+    assert "mpm.grid_res" not in shipped and "frames" not in shipped and "mpm.drag" not in shipped
+    assert shipped["settle"] == "after_first_rise"
+
+
+def test_run_record_is_read_through_its_resolved_part():
+    resolved = {"frames": 40, "gamma": 0.1, "mpm": {"learning_rate": 0.004, "grid_res": 32}}
+    assert method_settings({"experiment": {"source": "iso"}, "morph": {}, "resolved": resolved}) == \
+        {"gamma": 0.1, "mpm.learning_rate": 0.004}
+
+
+def _git(cwd: Path, *args: str) -> str:
+    return subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, check=True).stdout.strip()
+
+
+def test_git_state_tells_a_dirty_tree(tmp_path):
+    repo = tmp_path / "repo"
+    (repo / "physmorph").mkdir(parents=True)
+    code = repo / "physmorph" / "x.py"
+    code.write_text("a = 1\n")
+    _git(repo, "init", "-q")
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "x")
+    rev = _git(repo, "rev-parse", "HEAD")
+    assert git_state(str(repo)) == (rev, "no")
+    (repo / "notes.txt").write_text("untracked, outside the code\n")
+    assert git_state(str(repo)) == (rev, "no")
+    code.write_text("a = 2\n")
+    assert git_state(str(repo)) == (rev, "yes")
+    assert git_state(str(tmp_path)) == ("unknown", "unknown")
+
+
+def test_a_file_and_its_page_say_the_tree_was_dirty(tmp_path, monkeypatch):
+    """A run file made by a tree with local changes records it, and the page made from it says so."""
+    monkeypatch.setattr(h5io, "git_state", lambda: ("1234567abcdef", "yes"))
+    config = {"resolved": {"gamma": 0.1, "mpm": {"learning_rate": 0.004}}}
+    run = tmp_path / "runs" / "iso_bunny_full.h5"
+    run.parent.mkdir()
+    with h5py.File(run, "w") as f:
+        h5io.write_provenance(f, config, started=0.0)
+    with h5py.File(run, "r") as f:
+        assert (f.attrs["git_commit"], f.attrs["git_dirty"]) == ("1234567abcdef", "yes")
+        assert f.attrs["method_sha"] == method_sha(method_settings(config))
+    prov = from_runs([run])
+    assert (prov.commit, prov.dirty) == ("commit 1234567", "yes")
+    tables = tmp_path / "tables"
+    _fake_tables(tables)
+    text = results_markdown(tables, "default", date="today", provenance=prov)
+    assert "made by the code at commit 1234567 (with local changes)" in text
+    assert read_block(text)["dirty"] == "yes"
+    # a tree without local changes says that too, and one file of several dirty marks the page
+    clean = tmp_path / "runs" / "clean.h5"
+    monkeypatch.setattr(h5io, "git_state", lambda: ("1234567abcdef", "no"))
+    with h5py.File(clean, "w") as f:
+        h5io.write_provenance(f, config, started=0.0)
+    assert from_runs([clean]).dirty == "no"
+    assert from_runs([clean, run]).dirty == "yes"
+
+
+def _page(docs: Path, name: str, profile: str, method: dict, summary: dict | None = None) -> None:
+    prov = PageProvenance("commit 1234567", "no", method)
+    (docs / name).write_text(f"# {profile}\n\n" + page_meta.block("results", profile, prov, summary))
+
+
+def test_check_names_the_keys_and_fails_on_the_default_page(tmp_path):
+    shipped = shipped_method_settings()
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    _page(docs, "results.md", "default", shipped)
+    _page(docs, "results_mid.md", "mid", {**shipped, "mpm.learning_rate": 0.002})
+    (docs / "results_old.md").write_text("# made before pages kept a record\n")
+    lines, default_bad = check_pages(docs)
+    assert lines == ["results_mid.md (mid): method settings differ from the shipped ones in mpm.learning_rate",
+                     "results_old.md: records no method settings (regenerate it)"]
+    assert not default_bad
+    _page(docs, "results.md", "default", {**shipped, "settle": "off"})
+    lines, default_bad = check_pages(docs)
+    assert default_bad and any("results.md (default)" in ln and ln.endswith("settle") for ln in lines)
+    (docs / "results.md").write_text("# no record\n")
+    lines, default_bad = check_pages(docs)
+    assert default_bad and "results.md: records no method settings (regenerate it)" in lines
+
+
+def test_readme_table_has_one_value_a_cell_and_marks_other_methods(tmp_path):
+    shipped = shipped_method_settings()
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    summary = {"runs": 18, "particles": [6736, 8044], "images": "8 × 160×90", "frames": [40], "wall_s": 540.0,
+               "peak_rss_mb": 600.0, "iso_full_last": {"experiment": "iso_bunny_full", "closed_last_%": 100.91}}
+    _page(docs, "results.md", "default", shipped, summary)
+    _page(docs, "results_mid.md", "mid", {**shipped, "settle": "off"}, {**summary, "particles": [35000, 44000]})
+    (docs / "paper_scale.md").write_text("# no record\n")
+    table = readme_table(docs).splitlines()
+    assert table[2] == ("| `default` | 18 | 6.7K-8.0K | 8 × 160×90 | 40 | 9 min | 0.6 GB | 100.9 % (bunny) "
+                        "| [results.md](docs/results.md) |")
+    assert table[3].startswith("| `mid` † | 18 | 35.0K-44.0K |")
+    assert table[4].startswith("| `paper` ‡ |")
+    assert any(ln.startswith("† made with other method settings") for ln in table)
+    assert all(row.count(" | ") == 8 for row in table[2:5])
+
+
+def test_the_repository_pages_read_back():
+    """Every recorded page under docs/ parses, and its record's hash is that of its settings."""
+    for page in page_meta.generated_pages(ROOT / "docs"):
+        record = read_block(page.read_text())
+        assert record is not None, page
+        assert record["method_sha"] == method_sha(record["method"]), page
+        json.dumps(record)
+
+
+@pytest.mark.parametrize("value", [0.002, "x", None])
+def test_differing_keys_reads_a_key_the_runs_disagree_on(value):
+    ref = {"a": 1, "b": 0.004}
+    assert differing_keys({"a": 1, "b": {"values": [0.004, value]}}, ref) == ["b"]
+    assert differing_keys({"a": 1, "b": {"values": [0.004]}}, ref) == []
