@@ -374,7 +374,7 @@ def _morph_loop(particles_h5, target_h5, cfg: MorphConfig, name: str, record: st
                             "next_step": step, "overfill_weight": solver.overfill_weight,
                             **gate.checkpoint(),
                             **solver.optimizer_state(), **monitor.state()},
-                   last=k == cfg.frames)
+                   last=k == cfg.frames, motion={"x": st.x, "F": st.F})
         frame_times.append(scal["t_frame"])
         if cfg.progress:
             eta = np.mean(frame_times) * (cfg.frames - k)

@@ -12,6 +12,9 @@ A finished run is one HDF5 file ``<out>``:
   /metrics  one dataset per SCALARS name, [frames + 1] (index 0 = the initial state), and
             ``alpha_mse_views`` [frames + 1, V]
   /states   frame_XXXX/{x, F, Fp} float32, the frames the run chose to save
+  /motion   frame_XXXX/{x float32, F float16} for every other frame: what a video of every frame
+            needs (x and F shade the Gaussians; F at half precision, ~5e-4 relative, keeps a
+            paper-scale run's file near 0.6 GB where full states every frame would take 1.3 GB)
 
 While it runs, a run lives in the directory ``<out>.partial/``:
   LOCK              held (fcntl.flock) by the one process writing the run; holds that PID
@@ -61,6 +64,7 @@ SCALARS = (
     "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
+MOTION = {"x": np.float32, "F": np.float16}  # what every other frame keeps (the module docstring)
 # How saved states are stored: gzip at level 1 on byte-shuffled floats. A paper-scale state
 # (471K particles, 40 MB): 30 MB in 0.9 s, against 35 MB in 1.6 s at gzip's default level unshuffled.
 STATE_COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
@@ -345,13 +349,13 @@ class RunWriter:
             self.meta = dict(f["meta"].attrs)
         return ck
 
-    def _read_frame(self, path: Path, frame: int) -> dict:
+    def _read_frame(self, path: Path, frame: int, arrays: bool = True) -> dict:
         remedy = f"delete {self.dir} (rm -r '{self.dir}') and rerun to restart the run"
         with _open_run_h5(path, remedy) as f:
             _check_format(f, path, FRAME_FORMAT, remedy)
             if int(f.attrs["frame"]) != frame or str(f.attrs["run_key"]) != self.key.digest:
                 raise RunFileError(f"{path}: belongs to another run or frame (frame {int(f.attrs['frame'])}); {remedy}")
-            return _frame_content(f)
+            return _frame_content(f, arrays)
 
     def frame_metrics(self, frame: int) -> tuple[dict, np.ndarray]:  # {name: value}, [V]
         """A committed frame's scalars and its alpha MSE per view."""
@@ -369,12 +373,13 @@ class RunWriter:
 
     def commit(self, frame: int, scalars: dict, views: np.ndarray,  # views [V] alpha MSE per view
                state: dict | None, warnings: list[str], checkpoint: dict | Callable[[], dict],
-               last: bool = False) -> None:
+               last: bool = False, motion: dict | None = None) -> None:
         """Commit frame ``frame``: its frame file, then, when due (see the module docstring) or
         ``last``, the checkpoint.
 
-        state: None or {x [N,3], F [N,3,3], Fp [N,3,3]} to save; checkpoint: name -> array or scalar,
-        or a function returning it (called only when the checkpoint is written).
+        state: None or {x [N,3], F [N,3,3], Fp [N,3,3]} to save (else, where ``state`` holds x and F
+        anyway, the frame's motion: MOTION); checkpoint: name -> array or scalar, or a function
+        returning it (called only when the checkpoint is written).
         """
         self._require_lock()
         segments = self.segments_now()
@@ -394,6 +399,11 @@ class RunWriter:
                 for k in SAVED_STATE:
                     written[f"state/{k}"] = np.asarray(state[k]).astype(np.float32)
                     s.create_dataset(k, data=written[f"state/{k}"], **STATE_COMPRESSION)
+            elif motion is not None:
+                s = f.create_group("motion")
+                for k, dtype in MOTION.items():
+                    written[f"motion/{k}"] = np.asarray(motion[k]).astype(dtype)
+                    s.create_dataset(k, data=written[f"motion/{k}"], **STATE_COMPRESSION)
             return written
 
         def fill_checkpoint(f: h5py.File) -> dict:
@@ -431,7 +441,9 @@ class RunWriter:
         last = self.last_frame
         if last < 0:
             raise RuntimeError(f"{self.dir}: no committed frame to finish the run with")
-        frames = [self._read_frame(self.dir / frame_name(k), k) for k in range(last + 1)]
+        # metrics and warnings of every frame; the arrays are copied one frame at a time (at the
+        # paper's scale all of them together are ~0.7 GB)
+        frames = [self._read_frame(self.dir / frame_name(k), k, arrays=False) for k in range(last + 1)]
         segments = self.segments_now()
 
         def fill(f: h5py.File) -> dict:
@@ -440,13 +452,12 @@ class RunWriter:
             g = f.create_group("metrics")
             for name in SCALARS + ("alpha_mse_views",):
                 g.create_dataset(name, data=np.stack([_frame_metric(fr, name) for fr in frames]))
-            st = f.create_group("states")
+            f.create_group("states")
             written = {}
-            for k, fr in enumerate(frames):
-                if fr["state"] is not None:
-                    s = st.create_group(f"frame_{k:04d}")
-                    for name, arr in fr["state"].items():
-                        written[f"states/frame_{k:04d}/{name}"] = arr
+            for k in range(last + 1):
+                for group, arrays in self._read_frame(self.dir / frame_name(k), k)["arrays"].items():
+                    s = f.create_group(f"{group}/frame_{k:04d}")
+                    for name, arr in arrays.items():
                         s.create_dataset(name, data=arr, **STATE_COMPRESSION)
             write_provenance(f, config, self.started)
             f.attrs.update(attrs)
@@ -462,9 +473,12 @@ class RunWriter:
         return self.out
 
 
-def _frame_content(f: h5py.File) -> dict:
+def _frame_content(f: h5py.File, arrays: bool = True) -> dict:
+    """A frame file's metrics, warnings and meta, and with ``arrays`` its saved state or motion
+    ({"states": {...}} or {"motion": {...}}, stored as they were written)."""
+    held = {"states": "state", "motion": "motion"}
     return {"metrics": {k: f["metrics"][k][()] for k in f["metrics"]},
-            "state": {k: f["state"][k][()] for k in f["state"]} if "state" in f else None,
+            "arrays": {out: {k: f[g][k][()] for k in f[g]} for out, g in held.items() if g in f} if arrays else {},
             "warnings": json.loads(str(f.attrs["warnings"])), "peak_rss_mb": float(f.attrs["peak_rss_mb"]),
             "meta": dict(f["meta"].attrs) if "meta" in f else None}
 
@@ -568,3 +582,15 @@ if __name__ == "__main__":  # python -m physmorph.runfile RUN [RUN ...]
             print(f"error: {exc}", file=sys.stderr)
             code = 1
     sys.exit(code)
+
+
+def frame_motion(f: h5py.File, frame: int) -> tuple[np.ndarray, np.ndarray]:  # x [N, 3], F [N, 3, 3]
+    """Positions and deformation gradients of any frame of a finished run (float64): the saved
+    state where the frame has one, else its motion (F at half precision: MOTION)."""
+    name = f"frame_{frame:04d}"
+    for group in ("states", "motion"):
+        if group in f and name in f[group]:
+            g = f[group][name]
+            return g["x"][()].astype(np.float64), g["F"][()].astype(np.float64)
+    raise RunFileError(f"{f.filename}: frame {frame} has no positions (a run made before every frame's "
+                       f"motion was kept has them every save_every frames only: rerun it)")

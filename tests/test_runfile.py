@@ -328,3 +328,29 @@ def test_reading_settings_and_runs_and_building_tables_imports_neither_taichi_no
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": str(REPO)})
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_every_frame_keeps_its_motion_for_the_video(tmp_path):
+    """A frame without a saved state keeps x (float32) and F (float16) as its motion; the finished
+    file holds both groups, and frame_motion reads any frame from either."""
+    out = tmp_path / "run.h5"
+    with RunWriter(out, KEY) as w:
+        w.resume(log=lambda m: None)
+        w.set_meta({"experiment": "hand", "views": V})
+        for k in range(4):
+            st = _state(k)
+            saved = k in (0, 3)
+            w.commit(k, {"alpha_mse": 1.0}, np.ones(V), st if saved else None, [], {"x": st["x"]}, last=k == 3,
+                     motion={"x": st["x"], "F": st["F"] + 1e-3 * k})
+        w.finish("complete", {}, {"frames": 3})
+    with h5py.File(out) as f:
+        assert sorted(f["states"]) == ["frame_0000", "frame_0003"]
+        assert sorted(f["motion"]) == ["frame_0001", "frame_0002"]
+        assert f["motion/frame_0002/F"].dtype == np.float16 and f["motion/frame_0002/x"].dtype == np.float32
+        for k in range(4):
+            x, F = runfile.frame_motion(f, k)
+            np.testing.assert_allclose(x, _state(k)["x"], rtol=1e-6, atol=1e-6)
+            want = _state(k)["F"] + (1e-3 * k if k in (1, 2) else 0.0)
+            np.testing.assert_allclose(F, want, rtol=1e-3)
+        with pytest.raises(RunFileError, match="frame 4 has no positions"):
+            runfile.frame_motion(f, 4)
