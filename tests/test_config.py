@@ -156,7 +156,7 @@ def test_memory_estimate_refuses_a_grid_too_big_for_the_machine():
 
 def test_morph_memory_from_the_sampled_count_covers_the_measured_peak():
     """With the particles sampled, the morph rule asks for memory from their real count: the paper
-    profile's iso -> bunny full (471,282 particles) peaked at 7,038 MB (docs/performance.md)."""
+    profile's iso -> bunny full (471,282 particles) peaked at 7,038 MB (docs/study/performance_history.md)."""
     from physmorph.config import morph_memory
 
     s = load_settings(BASE, "config/paper.yaml")
