@@ -166,3 +166,27 @@ def test_at_the_advised_size_the_target_stage_sees_no_crop(tmp_path):
             summary = rasterize_target(tmp_path / f"tall_{s}.h5", tmp_path / f"t_{s}.h5", sampling, tc)
         assert bool(summary["cropped_views"]) == cropped, (s, summary["cropped_views"])
         assert any(issubclass(w.category, TargetCropWarning) for w in caught) == cropped
+
+
+def test_two_targets_get_their_own_shrunk_sources(tmp_path, capsys, monkeypatch):
+    """Two long meshes of different volumes: each one's advice shrinks the source to its volume.
+    Named after the target, the sources do not collide when both blocks go into one config (both
+    were `isosmall`, and the second block's size overwrote the first's)."""
+    monkeypatch.chdir(tmp_path)
+    blocks = []
+    for length in (8.0, 10.0):
+        box = trimesh.creation.box(extents=(1.0, 1.0, length))
+        box.export(tmp_path / f"long{length:.0f}.obj")
+        assert main([f"long{length:.0f}.obj", "--configfile", str(REPO / "config/config.yaml")]) == 0
+        out = capsys.readouterr().out
+        blocks.append(yaml.safe_load(out[out.index("shapes:"):]))
+    (a,), (b,) = (list(block["experiments"].values()) for block in blocks)
+    for i, block in enumerate(blocks):
+        (tmp_path / f"block{i}.yaml").write_text(yaml.safe_dump(block))
+    s = load_settings(REPO / "config/config.yaml", tmp_path / "block0.yaml", tmp_path / "block1.yaml")
+    for exp, length in ((a, 8.0), (b, 10.0)):
+        src, tgt = s.shapes[exp["source"]], s.shapes[exp["target"]]
+        target_volume = tgt.size ** 3 / length ** 2  # the box 1 x 1 x length at longest extent tgt.size
+        assert isosphere_volume(src.size) == pytest.approx(target_volume, rel=0.02)
+    assert {name for block in blocks for name in block["experiments"]} <= set(s.experiments)
+    assert (a["source"], b["source"]) == ("isolong8", "isolong10")  # valid shape names: letters and digits

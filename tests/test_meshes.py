@@ -17,9 +17,10 @@ from physmorph.meshes import (
     load_mesh,
     load_raw_mesh,
     prepare_mesh,
-    ray_parity_vote,
+    ray_winding_vote,
     remesh_winding_number,
     repair_mesh,
+    solid_problem,
     winding_number,
 )
 
@@ -171,7 +172,7 @@ def test_winding_number_is_one_inside_zero_outside():
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
     q = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.5], [2.0, 0.0, 0.0], [0.0, -1.5, 0.4]])
     np.testing.assert_allclose(winding_number(sphere, q), [1.0, 1.0, 0.0, 0.0], atol=1e-9)
-    np.testing.assert_allclose(ray_parity_vote(sphere, q), [1.0, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(ray_winding_vote(sphere, q), [1.0, 1.0, 0.0, 0.0])
 
 
 @pytest.mark.parametrize("exact_budget", [5e7, 0.0], ids=["winding-number", "ray-vote"])
@@ -181,6 +182,135 @@ def test_remesh_fallback_closes_an_open_sphere(exact_budget):
     out = remesh_winding_number(holey, resolution=24, exact_budget=exact_budget)
     assert out.is_watertight and out.is_winding_consistent
     assert abs(out.volume - closed.volume) < 0.03 * closed.volume
+
+
+def _open_shell(centre) -> trimesh.Trimesh:
+    """A unit icosphere at ``centre`` with the five faces around its first vertex removed: a hole
+    trimesh's fill_holes leaves open."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    return trimesh.Trimesh(sphere.vertices + np.asarray(centre, float), sphere.faces[5:], process=False)
+
+
+SHELL_CENTRES = ([0.0, 0.0, 0.0], [0.8, 0.3, 0.1])
+
+
+def _overlapping_open_shells() -> trimesh.Trimesh:
+    """Two open spheres passing through each other: open and self-intersecting."""
+    return trimesh.util.concatenate([_open_shell(c) for c in SHELL_CENTRES])
+
+
+def _union_volume() -> float:
+    """The volume of the two closed icospheres' union, by Monte Carlo (200k points: ~0.3 %)."""
+    closed = [trimesh.creation.icosphere(subdivisions=2, radius=1.0).apply_translation(c) for c in SHELL_CENTRES]
+    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.8, 1.3, 1.1])
+    pts = np.random.default_rng(0).uniform(lo, hi, size=(200_000, 3))
+    inside = closed[0].contains(pts) | closed[1].contains(pts)
+    return float(inside.mean() * np.prod(hi - lo))
+
+
+@pytest.mark.parametrize("exact_budget", [5e7, 0.0], ids=["winding-number", "ray-vote"])
+def test_remesh_of_overlapping_open_shells_is_their_union(exact_budget):
+    """Where the shells overlap a ray crosses both: hit parity called it outside (the old ray vote
+    carved the overlap out, 4.9 of 6.5); the signed crossing count is the winding number, 2."""
+    out = remesh_winding_number(_overlapping_open_shells(), resolution=32, exact_budget=exact_budget)
+    assert solid_problem(out) is None and len(out.split(only_watertight=False)) == 1
+    union = _union_volume()
+    assert abs(out.volume - union) < 0.03 * union
+    # what the raw mesh's volume counts twice: the lens both spheres hold (~1.5)
+    assert 1.2 < out.metadata["overlap_volume"] < 1.8
+
+
+def test_an_open_self_intersecting_shell_is_accepted_by_the_remesh():
+    """MeshFix cannot repair it, and the raw (capped) volume counts the overlap twice: the remesh
+    is checked against the raw volume less the overlap it measured, and the union is accepted."""
+    fixed, steps, volume = repair_mesh(_overlapping_open_shells(), "shells")
+    assert steps[-1] == "winding-number remesh (marching cubes)"
+    assert solid_problem(fixed) is None and fixed.is_watertight and fixed.is_winding_consistent
+    union = _union_volume()
+    assert abs(fixed.volume - union) < 0.03 * union
+    assert abs(volume - union) < 0.03 * union  # the reported raw volume holds the overlap once
+
+
+@pytest.mark.parametrize("exact_budget", [5e7, 0.0], ids=["winding-number", "ray-vote"])
+@pytest.mark.parametrize("drop", [0, 1], ids=["closed", "open"])
+def test_remesh_is_a_solid_where_the_lattice_runs_through_the_faces(exact_budget, drop):
+    """A box's sides lie on lattice points, where w = 1/2: marching cubes put vertices on them, and
+    merging vertices by position glued the surface into edges of more than two faces (not
+    watertight, negative volume). Lattice points on the surface are now on the level, off it by a
+    hair, and marching cubes' own vertices are kept: closed, and the box's volume to 0.1 %."""
+    box = trimesh.creation.box(extents=(1.0, 1.0, 8.0))
+    mesh = trimesh.Trimesh(box.vertices, box.faces[drop:], process=False)
+    out = remesh_winding_number(mesh, resolution=64, exact_budget=exact_budget)
+    assert solid_problem(out) is None
+    assert abs(out.volume - 8.0) < (0.01 if exact_budget else 0.03) * 8.0
+
+
+def test_remesh_of_a_box_open_on_one_side_does_not_touch_the_lattice():
+    """Through the missing side a ray from outside meets one face: the ray vote called points of
+    the lattice's own boundary inside, and the surface stayed open there. The lattice is padded
+    by a layer held outside."""
+    box = trimesh.creation.box(extents=(2.0, 3.0, 4.0))
+    open_box = trimesh.Trimesh(box.vertices, box.faces[2:], process=False)  # the whole -x side gone
+    out = remesh_winding_number(open_box, resolution=64, exact_budget=0.0)
+    assert solid_problem(out) is None
+
+
+@pytest.mark.parametrize("exact_budget", [5e7, 0.0], ids=["winding-number", "ray-vote"])
+def test_remesh_turns_an_inside_out_open_mesh_outward(exact_budget):
+    """Inside out, w ~ -1 inside: the winding number never reached 1/2 ("encloses no volume")."""
+    closed, holey = _holey_sphere()
+    inside_out = trimesh.Trimesh(holey.vertices, holey.faces[:, ::-1], process=False)
+    out = remesh_winding_number(inside_out, resolution=24, exact_budget=exact_budget)
+    assert solid_problem(out) is None
+    assert abs(out.volume - closed.volume) < 0.03 * closed.volume
+
+
+def test_solid_problem_names_the_check():
+    box = trimesh.creation.box()
+    assert solid_problem(box) is None
+    assert solid_problem(trimesh.Trimesh(box.vertices, box.faces[1:], process=False)) == "not watertight: 3 open edges"
+    doubled = trimesh.Trimesh(box.vertices, np.vstack([box.faces, box.faces[:1]]), process=False)
+    assert solid_problem(doubled) == "not watertight: 3 edges shared by more than two faces"
+    one_flipped = box.faces.copy()
+    one_flipped[0] = one_flipped[0, ::-1]
+    assert solid_problem(trimesh.Trimesh(box.vertices, one_flipped, process=False)) == "inconsistent winding"
+    inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
+    assert solid_problem(inverted).startswith("negative volume")
+    assert solid_problem(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int))) == "no faces"
+
+
+@pytest.mark.parametrize("broken, named", [
+    (lambda box: trimesh.Trimesh(box.vertices, box.faces[1:], process=False), "not watertight: 3 open edges"),
+    (lambda box: trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False), "negative volume"),
+], ids=["open", "inside-out"])
+def test_a_refused_repair_names_the_failed_check(monkeypatch, broken, named):
+    """Whatever the last repair leaves, the refusal says which check it fails (it said "still not
+    watertight" of an inside-out mesh too)."""
+    import physmorph.meshes.repair as repair
+
+    monkeypatch.setattr(repair, "remesh_winding_number", lambda mesh: broken(trimesh.creation.box(extents=(2, 2, 2))))
+    with pytest.raises(MeshError) as err:
+        repair_mesh(_overlapping_open_shells(), "shells.obj")
+    msg = str(err.value)
+    assert msg.startswith("shells.obj: irreparable, " + named) and "winding-number remesh (marching cubes)" in msg
+
+
+def test_a_remesh_error_names_the_mesh(monkeypatch):
+    import physmorph.meshes.repair as repair
+
+    def no_inside(mesh):
+        raise MeshError("winding-number remesh: the surface encloses no volume (inside-ness never crosses 0.5)")
+
+    monkeypatch.setattr(repair, "remesh_winding_number", no_inside)
+    with pytest.raises(MeshError, match=r"^shells\.obj: irreparable, winding-number remesh: the surface encloses no volume"):
+        repair_mesh(_overlapping_open_shells(), "shells.obj")
+
+
+def test_a_mesh_whose_volume_overflows_is_too_large():
+    box = trimesh.creation.box()
+    huge = trimesh.Trimesh(box.vertices * 1e200, box.faces, process=False)
+    with pytest.raises(MeshError, match=r"^huge\.obj: too large, coordinates reach 5e\+199"):
+        repair_mesh(huge, "huge.obj")
 
 
 def test_small_holes_are_filled_and_volume_kept():

@@ -17,11 +17,15 @@ output's ``repair`` attribute):
    drop degenerate and duplicate faces, fix winding/normals, fill small holes (trimesh);
 2. MeshFix (pymeshfix) for holes trimesh cannot close (the Bunny's base);
 3. a generalized-winding-number remesh: marching cubes of the winding-number field of the
-   triangle soup, which is well defined for open or self-intersecting input.
+   triangle soup (oriented outward first), which is well defined for open or self-intersecting
+   input; its output is closed, consistently wound and of positive volume whenever the field has
+   an inside.
 
 A repaired mesh must keep its volume within ``volume_tolerance`` of the raw mesh's
 (divergence-theorem) volume, so a repair that silently drops components or caps a shape wrongly
-is an error, not a quiet change of shape.
+is an error, not a quiet change of shape; after the remesh, less what that volume counts twice
+where the raw surface overlaps itself. A refusal (MeshError) names the file or shape and the
+check that failed; the fit helper and the prepare_mesh job end on it in one line, exit status 2.
 
 Modules: ``fetch`` (stage 1), ``shapes`` (specs, procedural shapes), ``repair`` (loading and
 repair), ``prepare`` (stage 2: normalise, write, read).
@@ -30,11 +34,11 @@ repair), ``prepare`` (stage 2: normalise, write, read).
 from .errors import FetchError, MeshError
 from .fetch import fetch_mesh, sha256_of
 from .prepare import load_mesh, normalize_mesh, prepare_mesh
-from .repair import (DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, ray_parity_vote, remesh_winding_number, repair_mesh,
-                     winding_number)
+from .repair import (DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, ray_crossings, ray_winding_vote, remesh_winding_number,
+                     repair_mesh, solid_problem, winding_number)
 from .shapes import DEFAULT_LETTER_DEPTH_FRACTION, LETTER_GLYPHS, SHAPE_KINDS, ShapeSpec, isosphere, letter_mesh
 
 __all__ = ["DEFAULT_LETTER_DEPTH_FRACTION", "DEFAULT_VOLUME_TOLERANCE", "FetchError", "LETTER_GLYPHS", "MeshError",
            "SHAPE_KINDS", "ShapeSpec", "fetch_mesh", "isosphere", "letter_mesh", "load_mesh", "load_raw_mesh",
-           "normalize_mesh", "prepare_mesh", "ray_parity_vote", "remesh_winding_number", "repair_mesh",
-           "sha256_of", "winding_number"]
+           "normalize_mesh", "prepare_mesh", "ray_crossings", "ray_winding_vote", "remesh_winding_number",
+           "repair_mesh", "sha256_of", "solid_problem", "winding_number"]

@@ -12,7 +12,9 @@ prints the size for the source's volume, the largest size that fits the configur
 target's camera views, so the render loss sees all of it), and,
 where the first does not fit, the shapes a config needs (target and a volume-matched isosphere).
 The mesh is repaired exactly as the prepare_mesh stage repairs it, so the volume is the one the
-workflow will see (a mesh that is not watertight still gets a size).
+workflow will see (a mesh that is not watertight still gets a size). A mesh that cannot be used
+(missing, unreadable, empty, flat, enclosing no volume, irreparable, too large) is refused in one
+line on stderr naming the file and the reason, with exit status 2.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +31,7 @@ import trimesh
 
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
+from .errors import REFUSED_STATUS, MeshError, exit_on_refusal, refusal_line
 from .prepare import normalize_mesh
 from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
 from .shapes import isosphere
@@ -261,13 +265,24 @@ def advise_size_for_file(
     """Load and repair ``path`` as prepare_mesh does, then :func:`advise_size`."""
     raw = load_raw_mesh(path)
     repaired, steps, _ = repair_mesh(raw, str(path), volume_tolerance=volume_tolerance)
-    return advise_size(repaired, volume, grid_res, domain, tuple(steps), cameras)
+    advice = advise_size(repaired, volume, grid_res, domain, tuple(steps), cameras)
+    if advice.largest < SIZE_STEP:  # a size of 0.0 would be printed, and refused by every stage after
+        room = "the particles' region" + (" and the target's views" if math.isfinite(advice.view_size) else "")
+        raise MeshError(f"{path}: too large for grid {int(grid_res)} in [{domain[0]:g}, {domain[1]:g}]^3: even at size "
+                        f"{SIZE_STEP:g} it does not fit {room}")
+    return advice
 
 
 def shape_name(stem: str) -> str:
     """A valid shape name (letters and digits, starting with a letter) from a file's stem."""
     name = "".join(c for c in stem if c.isascii() and c.isalnum())
     return name if name[:1].isalpha() else "mesh" + name
+
+
+def shrunk_source_name(source: str, target: str) -> str:
+    """The name of the isosphere ``source`` shrunk to ``target``'s volume: both run together, a valid
+    shape name for valid ``source`` and ``target``, and one per target."""
+    return f"{source}{target}"
 
 
 def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
@@ -286,7 +301,9 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
         lines += ["", "shapes:", f"  {name}: {{kind: file, path: {path}, size: {a.size:.1f}}}",
                   f"experiments: {{{source}_{name}: {{source: {source}, target: {name}, method: full}}}}"]
     else:
-        small = f"{source}small"  # shape names are letters and digits
+        # Named after its target, so two targets' blocks merge without one source overwriting the
+        # other (shape names are letters and digits: isohomer, isorocker in config/outside.yaml).
+        small = shrunk_source_name(source, name)
         lines += [f"  the volume's size does not fit: at size {a.size:.1f} the mesh holds {a.target_volume:.0f} units^3, "
                   f"so the source shrinks to it (an isosphere of size {a.source_size:.1f})",
                   "", "shapes:", f"  {name}: {{kind: file, path: {path}, size: {a.size:.1f}}}",
@@ -296,7 +313,7 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from physmorph.config import load_settings
+    from physmorph.config import ConfigError, load_settings
 
     ap = argparse.ArgumentParser(prog="python -m physmorph.meshes.fit", description=__doc__.split("\n\n")[0])
     ap.add_argument("mesh", help="the mesh file (anything trimesh reads)")
@@ -306,7 +323,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default=None, help="the shape's name in the printed YAML (default: the file's stem)")
     args = ap.parse_args(argv)
 
-    settings = load_settings(*args.configfile)
+    try:
+        settings = load_settings(*args.configfile)
+    except ConfigError as exc:  # one line too, like a refused mesh
+        print(refusal_line(exc, " + ".join(args.configfile)), file=sys.stderr)
+        raise SystemExit(REFUSED_STATUS) from None
     if args.source not in settings.shapes:
         ap.error(f"--source {args.source!r} is not a shape of {' + '.join(args.configfile)} "
                  f"(shapes: {', '.join(sorted(settings.shapes))})")
@@ -320,7 +341,9 @@ def main(argv: list[str] | None = None) -> int:
 
     t = settings.target
     cameras = ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance)
-    advice = advise_size_for_file(args.mesh, volume, settings.sampling.grid_res, settings.domain, cameras=cameras)
+    # A mesh that cannot be used ends in one line naming the file and the check it failed, status 2.
+    advice = exit_on_refusal(lambda: advise_size_for_file(args.mesh, volume, settings.sampling.grid_res,
+                                                          settings.domain, cameras=cameras), path=args.mesh)
     print(advice_text(advice, args.mesh, name, args.source))
     return 0
 

@@ -4,6 +4,8 @@ physmorph.meshes' docstring); a repair that changes the volume by more than its 
 from __future__ import annotations
 
 import os
+import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,8 @@ from .errors import MeshError
 
 # A repair may change the enclosed volume by at most this fraction (MeshFix on the Bunny: < 1 %).
 DEFAULT_VOLUME_TOLERANCE = 0.03
+# Coordinates beyond this cannot be cubed into a volume in double precision (~1.8e308).
+MAX_COORDINATE = 1e100
 
 
 def load_raw_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
@@ -29,16 +33,28 @@ def load_raw_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path}: contains no triangle mesh (got {type(loaded).__name__})")
     if len(loaded.faces) == 0 or len(loaded.vertices) == 0:
-        raise MeshError(f"{path}: mesh is empty (no faces)")
+        raise MeshError(f"{path}: {_why_empty(path)}")
     if not np.all(np.isfinite(loaded.vertices)):
         raise MeshError(f"{path}: mesh has non-finite vertex coordinates")
     return trimesh.Trimesh(np.asarray(loaded.vertices, np.float64), np.asarray(loaded.faces, np.int64), process=False)
 
 
-def _solid_angles(query: np.ndarray, tri: np.ndarray) -> np.ndarray:
+def _why_empty(path: Path) -> str:
+    """Why a file read as a mesh has no faces: points only (a mesh with nothing to enclose), or
+    nothing at all (trimesh's text readers skip bytes that are not a mesh, rather than raise)."""
+    try:
+        points = len(getattr(trimesh.load(path, process=False), "vertices", ()))
+    except Exception:  # the first read succeeded; a second one failing says no more
+        points = 0
+    if points:
+        return f"mesh is empty (no faces, {points} points only)"
+    return f"cannot be read as a mesh (no vertices or faces in its {path.stat().st_size} bytes)"
+
+
+def _solid_angles(query: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Signed solid angle of each triangle seen from each query point (Van Oosterom & Strackee 1983).
 
-    query: [Q, 3], tri: [F, 3, 3]. Returns [Q, F]:
+    query: [Q, 3], tri: [F, 3, 3]. Returns (Omega [Q, F], on [Q]: the point lies on a triangle):
         tan(Omega / 2) = a.(b x c) / (|a||b||c| + (a.b)|c| + (b.c)|a| + (c.a)|b|),  a, b, c = v_k - q.
     """
     a = tri[None, :, 0, :] - query[:, None, :]
@@ -48,79 +64,144 @@ def _solid_angles(query: np.ndarray, tri: np.ndarray) -> np.ndarray:
     det = np.einsum("qfi,qfi->qf", a, np.cross(b, c))
     den = la * lb * lc + np.einsum("qfi,qfi->qf", a, b) * lc + np.einsum("qfi,qfi->qf", b, c) * la \
         + np.einsum("qfi,qfi->qf", c, a) * lb
-    return 2.0 * np.arctan2(det, den)
+    # In the triangle's plane den > 0 outside it, < 0 inside, 0 on its edges: there the angle is
+    # +-2 pi by the sign of a rounding error, so it is taken as 0 (a point on a smooth closed surface
+    # then gets w = 1/2) and the point is reported, for callers that know better what it is.
+    scale = 1e-12 * la * lb * lc
+    on = (np.abs(det) <= scale) & (den <= scale)
+    return np.where(on, 0.0, 2.0 * np.arctan2(det, den)), on.any(axis=1)
 
 
-def winding_number(mesh: trimesh.Trimesh, query: np.ndarray, budget: int = 2_000_000) -> np.ndarray:
+def winding_number(mesh: trimesh.Trimesh, query: np.ndarray, budget: int = 2_000_000,
+                   surface_value: float | None = None) -> np.ndarray:
     """Generalized winding number w(q) = sum_f Omega_f(q) / (4 pi) (Jacobson et al. 2013).
 
     query: [Q, 3]. Returns [Q]: ~1 inside a closed outward-oriented surface, ~0 outside, and a
-    smooth, still meaningful field for open or self-intersecting triangle soups.
+    smooth, still meaningful field for open or self-intersecting triangle soups. A point on the
+    surface itself gets ``surface_value`` when given (else 1/2 on a smooth part, less at an edge).
     """
     query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
     tri = np.asarray(mesh.triangles, dtype=np.float64)  # [F, 3, 3]
     out = np.zeros(len(query))
     step = max(1, budget // max(1, len(tri)))
     for s in range(0, len(query), step):
-        out[s:s + step] = _solid_angles(query[s:s + step], tri).sum(axis=1) / (4.0 * np.pi)
+        omega, on = _solid_angles(query[s:s + step], tri)
+        out[s:s + step] = omega.sum(axis=1) / (4.0 * np.pi)
+        if surface_value is not None:
+            out[s:s + step][on] = surface_value
     return out
 
 
-# Directions for the ray-parity vote: irrational-ish so rays rarely graze edges or vertices.
+# Directions for the ray vote: irrational-ish so rays rarely graze edges or vertices.
 _VOTE_DIRECTIONS = np.array([
     [0.5773, 0.5774, 0.5774], [-0.6325, 0.3162, 0.7071], [0.2673, -0.8018, 0.5345],
     [0.8165, 0.4082, -0.4082], [-0.3015, -0.3015, -0.9045], [0.1104, 0.9933, -0.0331],
     [-0.9487, 0.0, 0.3162],
 ])
+# Field values this close to the remesh's 0.5 level are pushed off it: a lattice point on the surface
+# (w = 0.5 exactly on a face, e.g. a box's side on the lattice) makes marching cubes put vertices on
+# lattice points, where triangles of neighbouring cells meet degenerate and non-manifold.
+_LEVEL_GAP = 1e-3
 
 
-def ray_parity_vote(mesh: trimesh.Trimesh, query: np.ndarray) -> np.ndarray:
-    """Inside fraction [Q] of query: [Q, 3] over several ray directions (odd hit count = inside).
+def ray_crossings(mesh: trimesh.Trimesh, query: np.ndarray) -> np.ndarray:
+    """Signed surface crossings [Q, D] of a ray from each of query: [Q, 3] along each _VOTE_DIRECTIONS.
 
-    For a mesh with holes a ray escaping through a hole miscounts; a majority over directions
-    that mostly do not pass through the holes is robust. Uses Embree when embreex is installed.
+    A hit through a face whose normal points along the ray is an exit (+1), against it an entry (-1):
+    from an outward-oriented surface the sum is the winding number (0 outside, 1 inside, 2 inside two
+    overlapping shells, where hit parity says "outside"). A ray escaping through a hole miscounts, so
+    callers vote over the directions. Uses Embree when embreex is installed.
     """
     query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
-    votes = np.zeros(len(query))
-    for d in _VOTE_DIRECTIONS:
+    normals = np.asarray(mesh.face_normals, np.float64)  # [F, 3]
+    out = np.zeros((len(query), len(_VOTE_DIRECTIONS)))
+    for k, d in enumerate(_VOTE_DIRECTIONS):
         d = d / np.linalg.norm(d)
-        _, index_ray, _ = mesh.ray.intersects_location(query, np.broadcast_to(d, query.shape), multiple_hits=True)
-        votes += np.bincount(index_ray, minlength=len(query)) % 2
-    return votes / len(_VOTE_DIRECTIONS)
+        _, index_ray, index_tri = mesh.ray.intersects_location(query, np.broadcast_to(d, query.shape),
+                                                                multiple_hits=True)
+        out[:, k] = np.bincount(index_ray, weights=np.sign(normals[index_tri] @ d), minlength=len(query))
+    return out
 
 
-def remesh_winding_number(mesh: trimesh.Trimesh, resolution: int = 64, exact_budget: float = 5e7) -> trimesh.Trimesh:
-    """Robust fallback repair: the 0.5 level set of an inside-ness field, by marching cubes.
+def ray_winding_vote(mesh: trimesh.Trimesh, query: np.ndarray) -> np.ndarray:
+    """Inside fraction [Q] of query: [Q, 3]: the share of ray directions along which the point is
+    inside (ray_crossings > 0). For a mesh with holes a majority over directions that mostly miss
+    the holes is robust; for self-intersecting shells the signed count, unlike parity, stays inside."""
+    return (ray_crossings(mesh, query) > 0.5).mean(axis=1)
 
-    The field is sampled on a cubic lattice of ``resolution`` cells along the longest extent,
-    padded by two cells so the extracted surface is closed. It is the exact generalized winding
-    number when (lattice points x faces) <= ``exact_budget`` (cost O(points x faces)), otherwise
-    the Embree ray-parity vote, its cheap approximation for large meshes.
+
+def _oriented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """A copy with coincident vertices merged, each connected patch wound consistently and the whole
+    turned so its capped volume is positive. The winding number and the signed ray crossings count
+    with the faces' orientation: an inside-out file would read as all outside (w ~ -1), and a patch
+    split along UV seams cannot be made consistent until its seams are merged."""
+    m = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), process=False)
+    m.merge_vertices(merge_tex=True, merge_norm=True)
+    trimesh.repair.fix_winding(m)
+    if _enclosed_volume(m, signed=True) < 0:
+        m.invert()
+    return m
+
+
+def _inside_field(mesh: trimesh.Trimesh, resolution: int, exact_budget: float
+                  ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The inside-ness of an outward-oriented ``mesh`` on a cubic lattice of ``resolution`` cells
+    along its longest extent, two cells beyond its bounds: (field [X, Y, Z] whose 0.5 level is the
+    surface, lattice origin [3], spacing h, multiplicity excess). The excess is the integral of
+    w - clip(w, 0, 1): the volume the divergence-theorem volume counts twice where shells overlap
+    (or negatively where a part is inside out), which the remeshed solid holds once (or not at all).
     """
-    from skimage.measure import marching_cubes
-
     lo, hi = mesh.bounds
     h = float(np.max(hi - lo)) / resolution
     if not h > 0:
         raise MeshError("winding-number remesh: mesh has zero extent")
     axes = [np.arange(lo[k] - 2 * h, hi[k] + 2.5 * h, h) for k in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)  # [Q, 3]
     if len(pts) * len(mesh.faces) <= exact_budget:
-        inside = winding_number(mesh, pts)
+        # A lattice point on the surface is on the level: the surface then runs through it, where w
+        # itself (1/4 on a box's edge, 1/8 at a corner) would cut the edges off a box on the lattice.
+        field = winding_number(mesh, pts, surface_value=0.5)
+        multiplicity = field
     else:
-        inside = ray_parity_vote(mesh, pts)
-    field = inside.reshape(tuple(len(a) for a in axes))
+        crossings = ray_crossings(mesh, pts)  # [Q, D]
+        field = (crossings > 0.5).mean(axis=1)
+        multiplicity = np.median(crossings, axis=1)
+    excess = float((multiplicity - np.clip(multiplicity, 0.0, 1.0)).sum() * h ** 3)
+    origin = np.array([a[0] for a in axes])
+    return field.reshape(tuple(len(a) for a in axes)), origin, h, excess
+
+
+def remesh_winding_number(mesh: trimesh.Trimesh, resolution: int = 64, exact_budget: float = 5e7) -> trimesh.Trimesh:
+    """Robust fallback repair: the 0.5 level set of an inside-ness field, by marching cubes.
+
+    The field (see _inside_field) is the exact generalized winding number when (lattice points x
+    faces) <= ``exact_budget`` (cost O(points x faces)), otherwise the Embree ray vote, its cheap
+    approximation for large meshes; ``mesh`` is oriented outward first (_oriented). The result is
+    closed, consistently wound and of positive volume for any field with an inside: the lattice is
+    padded by a layer held outside (a ray vote can call the lattice's own boundary inside, which
+    would leave the surface open there), no value sits on the level, and marching cubes' own shared
+    vertices are kept (merging by position would glue the surface where it passes a lattice point).
+    ``out.metadata["overlap_volume"]`` is the field's multiplicity excess (_inside_field).
+    """
+    from skimage.measure import marching_cubes
+
+    field, origin, h, excess = _inside_field(_oriented(mesh), resolution, exact_budget)
     if not (field.max() > 0.5 and field.min() < 0.5):
         raise MeshError("winding-number remesh: the surface encloses no volume (inside-ness never crosses 0.5)")
+    field = np.pad(field, 1, constant_values=0.0)
+    near = np.abs(field - 0.5) < _LEVEL_GAP
+    field[near] = np.where(field[near] >= 0.5, 0.5 + _LEVEL_GAP, 0.5 - _LEVEL_GAP)
     verts, faces, _, _ = marching_cubes(field, level=0.5, spacing=(h, h, h))
-    out = trimesh.Trimesh(verts + np.array([a[0] for a in axes]), faces, process=True)
-    out.merge_vertices()
-    trimesh.repair.fix_normals(out)
+    out = trimesh.Trimesh(verts + (origin - h), faces, process=False)
+    if out.volume < 0:  # marching cubes winds its triangles by its own axis convention
+        out.invert()
+    out.metadata["overlap_volume"] = excess
     return out
 
 
-def _enclosed_volume(mesh: trimesh.Trimesh) -> float:
-    """Volume enclosed by the mesh with every open boundary loop capped by a fan to its centroid.
+def _enclosed_volume(mesh: trimesh.Trimesh, signed: bool = False) -> float:
+    """Volume enclosed by the mesh with every open boundary loop capped by a fan to its centroid
+    (its magnitude; with ``signed``, negative for an inside-out mesh).
 
     For a closed mesh this is the divergence-theorem volume sum_f det[v0, v1, v2] / 6. An open
     mesh's plain sum depends on the origin; capping each hole (as a repair would) makes it the
@@ -151,27 +232,27 @@ def _enclosed_volume(mesh: trimesh.Trimesh) -> float:
         # Cap triangle (v1, v0, c) runs the boundary edge opposite to its face, as a closed surface needs.
         p0, p1 = v[boundary[:, 1]], v[boundary[:, 0]]
         volume += float(np.einsum("bi,bi->b", p0, np.cross(p1, centre)).sum() / 6.0)
-    return abs(volume)
+    return volume if signed else abs(volume)
 
 
-def repair_mesh(
-    mesh: trimesh.Trimesh,
-    label: str,
-    volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
-    allow_remesh: bool = True,
-) -> tuple[trimesh.Trimesh, list[str], float]:
-    """Make ``mesh`` a watertight, consistently outward-oriented solid.
-
-    Returns (repaired mesh, list of the repair steps applied, raw volume). Raises MeshError naming
-    ``label`` when the mesh is empty, encloses no volume, or cannot be repaired without changing
-    its volume by more than ``volume_tolerance``.
-    """
+def _check_input(mesh: trimesh.Trimesh, label: str) -> float:
+    """The longest bounding-box extent of a mesh a repair can work on; MeshError naming ``label``
+    for an empty, too large (coordinates whose cube overflows) or flat one."""
     if len(mesh.faces) == 0:
         raise MeshError(f"{label}: mesh is empty (no faces)")
+    largest = float(np.max(np.abs(mesh.vertices)))
+    if not largest <= MAX_COORDINATE:
+        raise MeshError(f"{label}: too large, coordinates reach {largest:.3g} (at most {MAX_COORDINATE:.0e}: its "
+                        "volume overflows double precision); rescale it")
     extent = float(np.max(mesh.extents))
     if not extent > 0 or np.min(mesh.extents) <= 1e-9 * extent:
         raise MeshError(f"{label}: irreparable, mesh is flat (bounding box extents {mesh.extents.tolist()}), it encloses no volume")
-    steps: list[str] = []
+    return extent
+
+
+def _clean(mesh: trimesh.Trimesh, label: str, extent: float, steps: list[str]) -> tuple[trimesh.Trimesh, float]:
+    """The trimesh step (merge, drop degenerate/duplicate faces, fill small holes, fix normals):
+    (mesh, raw volume); MeshError when the raw mesh encloses no volume."""
     m = mesh.copy()
     n_before = len(m.vertices)
     m.merge_vertices(merge_tex=True, merge_norm=True)
@@ -192,46 +273,124 @@ def repair_mesh(
     if len(m.faces) < n_before:
         steps.append(f"remove degenerate/duplicate faces: {n_before} -> {len(m.faces)}")
     if len(m.faces) == 0:
-        raise MeshError(f"{label}: no non-degenerate faces")
+        raise MeshError(f"{label}: irreparable, no non-degenerate faces")
     if not m.is_watertight:
         trimesh.repair.fill_holes(m)
         steps.append("fill_holes (trimesh)")
     trimesh.repair.fix_normals(m)
+    return m, raw_volume
 
-    if not _is_solid(m):
-        import pymeshfix
 
-        try:
-            # Keep every component: dropping parts is caught below as lost volume, never silent.
+@contextmanager
+def _quiet_stdio():
+    """Silence file descriptors 1 and 2: MeshFix prints from C++ ("MeshFix could not fix everything"),
+    past Python's sys.stderr, and a refusal is to be the one line on stderr."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (*saved, devnull):
+            os.close(fd)
+
+
+def _meshfix(m: trimesh.Trimesh, steps: list[str]) -> trimesh.Trimesh:
+    """MeshFix's repair of ``m`` (``m`` itself when MeshFix fails or leaves nothing)."""
+    import pymeshfix
+
+    try:
+        # Keep every component: dropping parts is caught as lost volume, never silent.
+        with _quiet_stdio():
             v, f = pymeshfix.clean_from_arrays(
                 np.ascontiguousarray(m.vertices, np.float64), np.ascontiguousarray(m.faces, np.int32),
                 remove_smallest_components=False,
             )
-            fixed = trimesh.Trimesh(v, f, process=True)
-            steps.append("pymeshfix")
-            if len(fixed.faces):
-                trimesh.repair.fix_normals(fixed)
-                m = fixed
-        except Exception as exc:  # MeshFix failing is an expected route to the fallback
-            steps.append(f"pymeshfix failed ({type(exc).__name__})")
-        if not _is_solid(m) or not _volume_ok(m, raw_volume, volume_tolerance):
-            if not allow_remesh:
-                raise MeshError(f"{label}: not watertight after trimesh and MeshFix repair")
-            m = remesh_winding_number(mesh)
-            steps.append("winding-number remesh (marching cubes)")
+        fixed = trimesh.Trimesh(v, f, process=True)
+        steps.append("pymeshfix")
+        if len(fixed.faces):
+            trimesh.repair.fix_normals(fixed)
+            return fixed
+    except Exception as exc:  # MeshFix failing is an expected route to the fallback
+        steps.append(f"pymeshfix failed ({type(exc).__name__})")
+    return m
 
-    if not _is_solid(m):
-        raise MeshError(f"{label}: irreparable, still not watertight after {', '.join(steps)}")
-    if not _volume_ok(m, raw_volume, volume_tolerance):
+
+def repair_mesh(
+    mesh: trimesh.Trimesh,
+    label: str,
+    volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
+    allow_remesh: bool = True,
+) -> tuple[trimesh.Trimesh, list[str], float]:
+    """Make ``mesh`` a watertight, consistently outward-oriented solid.
+
+    Returns (repaired mesh, list of the repair steps applied, raw volume: the raw mesh's capped
+    volume, less what it counts twice where it overlaps itself when the remesh measured that).
+    Raises MeshError naming ``label`` and the check that failed when the mesh is empty, too large,
+    encloses no volume, or cannot be repaired without changing its volume by more than
+    ``volume_tolerance``.
+    """
+    extent = _check_input(mesh, label)
+    steps: list[str] = []
+    m, raw_volume = _clean(mesh, label, extent, steps)
+    reference, note = raw_volume, ""
+    if solid_problem(m) is not None:
+        cleaned = m
+        m = _meshfix(cleaned, steps)
+        if solid_problem(m) is not None or not _volume_ok(m, raw_volume, volume_tolerance):
+            if not allow_remesh:
+                raise MeshError(f"{label}: irreparable, {solid_problem(m) or _volume_change(m, raw_volume)} "
+                                "after trimesh and MeshFix repair")
+            try:
+                m = remesh_winding_number(cleaned)
+            except MeshError as exc:
+                raise MeshError(f"{label}: irreparable, {exc} (after {', '.join(steps)})") from exc
+            steps.append("winding-number remesh (marching cubes)")
+            overlap = float(m.metadata.get("overlap_volume", 0.0))
+            if abs(overlap) > 1e-6 * raw_volume:
+                reference = raw_volume - overlap
+                note = f" (the raw mesh's {raw_volume:.6g} less {overlap:.6g} it counts twice where it overlaps itself)"
+
+    problem = solid_problem(m)
+    if problem is not None:
+        raise MeshError(f"{label}: irreparable, {problem} after {', '.join(steps)}")
+    if not _volume_ok(m, reference, volume_tolerance):
         raise MeshError(
-            f"{label}: irreparable, repair changed the volume from {raw_volume:.6g} to {m.volume:.6g} "
+            f"{label}: irreparable, {_volume_change(m, reference)}{note} "
             f"(more than {100 * volume_tolerance:.0f} %; steps: {', '.join(steps) or 'none'})"
         )
-    return m, steps, raw_volume
+    return m, steps, reference
 
 
-def _is_solid(m: trimesh.Trimesh) -> bool:
-    return bool(len(m.faces) and m.is_watertight and m.is_winding_consistent and m.volume > 0)
+def solid_problem(m: trimesh.Trimesh) -> str | None:
+    """The first check ``m`` fails as a solid, in words (None when it is closed, consistently wound
+    and of positive volume): what a refusal names."""
+    if len(m.faces) == 0:
+        return "no faces"
+    edges = np.sort(np.asarray(m.edges), axis=1)  # [3F, 2] one row per face's edge
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    n_open, n_many = int(np.sum(counts == 1)), int(np.sum(counts > 2))
+    if n_open or n_many or not m.is_watertight:
+        parts = ([f"{n_open} open edges"] if n_open else []) + (
+            [f"{n_many} edges shared by more than two faces"] if n_many else [])
+        return "not watertight: " + (" and ".join(parts) or "edges not paired")
+    if not m.is_winding_consistent:
+        return "inconsistent winding"
+    volume = float(m.volume)
+    if volume < 0:
+        return f"negative volume ({volume:.3g}: inside out)"
+    if not volume > 0:
+        return "zero volume"
+    return None
+
+
+def _volume_change(m: trimesh.Trimesh, reference: float) -> str:
+    return f"repair changed the volume from {reference:.6g} to {float(m.volume):.6g}"
 
 
 def _volume_ok(m: trimesh.Trimesh, raw_volume: float, tol: float) -> bool:

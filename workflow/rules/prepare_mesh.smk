@@ -10,6 +10,7 @@ rule prepare_mesh:
         # the raw mesh is verified against its checksum again: it may have changed since it was fetched
         raw_sha256=lambda wc: S.raw_meshes[S.shape(wc.shape).file].sha256 if S.shape(wc.shape).file else None,
     log:
+        # a refused mesh (missing, unreadable, flat, irreparable, ...) ends it in one line saying why; the job exits 2
         f"{R}/logs/prepare_mesh/{{shape}}.log",
     benchmark:
         f"{R}/benchmarks/prepare_mesh/{{shape}}.tsv"
