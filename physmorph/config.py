@@ -35,6 +35,7 @@ from physmorph.morph_config import METHODS, MorphConfig
 from physmorph.mpm.config import MPMConfig
 from physmorph.plasticity import PlasticityConfig
 from physmorph.render.config import RenderConfig
+from physmorph.export.settings import ExportConfig
 from physmorph.surface import SurfaceMaskConfig
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -521,6 +522,7 @@ class Settings:
     experiments: dict[str, Experiment] = field(default_factory=dict)
     tradeoff: Tradeoff | None = None
     tables: Tables = field(default_factory=Tables)
+    export: ExportConfig = field(default_factory=ExportConfig)
 
     # ---- construction -------------------------------------------------------------------
     @classmethod
@@ -555,7 +557,8 @@ class Settings:
             target=build(TargetConfig, cfg.get("target"), "target"),
             experiments=coerce(cfg.get("experiments") or {}, hints["experiments"], "experiments"),
             tradeoff=coerce(cfg.get("tradeoff"), hints["tradeoff"], "tradeoff"),
-            tables=build(Tables, cfg.get("tables"), "tables"))
+            tables=build(Tables, cfg.get("tables"), "tables"),
+            export=build(ExportConfig, cfg.get("export"), "export"))
         s._check_references()
         # Memory first: a grid too big for the machine says so before the solver's own checks.
         raw_mpm = cfg.get("mpm") if isinstance(cfg.get("mpm"), dict) else {}

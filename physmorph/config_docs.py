@@ -23,6 +23,8 @@ SECTIONS = {
     "experiments": "The experiments: one morph run each; unset keys take the sections' values.",
     "tradeoff": "The speed/accuracy study: the base experiment rerun with one knob changed at a time.",
     "tables": "What `snakemake tables` (and `figures`) builds.",
+    "export": "Videos, surface meshes and Gaussian-splat files of the full-method runs (`snakemake export`; "
+              "physmorph.export.settings.ExportConfig).",
 }
 
 R01 = "[0, 1]"
@@ -253,4 +255,15 @@ FIELD_DOCS: dict[str, tuple[str, str, str]] = {
                          "does not reach the study", "", ">= 1"),
     "tables.shapes": ("shapes whose particles and targets are built", "", "shapes keys"),
     "tables.experiments": ("experiments run for the tables and figures", "", "experiments keys"),
+    "export.width": ("width of each video panel (the body's, then the target's)", "pixels", "even, >= 16"),
+    "export.height": ("height of the video", "pixels", "even, >= 16"),
+    "export.fps": ("video frames per second (one per morph frame)", "1/s", "[1, 120]"),
+    "export.orbit_deg": ("how far the video's camera turns around the body over the whole run", "degrees", ""),
+    "export.max_particles": ("above this many particles the video shows the body by an even subsample, each "
+                             "Gaussian widened to keep it closed", "", ">= 1000"),
+    "export.crf": ("H.264 constant rate factor (lower: better and larger)", "", "[0, 51]"),
+    "export.refine": ("surface grid cells per MPM cell (the exported meshes' resolution)", "", POS),
+    "export.smooth_iterations": ("Taubin smoothing passes of the exported surface (0: none)", "", ">= 0"),
+    "export.frame": ("coordinates of the exported meshes and splats: domain (the simulation's) or target (the "
+                     "target's input mesh frame and units, to overlay it)", "", ""),
 }

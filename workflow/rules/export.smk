@@ -1,0 +1,110 @@
+# Stage 8: what a user takes away from a run (physmorph.export, docs/outputs.md "Exports"): for
+# every full-method run of the profile a video of every frame (MP4 and WebM), the body's closed
+# surface at each saved frame (PLY, the last also GLB) with what it shows measured, its Gaussians
+# as 3D Gaussian splatting PLY files, and one viewer page over them all. `snakemake --cores 2 export`.
+# The video keys of `export` are the video rules' params and the surface keys the mesh rules', so
+# editing one reruns only those jobs (and the viewer).
+EXPORT_RUNS = [n for n in S.tables.experiments if S.experiment(n).method == "full"]
+
+
+def export_outputs():
+    out = [f"{R}/viewer/index.html"]
+    for name in EXPORT_RUNS:
+        out += [f"{R}/videos/{name}.mp4", f"{R}/videos/{name}.webm", f"{R}/meshes/{name}", f"{R}/splats/{name}"]
+    return out
+
+
+rule export:  # videos, surface meshes, splat files and a viewer of the full-method runs
+    input:
+        export_outputs(),
+
+
+rule export_video:
+    input:
+        run=f"{R}/runs/{{experiment}}.h5",
+        target_mesh=lambda wc: f"{R}/meshes/{S.experiment(wc.experiment).target}.h5",
+    output:
+        mp4=f"{R}/videos/{{experiment}}.mp4",
+        webm=f"{R}/videos/{{experiment}}.webm",
+        stills=directory(f"{R}/videos/{{experiment}}_stills"),
+    params:
+        video=params_json(S.export.video()),
+        target=params_json(S.target),
+    log:
+        f"{R}/logs/export/{{experiment}}_video.log",
+    benchmark:
+        f"{R}/benchmarks/export/{{experiment}}_video.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    script:
+        "../scripts/export_video.py"
+
+
+rule export_meshes:
+    input:
+        run=f"{R}/runs/{{experiment}}.h5",
+        particles=lambda wc: particles_path(S.experiment(wc.experiment).source),
+        source_mesh=lambda wc: f"{R}/meshes/{S.experiment(wc.experiment).source}.h5",
+        target_mesh=lambda wc: f"{R}/meshes/{S.experiment(wc.experiment).target}.h5",
+    output:
+        directory(f"{R}/meshes/{{experiment}}"),
+    wildcard_constraints:
+        experiment="|".join(EXPORT_RUNS) or "^$",
+    params:
+        mesh=params_json(S.export.mesh()),
+    log:
+        f"{R}/logs/export/{{experiment}}_meshes.log",
+    benchmark:
+        f"{R}/benchmarks/export/{{experiment}}_meshes.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    script:
+        "../scripts/export_meshes.py"
+
+
+rule export_splats:
+    input:
+        run=f"{R}/runs/{{experiment}}.h5",
+        target_mesh=lambda wc: f"{R}/meshes/{S.experiment(wc.experiment).target}.h5",
+    output:
+        directory(f"{R}/splats/{{experiment}}"),
+    params:
+        frame=params_json({"frame": S.export.frame}),
+    log:
+        f"{R}/logs/export/{{experiment}}_splats.log",
+    benchmark:
+        f"{R}/benchmarks/export/{{experiment}}_splats.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    script:
+        "../scripts/export_splats.py"
+
+
+rule export_viewer:
+    input:
+        runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=EXPORT_RUNS),
+        mp4s=expand(f"{R}/videos/{{experiment}}.mp4", experiment=EXPORT_RUNS),
+        webms=expand(f"{R}/videos/{{experiment}}.webm", experiment=EXPORT_RUNS),
+        stills=expand(f"{R}/videos/{{experiment}}_stills", experiment=EXPORT_RUNS),
+        measures=expand(f"{R}/meshes/{{experiment}}", experiment=EXPORT_RUNS),
+    output:
+        f"{R}/viewer/index.html",
+    params:
+        names=EXPORT_RUNS,
+        profile=S.profile,
+    log:
+        f"{R}/logs/export/viewer.log",
+    benchmark:
+        f"{R}/benchmarks/export/viewer.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    script:
+        "../scripts/export_viewer.py"
