@@ -145,13 +145,16 @@ def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: 
                          target_size=target_size)
 
 
-def tables_stage(names: list[str], runs: list[str], layout: str, out_dir: str, log=None) -> dict:
-    """``layout``: the YAML naming the runs of each table and the paper's numbers (physmorph.layout)."""
+def tables_stage(names: list[str], runs: list[str], layout: str, out_dir: str, log=None,
+                 exported: dict[str, str] | None = None) -> dict:
+    """``layout``: the YAML naming the runs of each table and the paper's numbers (physmorph.layout);
+    ``exported``: run name -> its exported meshes' folder (their measures.csv)."""
     from physmorph.layout import load_layout
     from physmorph.tables import build_tables
 
+    measures = {n: str(Path(d) / "measures.csv") for n, d in (exported or {}).items()}
     with stage_log(log):
-        return build_tables(dict(zip(names, runs)), out_dir, load_layout(layout))
+        return build_tables(dict(zip(names, runs)), out_dir, load_layout(layout), measures)
 
 
 def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target,

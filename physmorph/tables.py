@@ -117,7 +117,9 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
     the final frame (1 for the target's own sampling) and the final share of the mass packed above
     twice the target's density (0 for it), how still the last frames are (physmorph.metrics: the
     swing %, the sign changes of the alpha MSE's frame-to-frame change over the last 10 frames,
-    and the drop, the best frame's share of the gap minus the last's, in points), and the
+    and the drop, the best frame's share of the gap minus the last's, in points), the last
+    exported surface's stray share (%) and distance to the target mesh (grid cells;
+    physmorph.export.measures, where the run was exported), and the
     paper's alpha MSE for the experiment where it has one (and which one). Runs written before a
     metric existed show it as NaN."""
     rows = []
@@ -135,11 +137,14 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
                      "ceiling_iou": float(r["attrs"].get("ceiling_iou", np.nan)),
                      "volume_iou_0": viou[0], "volume_iou_final": viou[-1], "overfilled_mass_final": over[-1],
                      "swing_%": swing_percent(a), "sign_changes": sign_changes(a),
-                     "drop_points": closed_best - closed_final, "paper_alpha_mse": paper, "paper_which": paper_which})
+                     "drop_points": closed_best - closed_final,
+                     "stray_%": 100 * r.get("export_last", {}).get("stray_share", np.nan),
+                     "surface_dx": r.get("export_last", {}).get("surface_distance_dx", np.nan),
+                     "paper_alpha_mse": paper, "paper_which": paper_which})
     columns = ["experiment", "method", "frames", "alpha_mse_0", "alpha_mse_best", "best_frame", "alpha_mse_final",
                "ceiling", "closed_best_%", "closed_final_%", "iou_0", "iou_best", "iou_final", "ceiling_iou",
                "volume_iou_0", "volume_iou_final", "overfilled_mass_final", "swing_%", "sign_changes", "drop_points",
-               "paper_alpha_mse", "paper_which"]
+               "stray_%", "surface_dx", "paper_alpha_mse", "paper_which"]
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -228,10 +233,18 @@ def directions_table(m: dict[str, dict], t: TableLayout, main: pd.DataFrame, pla
                                        "paper"])
 
 
-def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: PaperLayout) -> dict[str, pd.DataFrame]:
+def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: PaperLayout,
+                 measures: dict[str, str | Path] | None = None) -> dict[str, pd.DataFrame]:
     """Write every table as {out_dir}/{name}.csv, .md and .tex; returns the DataFrames. ``layout``
-    (physmorph.layout): which runs each table compares and the paper's numbers."""
+    (physmorph.layout): which runs each table compares and the paper's numbers; ``measures``: run
+    name -> the measures.csv of its exported surfaces (physmorph.export.measures), whose last row
+    gives the convergence table's stray and surface columns."""
     m = _load(runs)
+    for name, path in (measures or {}).items():
+        if name in m and Path(path).exists():
+            last = pd.read_csv(path).iloc[-1]
+            m[name]["export_last"] = {"stray_share": float(last["stray_share"]),
+                                      "surface_distance_dx": float(last["surface_distance_dx"])}
     t = layout.tables
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -108,6 +108,30 @@ def _wall_time_s(results_dir: Path) -> float:
     return total if found else float("nan")
 
 
+def _convergence_section(conv: pd.DataFrame) -> list[str]:
+    """The results page's "How far each run got": one row per run of the convergence table."""
+    out: list[str] = []
+    out.append("## How far each run got\n")
+    out.append("Share of the reachable gap closed at the best and the last frame (100 % = the target's own "
+               "particles rendered at rest), the drop between them (points), how still the last 10 frames are "
+               "(swing: the median frame-to-frame change of the alpha MSE; sign changes: how often it turned), "
+               "the volume IoU at the first and last frame (1 = the target's own "
+               "sampling), the share of the mass packed above twice the target's density at the end, and, for "
+               "the exported full runs, the last surface's stray share (mass more than 2 cells outside the "
+               "target) and its distance to the target mesh (cells).\n")
+    rows = []
+    for _, r in conv.iterrows():
+        rows.append([str(r["experiment"]), str(r["method"]), f"{_pct(r['closed_best_%'])} (frame {int(r['best_frame'])})",
+                     _pct(r["closed_final_%"]), _pct(r.get("drop_points", np.nan)).replace(" %", ""),
+                     _pct(r.get("swing_%", np.nan)), _pct(r.get("sign_changes", np.nan)).replace(".0 %", ""),
+                     f"{_fmt(r['volume_iou_0'], 2)} -> {_fmt(r['volume_iou_final'], 2)}",
+                     _pct(100 * r["overfilled_mass_final"]) if np.isfinite(r["overfilled_mass_final"]) else "",
+                     _pct(r.get("stray_%", np.nan)), _fmt(r.get("surface_dx", np.nan), 2)])
+    out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "drop", "swing",
+                       "sign changes", "volume IoU", "overfilled", "stray", "surface (cells)"], rows))
+    return out
+
+
 def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
                      date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md",
                      provenance: PageProvenance | None = None, title: str | None = None) -> str:
@@ -142,21 +166,7 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
             out[-1] += f"; the jobs' wall times add up to {wall / 60:.1f} min (results/{profile}/benchmarks/)"
         out[-1] += ".\n"
 
-    out.append("## How far each run got\n")
-    out.append("Share of the reachable gap closed at the best and the last frame (100 % = the target's own "
-               "particles rendered at rest), the drop between them (points), how still the last 10 frames are "
-               "(swing: the median frame-to-frame change of the alpha MSE; sign changes: how often it turned), "
-               "the volume IoU at the first and last frame (1 = the target's own "
-               "sampling) and the share of the mass packed above twice the target's density at the end.\n")
-    rows = []
-    for _, r in conv.iterrows():
-        rows.append([str(r["experiment"]), str(r["method"]), f"{_pct(r['closed_best_%'])} (frame {int(r['best_frame'])})",
-                     _pct(r["closed_final_%"]), _pct(r.get("drop_points", np.nan)).replace(" %", ""),
-                     _pct(r.get("swing_%", np.nan)), _pct(r.get("sign_changes", np.nan)).replace(".0 %", ""),
-                     f"{_fmt(r['volume_iou_0'], 2)} -> {_fmt(r['volume_iou_final'], 2)}",
-                     _pct(100 * r["overfilled_mass_final"]) if np.isfinite(r["overfilled_mass_final"]) else ""])
-    out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "drop", "swing",
-                       "sign changes", "volume IoU", "overfilled"], rows))
+    out += _convergence_section(conv)
 
     # rows whose runs this profile does not have are left out, and a section with none
     direc = _with_data(direc, "ours")
@@ -529,6 +539,11 @@ def main(argv: list[str] | None = None) -> None:
         path = write_results_doc(tree / "tables", out_md, args.profile, tree / "figures", images,
                                  command=f"python -m physmorph.userdocs results {args.profile}",
                                  provenance=runs_provenance(tree / "tables", tree / "runs"))
+        video = tree / "videos" / "iso_bunny_full.mp4"
+        if args.profile == "default" and video.exists():  # the README's opening picture
+            from physmorph.export.video import write_gif
+
+            print(f"wrote {write_gif(video, REPO_ROOT / 'docs' / 'images' / 'iso_bunny.gif')}")
     elif args.what == "paper_main":
         tree = REPO_ROOT / "results" / args.profile
         path = write_results_doc(tree / "main_tables", REPO_ROOT / "docs" / "paper_scale.md", args.profile,

@@ -4,12 +4,17 @@ mesh_dir: the raw benchmark meshes: env PHYSMORPH_MESH_DIR, else the mirror <rep
 (where CI has it), else <repo>/resources/meshes/ (where `make tables` downloads them); when none
 holds the four meshes they are downloaded there (config/config.yaml's pinned URLs and checksums).
 Tests that need them are skipped, saying where they looked and why the download failed, only when
-that fails too (no network).
+that fails for want of a network (fetch_or_skip, is_network_failure); a checksum mismatch or any
+other error fails the fixture (and so each test that uses it).
 """
 
 from __future__ import annotations
 
+import errno
+import http.client
 import os
+import socket
+import urllib.error
 from pathlib import Path
 
 import pytest
@@ -55,16 +60,53 @@ def fetch_raw_meshes(dest: Path, sources: dict | None = None) -> Path:
     return dest
 
 
+# errno values of an OSError that say the network is missing or refused the connection
+NETWORK_ERRNOS = frozenset({errno.ENETUNREACH, errno.ENETDOWN, errno.ENETRESET, errno.EHOSTUNREACH, errno.EHOSTDOWN,
+                            errno.ECONNREFUSED, errno.ECONNRESET, errno.ECONNABORTED, errno.ETIMEDOUT,
+                            errno.EADDRNOTAVAIL})
+# errors of the local file system: urllib wraps them in a URLError for a file:// URL
+_LOCAL_ERRORS = (FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError)
+
+
+def is_network_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` says the network failed: the exception or one it was raised from (``raise ...
+    from``, as physmorph.meshes.fetch_mesh wraps a failed download in its FetchError) is a URLError
+    (an HTTP error included: a proxy's refusal, a moved URL) that is not a local file error, a socket
+    or DNS error, a timeout, a dropped connection (ConnectionError, http.client's errors) or an
+    OSError with a network errno. A checksum mismatch (a FetchError raised from nothing), a
+    disk error and an error in the project's code are not."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, urllib.error.URLError):
+            return not isinstance(getattr(exc, "reason", None), _LOCAL_ERRORS)
+        if isinstance(exc, (socket.gaierror, socket.herror, TimeoutError, ConnectionError, http.client.HTTPException)):
+            return True
+        if isinstance(exc, OSError) and exc.errno in NETWORK_ERRNOS:
+            return True
+        exc = exc.__cause__  # only an explicit wrap: not an error raised while handling another
+    return False
+
+
+def fetch_or_skip(dest: Path, sources: dict | None = None) -> Path:
+    """fetch_raw_meshes(dest, sources), skipping the calling test (pytest.skip) when the download
+    failed for want of a network (is_network_failure) and raising anything else: a checksum
+    mismatch or a bug must fail the tests, not skip them."""
+    try:
+        return fetch_raw_meshes(dest, sources)
+    except Exception as exc:
+        if not is_network_failure(exc):
+            raise
+        looked = ", ".join(str(p) for p in mesh_dir_candidates())
+        pytest.skip(f"raw benchmark meshes not found (looked in {looked}) and the download failed for want of a "
+                    f"network ({exc}); set PHYSMORPH_MESH_DIR to a directory holding them")
+
+
 @pytest.fixture(scope="session")
 def mesh_dir() -> Path:
     found = find_mesh_dir()
     if found is None:
-        try:
-            found = fetch_raw_meshes(REPO_ROOT / "resources" / "meshes")
-        except Exception as exc:  # no network, a proxy, a moved URL: say so and skip
-            looked = ", ".join(str(p) for p in mesh_dir_candidates())
-            pytest.skip(f"raw benchmark meshes not found (looked in {looked}) and the download failed ({exc}); "
-                        "set PHYSMORPH_MESH_DIR to a directory holding them")
+        found = fetch_or_skip(REPO_ROOT / "resources" / "meshes")
     return found
 
 

@@ -16,6 +16,7 @@ import physmorph.runfile as runfile
 from physmorph.config import load_settings
 from physmorph.morph import MorphConfig, MorphDivergenceError, morph_config, read_metrics, run_morph
 from physmorph.metrics import rebound_percent, release_rebound_percent
+from physmorph.quality import GAP_REL_TOL
 from physmorph.h5io import stored_checksum
 from physmorph.runfile import RunFileError, RunKey, RunLockedError, RunWriter, read_checkpoint
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
@@ -65,11 +66,19 @@ def test_the_same_morph_at_two_resolutions_closes_a_comparable_share(tiny, tiny_
     assert abs(best["coarse"] - best["fine"]) < 0.1 and abs(last["coarse"] - last["fine"]) < 0.15
 
 
+# Measured on the tiny iso -> bunny runs (2026-11-28): the best frame 36 % (physics-only) and 37 %
+# (full) below frame 0, the last 36 % and 34 %.
+TINY_BEST_DROP, TINY_LAST_DROP = 0.25, 0.2
+
+
 def test_tiny_morph_lowers_alpha_mse(tiny_runs):
+    """Both methods lower alpha MSE for real: the best frame at least TINY_BEST_DROP and the last
+    at least TINY_LAST_DROP below frame 0 (a margin under what the runs reach), not merely below it."""
     for method, m in tiny_runs.items():
         a = m["alpha_mse"]
         assert len(a) == 13 and np.isfinite(a).all()
-        assert a[1:].min() < a[0], method
+        assert a[1:].min() <= (1.0 - TINY_BEST_DROP) * a[0], (method, a)
+        assert a[-1] <= (1.0 - TINY_LAST_DROP) * a[0], (method, a)
         assert m["physics_loss"][-1] < m["physics_loss_initial"][1], method  # the mass loss falls too
         assert m["attrs"]["status"] == "complete"
 
@@ -521,8 +530,13 @@ RELEASE_REBOUND_ABSORB, RELEASE_REBOUND_GAP = 20.0, 50.0
 
 
 def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
-    """A run whose source is its target starts at the ceiling: the share closed stays finite and
-    near 1 (the metric must not divide by a vanishing gap)."""
+    """A run whose source is its target starts at the ceiling and stays there: the source is the
+    target's own sampling (the same sampler and seed as the ceiling's), so frame 0 renders the
+    ceiling's alpha MSE; the share closed at each later frame is the raised-start formula
+    (physmorph.quality: a0' = max(a0, c + tol), tol = GAP_REL_TOL c, (a0' - a) / (a0' - c)), finite
+    (it must not divide by the vanishing gap a0 - c), and, with the body held at its target,
+    within 0.05 of 1 (alpha within 0.5 % of the ceiling; measured: exactly 1, the body does not
+    move). Frame 0 is recorded as 0 (no progress yet), which the formula would put at 1 here."""
     cfg, d = tiny
     s = cfg.sampling
     sample_particles_stage(d / "bunny.h5", d / "p_bunny.h5", d / "p_bunny.png", s, 0)
@@ -530,9 +544,12 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
     out = d / "bunny_bunny.h5"
     run_morph(d / "p_bunny.h5", d / "t_bunny.h5", out, mc, name="bunny_bunny")
     m = read_metrics(out)
-    assert abs(m["alpha_mse"][0] - float(m["attrs"]["ceiling_alpha_mse"])) < 2e-3
-    assert np.isfinite(m["gap_closed"]).all()
-    assert np.all(np.abs(m["gap_closed"]) < 50)
+    a, c = m["alpha_mse"], float(m["attrs"]["ceiling_alpha_mse"])
+    assert a[0] == pytest.approx(c, rel=1e-6)
+    assert np.isfinite(m["gap_closed"]).all() and m["gap_closed"][0] == 0.0
+    start = max(a[0], c + GAP_REL_TOL * c)
+    np.testing.assert_allclose(m["gap_closed"][1:], (start - a[1:]) / (start - c), rtol=1e-9)
+    np.testing.assert_allclose(m["gap_closed"][1:], 1.0, atol=0.05)
     # the source is the target's own sampling: its filled cells are the target's
     assert m["volume_iou"][0] == pytest.approx(1.0) and np.all(m["volume_iou"] > 0.95)
     assert m["overfilled_mass"][0] == 0.0

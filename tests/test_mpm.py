@@ -1439,6 +1439,51 @@ def test_volume_floor_holds_det_F_and_matches_reference_and_fd(state):
     np.testing.assert_allclose(s.state_at(3).F, states[-1][3].detach().numpy(), rtol=1e-9, atol=1e-12)
 
 
+def test_gradients_at_the_shipped_defaults_match_fd(state):
+    """The gradients the morph loop steps along, at the shipped solver: MPMConfig() with only the
+    precision (float64), the grid (16^3) and the substeps (3) changed, every method setting at its
+    default (log mass loss with eps 0.1 x mean mass, the blurred level at 2 cells, the overfill term
+    at weight 1 and ratio 0.001, isochoric smoothing with the volume floor J_min = 0.25, fixed
+    corotated stress, drag 0.9, smoothing 0.955, per-substep control outside F; the step_* and
+    optimiser fields are driver-only and change no gradient). The loss's gradient and that of
+    L + <gF, F_T> + <gx, x_T> (the injected render adjoints) w.r.t. the control and the initial x,
+    v, F against central finite differences, at the existing checks' tolerance. The floor is a
+    clamp, max(det F_new, J_min), not differentiable where det F_new = J_min: a quarter of the
+    ball starts compressed to det F ~ 0.17 so that branch is exercised (floored in the first
+    substep, free after), and the test asserts no particle's det F_new lies within 1e-5 of the
+    kink (2e-4 at the nearest here), so a central difference of step 1e-6 stays on one branch:
+    the check is where the clamp is smooth. The overfill term max(0, r)^2 is C^1 (its nodes on
+    both sides of the cap here)."""
+    cfg = dataclasses.replace(MPMConfig(), precision="float64", grid_res=RES, substeps=3)
+    default = MPMConfig()
+    changed = {f.name for f in dataclasses.fields(MPMConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
+    assert changed == {"precision", "grid_res", "substeps"}
+    assert cfg.mass_loss == "log" and cfg.mass_loss_blur > 0 and cfg.overfill_weight > 0
+    assert cfg.smoothing_mode == "isochoric" and cfg.min_volume_ratio > 0
+    st = state.copy()
+    squeezed = np.arange(st.n) % 4 == 0
+    st.F[squeezed] *= 0.55  # det F ~ 0.55^3 = 0.17 < J_min: these particles sit on the floor
+    s = make(cfg, st)
+    s.set_control(random_control(cfg, st.n, scale=0.02))
+    s.forward()
+    m, t = splat_mass(s.state_at(cfg.substeps).x, st.mass, s.grid), s.target_m.to_numpy()
+    cap = np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t)
+    assert (m > cap).sum() > 5  # the overfill term acts on some nodes ...
+    assert ((m > 0) & (m <= cap)).sum() > 5  # ... and not on others
+    floored = free = 0
+    for k in range(cfg.substeps):
+        a, b = s.state_at(k), s.state_at(k + 1)
+        moved = np.linalg.det(np.eye(3) + cfg.dt * b.C) * np.linalg.det(a.F)
+        assert np.abs(moved - cfg.min_volume_ratio).min() > 1e-5  # no particle at the clamp's kink
+        floored += int((moved < cfg.min_volume_ratio).sum())
+        free += int((moved > cfg.min_volume_ratio).sum())
+    assert floored > 0 and free > 0  # both branches of the floor
+    rng = np.random.default_rng(21)
+    _fd_check(s, st, n_checks=8, seed=22)
+    _fd_check(s, st, gF=50.0 * rng.normal(size=(st.n, 3, 3)), gx=5.0 * rng.normal(size=(st.n, 3)), n_checks=6,
+              seed=23)
+
+
 def test_normalized_gd_keeps_no_adam_moments_and_resumes_from_its_state(state):
     """The default optimiser allocates no Adam moments (their fields and checkpoint would be
     0.7 GB each at the paper's scale); its saved state restores the next step exactly."""

@@ -56,7 +56,7 @@ def test_results_page_carries_the_tables_numbers(tmp_path):
         ("default", "commit abc1234", "no", prov.sha)
     assert record["summary"]["runs"] == 1 and record["summary"]["particles"] == [6736, 6736]
     assert record["summary"]["iso_full_last"] == {"experiment": "iso_bunny_full", "closed_last_%": 97.6}
-    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.4 | 0.3 % | 3 | 0.53 -> 0.95 | 1.2 % |" in text
+    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.4 | 0.3 % | 3 | 0.53 -> 0.95 | 1.2 % |  |  |" in text
     assert "| 0.01306 | 0.01569 | 16.8 % | yes | +25.8 % |" in text      # a direction and whether it holds
     assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text  # the main table beside the paper
     assert "| sigma/mu % | 8.4 | 10.25 | 1.5 % |" in text                   # source invariance

@@ -23,6 +23,7 @@ MAIN_EXPERIMENTS = [n for c in load_layout("config/paper_results.yaml").tables.m
 # ... their targets, and the figures drawn from those six runs alone (results/{profile}/main_figures/)
 MAIN_TARGETS = sorted({S.experiment(n).target for n in MAIN_EXPERIMENTS})
 MAIN_FIGURES = ("sequences_main", "optimization_traces")
+FULL_RUNS = [n for n in S.experiments if S.experiment(n).method == "full"]  # what the export stage exports
 
 
 wildcard_constraints:

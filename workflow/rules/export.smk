@@ -4,7 +4,7 @@
 # as 3D Gaussian splatting PLY files, and one viewer page over them all. `snakemake --cores 2 export`.
 # The video keys of `export` are the video rules' params and the surface keys the mesh rules', so
 # editing one reruns only those jobs (and the viewer).
-EXPORT_RUNS = [n for n in S.tables.experiments if S.experiment(n).method == "full"]
+EXPORT_RUNS = [n for n in S.tables.experiments if n in FULL_RUNS]
 
 
 def export_outputs():
@@ -51,7 +51,7 @@ rule export_meshes:
     output:
         directory(f"{R}/meshes/{{experiment}}"),
     wildcard_constraints:
-        experiment="|".join(EXPORT_RUNS) or "^$",
+        experiment="|".join(FULL_RUNS) or "^$",
     params:
         mesh=params_json(S.export.mesh()),
     log:

@@ -3,6 +3,8 @@ rule make_tables:
     input:
         runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=S.tables.experiments),
         layout="config/paper_results.yaml",  # which runs each table compares, the paper's numbers
+        # the full runs' exported surfaces: the convergence table's stray and surface columns
+        exported=[f"{R}/meshes/{n}" for n in S.tables.experiments if n in FULL_RUNS],
     output:
         csv=[report(f"{R}/tables/{t}.csv", caption=f"../report/captions/{t}.rst", category="Tables",
                     labels={"table": t})
@@ -11,6 +13,7 @@ rule make_tables:
         tex=expand(f"{R}/tables/{{table}}.tex", table=TABLES),
     params:
         names=list(S.tables.experiments),
+        full=FULL_RUNS,
         out_dir=f"{R}/tables",
     log:
         f"{R}/logs/make_tables.log",
@@ -30,12 +33,14 @@ rule make_main_tables:
     input:
         runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=MAIN_EXPERIMENTS),
         layout="config/paper_results.yaml",
+        exported=[f"{R}/meshes/{n}" for n in MAIN_EXPERIMENTS if n in FULL_RUNS],
     output:
         md=expand(f"{R}/main_tables/{{table}}.md", table=TABLES),
         csv=expand(f"{R}/main_tables/{{table}}.csv", table=TABLES),
         tex=expand(f"{R}/main_tables/{{table}}.tex", table=TABLES),
     params:
         names=MAIN_EXPERIMENTS,
+        full=FULL_RUNS,
         out_dir=f"{R}/main_tables",
     log:
         f"{R}/logs/make_main_tables.log",
