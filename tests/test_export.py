@@ -242,3 +242,45 @@ def test_splat_opacity_and_colour(tmp_path):
     assert np.all(np.isfinite(v["opacity"])) and np.all(sigmoid(v["opacity"]) > 0.999)
     np.testing.assert_allclose(colour(v), rgb, atol=1e-6)
     np.testing.assert_allclose(sigmoid(stored("faint.ply", opacity=0.3)["opacity"]), 0.3, atol=1e-6)
+
+
+def test_stray_share_counts_the_mass_beyond_two_cells_outside_the_target(tmp_path):
+    """A sphere target (radius 5, dx 1): particles inside and within 2 cells outside are not stray,
+    those 3 cells out are; the share is theirs by weight."""
+    import h5py
+    import trimesh
+
+    from physmorph.export.measures import stray_share, surface_distance, target_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=5.0)
+    mesh_h5 = tmp_path / "sphere.h5"
+    with h5py.File(mesh_h5, "w") as f:
+        f["vertices"], f["faces"] = sphere.vertices, sphere.faces
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(300, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    inside, near, far = 3.0 * dirs[:100], 6.5 * dirs[100:200], 8.5 * dirs[200:]  # 0, 1.5 and 3.5 cells out
+    x = np.concatenate([inside, near, far])
+    weight = np.concatenate([np.ones(100), np.ones(100), 2.0 * np.ones(100)])
+    assert stray_share(x, weight, mesh_h5, dx=1.0) == pytest.approx(200 / 400)
+    assert stray_share(inside, np.ones(100), mesh_h5, dx=1.0) == 0.0
+    # the surface distance: 0 against itself, the radii's difference against a larger sphere
+    assert surface_distance(target_mesh(mesh_h5), sphere, dx=1.0) < 0.1
+    bigger = trimesh.creation.icosphere(subdivisions=4, radius=6.0)
+    assert surface_distance(bigger, sphere, dx=0.5) == pytest.approx(2.0, rel=0.05)
+
+
+def test_orbit_camera_starts_at_the_first_ring_view_and_turns_about_y():
+    from physmorph.cameras import ring_cameras
+    from physmorph.export.video import orbit_camera, subsample
+
+    ring = ring_cameras(4, 21.0, 40.0, 64, 48, 36.0)
+    for view, az in enumerate((0.0, 90.0, 180.0)):
+        cam = orbit_camera(az, 21.0, 40.0, 36.0, 64, 48)
+        np.testing.assert_allclose(cam.world_to_cam[0], ring.world_to_cam[view], atol=1e-12)
+        np.testing.assert_allclose(cam.intrinsics[0], ring.intrinsics[view])
+    # a subsample keeps the body's fill: M Gaussians of sigma s (N / M)^(1/3) for N of sigma s
+    x, F = np.zeros((1000, 3)), np.broadcast_to(np.eye(3), (1000, 3, 3))
+    xs, Fs, s = subsample(x, F, 0.5, 250)
+    assert len(xs) == 250 and s == pytest.approx(0.5 * 4 ** (1 / 3))
+    assert subsample(x, F, 0.5, 5000)[2] == 0.5
