@@ -46,9 +46,22 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+_CODE_STATE: tuple[str, str] | None = None
+
+
+def code_state() -> tuple[str, str]:
+    """(commit, dirty) of the physmorph checkout as this process first saw it: a long run that
+    finishes after the tree moved on still names the code it started with (RunWriter asks at its
+    start)."""
+    global _CODE_STATE
+    if _CODE_STATE is None:
+        _CODE_STATE = git_state()
+    return _CODE_STATE
+
+
 def git_commit() -> str:
     """The commit of the physmorph checkout, or 'unknown' outside a git work tree."""
-    return git_state()[0]
+    return code_state()[0]
 
 
 def peak_rss_mb() -> float:
@@ -59,7 +72,7 @@ def peak_rss_mb() -> float:
 def write_provenance(f: h5py.File, config: dict | None, started: float) -> None:
     f.attrs["config"] = json.dumps(config or {}, sort_keys=True, default=str)
     f.attrs["package_versions"] = json.dumps(package_versions(), sort_keys=True)
-    commit, dirty = git_state()
+    commit, dirty = code_state()
     f.attrs["git_commit"] = commit
     f.attrs["git_dirty"] = dirty  # "yes": made by a tree with local changes to the code
     f.attrs["method_sha"] = method_sha(method_settings(config or {}))

@@ -51,7 +51,7 @@ from typing import Callable
 import h5py
 import numpy as np
 
-from physmorph.h5io import (StageInputError, content_checksum, fsync_path, peak_rss_mb, stamp_checksum, verify_checksum,
+from physmorph.h5io import (StageInputError, code_state, content_checksum, fsync_path, peak_rss_mb, stamp_checksum, verify_checksum,
                             write_provenance)
 
 # Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
@@ -248,6 +248,7 @@ class RunWriter:
         self.dir = partial_dir(self.out)
         self.key = key
         self.started = time.time() if started is None else started
+        code_state()  # the code this run starts with is the code its file will name
         self.previous_segments: tuple[float, ...] = ()
         self.meta: dict = {}
         self.last_frame = -1  # the last committed frame

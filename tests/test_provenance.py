@@ -65,8 +65,9 @@ def test_git_state_tells_a_dirty_tree(tmp_path):
 
 
 def test_a_file_and_its_page_say_the_tree_was_dirty(tmp_path, monkeypatch):
-    """A run file made by a tree with local changes records it, and the page made from it says so."""
-    monkeypatch.setattr(h5io, "git_state", lambda: ("1234567abcdef", "yes"))
+    """A run file made by a tree with local changes records it, and the page made from it says so;
+    the state is the one the process first saw (a run names the code it started with)."""
+    monkeypatch.setattr(h5io, "_CODE_STATE", ("1234567abcdef", "yes"))
     config = {"resolved": {"gamma": 0.1, "mpm": {"learning_rate": 0.004}}}
     run = tmp_path / "runs" / "iso_bunny_full.h5"
     run.parent.mkdir()
@@ -84,7 +85,7 @@ def test_a_file_and_its_page_say_the_tree_was_dirty(tmp_path, monkeypatch):
     assert read_block(text)["dirty"] == "yes"
     # a tree without local changes says that too, and one file of several dirty marks the page
     clean = tmp_path / "runs" / "clean.h5"
-    monkeypatch.setattr(h5io, "git_state", lambda: ("1234567abcdef", "no"))
+    monkeypatch.setattr(h5io, "_CODE_STATE", ("1234567abcdef", "no"))
     with h5py.File(clean, "w") as f:
         h5io.write_provenance(f, config, started=0.0)
     assert from_runs([clean]).dirty == "no"
@@ -147,3 +148,12 @@ def test_differing_keys_reads_a_key_the_runs_disagree_on(value):
     ref = {"a": 1, "b": 0.004}
     assert differing_keys({"a": 1, "b": {"values": [0.004, value]}}, ref) == ["b"]
     assert differing_keys({"a": 1, "b": {"values": [0.004]}}, ref) == []
+
+
+def test_a_process_names_the_code_it_started_with(monkeypatch):
+    """The tree moving on during a run (a commit, an edit) does not change what its file names."""
+    states = iter([("aaaaaaa1111", "no"), ("bbbbbbb2222", "yes")])
+    monkeypatch.setattr(h5io, "_CODE_STATE", None)
+    monkeypatch.setattr(h5io, "git_state", lambda: next(states))
+    assert h5io.code_state() == ("aaaaaaa1111", "no")
+    assert h5io.code_state() == ("aaaaaaa1111", "no") and h5io.git_commit() == "aaaaaaa1111"
