@@ -122,3 +122,10 @@ def test_default_page_ran_the_shipped_method():
     lines, default_bad = check_pages(ROOT / "docs")
     assert not default_bad, "\n".join(lines)
     assert read_block((ROOT / "docs" / "results.md").read_text())["profile"] == "default"
+
+
+def test_readme_opens_with_the_morph_gif_under_two_megabytes():
+    gif = ROOT / "docs" / "images" / "iso_bunny.gif"
+    first_image = re.search(r"!\[[^\]]*\]\(([^)]+)\)", README.read_text()).group(1)
+    assert first_image == "docs/images/iso_bunny.gif"
+    assert gif.read_bytes()[:6] in (b"GIF87a", b"GIF89a") and gif.stat().st_size <= 2_000_000

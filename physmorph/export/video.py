@@ -133,7 +133,7 @@ def write_videos(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, mp4: Path
     return count
 
 
-def write_gif(mp4: Path, gif: Path, width: int = 384, max_bytes: int = 2_000_000) -> Path:
+def write_gif(mp4: Path, gif: Path, width: int = 640, max_bytes: int = 2_000_000) -> Path:
     """A GIF of ``mp4`` (the README's), shrunk until it is at most ``max_bytes``: every frame at
     ``width`` pixels, then every other frame, then narrower."""
     from PIL import Image
