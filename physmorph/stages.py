@@ -189,3 +189,15 @@ def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, doma
     pts = {n: p if isinstance(p, TradeoffPoint) else TradeoffPoint(**p) for n, p in points.items()}
     with stage_log(log):
         return build_tradeoff(pts, {n: Path(p) for n, p in zip(names, runs)}, Path(out_dir), float(domain_width))
+
+
+def prepare_mesh_job(shape: str, entry, raw: str | None, output: str,
+                     domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI), log: str | os.PathLike | None = None,
+                     raw_sha256: str | None = None) -> dict:
+    """The prepare_mesh rule's entry (workflow/scripts/prepare_mesh.py): prepare_mesh_stage, except
+    that a refused mesh (a MeshError) ends the job's ``log`` in one line naming the file and the
+    reason, and the job with exit status 2, instead of a traceback."""
+    from physmorph.meshes.errors import exit_on_refusal
+
+    return exit_on_refusal(lambda: prepare_mesh_stage(shape, entry, raw, output, domain=domain, log=log,
+                                                      raw_sha256=raw_sha256), log=log, path=raw)

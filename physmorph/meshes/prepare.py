@@ -12,7 +12,7 @@ import trimesh
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO
 from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
 
-from .errors import MeshError, exit_on_refusal
+from .errors import MeshError
 from .fetch import sha256_of
 from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
 from .shapes import ShapeSpec, isosphere, letter_mesh
@@ -107,18 +107,6 @@ def prepare_mesh(
         f.attrs["domain_lo"] = lo
         f.attrs["domain_hi"] = hi
     return summary
-
-
-def prepare_mesh_job(shape: str, entry, raw: str | None, output: str,
-                     domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI), log: str | os.PathLike | None = None,
-                     raw_sha256: str | None = None) -> dict:
-    """The prepare_mesh rule's entry (workflow/scripts/prepare_mesh.py): physmorph.stages'
-    prepare_mesh_stage, except that a refused mesh (a MeshError) ends the job's ``log`` in one line
-    naming the file and the reason, and the job with exit status 2, instead of a traceback."""
-    from physmorph.stages import prepare_mesh_stage  # the stage entries import this package
-
-    return exit_on_refusal(lambda: prepare_mesh_stage(shape, entry, raw, output, domain=domain, log=log,
-                                                      raw_sha256=raw_sha256), log=log, path=raw)
 
 
 def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:

@@ -1,5 +1,5 @@
-# A refused mesh ends the log in one line and the job with status 2 (physmorph.meshes.prepare.prepare_mesh_job).
-from physmorph.meshes.prepare import prepare_mesh_job
+# A refused mesh ends the log in one line and the job with status 2 (physmorph.stages.prepare_mesh_job).
+from physmorph.stages import prepare_mesh_job
 
 prepare_mesh_job(snakemake.wildcards.shape, snakemake.params.spec, next(iter(snakemake.input), None),
                  snakemake.output[0], domain=snakemake.params.domain, log=snakemake.log[0],
