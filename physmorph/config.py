@@ -783,6 +783,9 @@ BASE_PROCESS_MB = 600.0  # python + numpy + torch + taichi runtime, measured ~50
 # with its real particle count (iso, 471,282 particles, 8 x 960x540: 7.04 GB peak RSS; the estimate
 # with this constant 7.3 GB).
 MORPH_BYTES_PER_PARTICLE = 10000.0
+# Seconds a morph's particle-frame takes on a 2-core CPU (measured 1.4-2e-4): the morph rule's
+# runtime request and the stability map's wall-clock limits
+SECONDS_PER_PARTICLE_FRAME = 2e-4
 
 
 @dataclass(frozen=True)

@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physmorph.config import ConfigError, Settings, deep_merge, particle_estimate
+from physmorph.config import SECONDS_PER_PARTICLE_FRAME, ConfigError, Settings, deep_merge, particle_estimate
 
 MAP_EXPERIMENT = "iso_bunny_full"
 # A run that ends with at least this share of its reachable gap closed converged (the base cell
@@ -62,9 +62,7 @@ CONVERGED_GAP = 0.25
 # of the test profile included) without the release probe.
 SHORT_CELL_PARTICLES = 100_000
 SHORT_CELL_FRAMES = 4
-# Seconds a particle-frame takes on a 2-core CPU, for the wall-clock limit (measured 1.4-2e-4,
-# workflow/rules/common.smk), and the limit's margin over that.
-SECONDS_PER_PARTICLE_FRAME = 2e-4
+# The wall-clock limit's margin over a cell's expected time (physmorph.config.SECONDS_PER_PARTICLE_FRAME).
 TIMEOUT_MARGIN = 10.0
 TIMEOUT_FLOOR_S = 300.0
 

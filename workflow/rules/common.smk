@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from physmorph.config import Settings, morph_params, params_json, particle_estimate, without_defaults
-from physmorph.config import morph_memory, sampling_memory, target_memory
+from physmorph.config import SECONDS_PER_PARTICLE_FRAME, morph_memory, sampling_memory, target_memory
 from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.layout import load_layout
 from physmorph.particles import stored_particle_count
@@ -97,8 +97,8 @@ def mb(estimate):
 
 
 def morph_runtime_min(n_particles, frames):
-    """Minutes for a morph: ~2e-4 s per particle-frame on a CPU (measured 1.4-1.8e-4), x2 margin."""
-    return int(10 + 2 * frames * n_particles * 2e-4 / 60)
+    """Minutes for a morph: physmorph.config.SECONDS_PER_PARTICLE_FRAME on a CPU, x2 margin."""
+    return int(10 + 2 * frames * n_particles * SECONDS_PER_PARTICLE_FRAME / 60)
 
 
 def experiment_source(name):
