@@ -10,7 +10,7 @@ WHEEL_DIR ?= /opt/wheels
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 WHEELS := $(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX))
 
-.PHONY: venv tables figures tradeoff report test gpu-check slurm-check dag recover clean-venv
+.PHONY: venv tables figures tradeoff export report test gpu-check slurm-check dag recover clean-venv
 
 $(STAMP): environment.lock pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -32,6 +32,9 @@ figures: $(STAMP)
 
 tradeoff: $(STAMP)
 	$(VENV)/bin/snakemake --cores $(CORES) tradeoff $(ARGS)
+
+export: $(STAMP)
+	$(VENV)/bin/snakemake --cores $(CORES) export $(ARGS)
 
 report: $(STAMP)
 	$(VENV)/bin/snakemake --cores $(CORES) tables figures tradeoff --report report.html $(ARGS)
