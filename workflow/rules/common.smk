@@ -24,6 +24,7 @@ MAIN_EXPERIMENTS = [n for c in load_layout("config/paper_results.yaml").tables.m
 MAIN_TARGETS = sorted({S.experiment(n).target for n in MAIN_EXPERIMENTS})
 MAIN_FIGURES = ("sequences_main", "optimization_traces")
 FULL_RUNS = [n for n in S.experiments if S.experiment(n).method == "full"]  # what the export stage exports
+EXPORT_RUNS = [n for n in S.tables.experiments if n in FULL_RUNS]  # `snakemake export`: the tables' full runs
 
 
 wildcard_constraints:
@@ -218,3 +219,10 @@ def check_slurm_jobs():
 
 onstart:
     check_slurm_jobs()
+
+
+def export_outputs():
+    out = [f"{R}/viewer/index.html"]
+    for name in EXPORT_RUNS:
+        out += [f"{R}/videos/{name}.mp4", f"{R}/videos/{name}.webm", f"{R}/meshes/{name}", f"{R}/splats/{name}"]
+    return out

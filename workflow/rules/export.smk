@@ -4,16 +4,6 @@
 # as 3D Gaussian splatting PLY files, and one viewer page over them all. `snakemake --cores 2 export`.
 # The video keys of `export` are the video rules' params and the surface keys the mesh rules', so
 # editing one reruns only those jobs (and the viewer).
-EXPORT_RUNS = [n for n in S.tables.experiments if n in FULL_RUNS]
-
-
-def export_outputs():
-    out = [f"{R}/viewer/index.html"]
-    for name in EXPORT_RUNS:
-        out += [f"{R}/videos/{name}.mp4", f"{R}/videos/{name}.webm", f"{R}/meshes/{name}", f"{R}/splats/{name}"]
-    return out
-
-
 rule export:  # videos, surface meshes, splat files and a viewer of the full-method runs
     input:
         export_outputs(),
