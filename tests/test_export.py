@@ -284,3 +284,42 @@ def test_orbit_camera_starts_at_the_first_ring_view_and_turns_about_y():
     xs, Fs, s = subsample(x, F, 0.5, 250)
     assert len(xs) == 250 and s == pytest.approx(0.5 * 4 ** (1 / 3))
     assert subsample(x, F, 0.5, 5000)[2] == 0.5
+
+
+def test_a_run_without_every_frames_motion_ends_the_video_job_in_one_line(tmp_path):
+    """A run file made before every frame's motion was kept: the video job's log ends in one line
+    naming the file and what to do, the job exits 2, no traceback."""
+    import subprocess
+    import sys
+
+    from physmorph.runfile import RunKey, RunWriter
+
+    run = tmp_path / "old.h5"
+    key = RunKey(json.dumps({"frames": 2}), (("particles", "aa" * 32), ("target", "bb" * 32)))
+    with RunWriter(run, key) as w:
+        w.resume(log=lambda m: None)
+        w.set_meta({"experiment": "old", "views": 1, "sigma0": 0.3})
+        for k in range(3):
+            state = {"x": np.zeros((4, 3)), "F": np.tile(np.eye(3), (4, 1, 1)), "Fp": np.tile(np.eye(3), (4, 1, 1))}
+            w.commit(k, {"alpha_mse": 1.0}, np.ones(1), state if k != 1 else None, [], {"x": state["x"]},
+                     last=k == 2)  # frame 1: neither a state nor its motion, as runs made before
+        w.finish("complete", {}, {"frames": 2})
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=3.0)
+    mesh_h5 = tmp_path / "target_mesh.h5"
+    with h5py.File(mesh_h5, "w") as f:
+        f["vertices"], f["faces"] = sphere.vertices, sphere.faces
+
+    def video_job(target: Path, log: Path):
+        code = ("from physmorph.export.stage import video_stage; "
+                f"video_stage({str(run)!r}, {str(target)!r}, '{{}}', '{{}}', {str(tmp_path / 'v.mp4')!r}, None, "
+                f"{str(tmp_path / 'stills')!r}, log={str(log)!r})")
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+
+    for target, says, culprit in ((mesh_h5, "frame 1 has no positions", run),
+                                  (tmp_path / "missing.h5", "missing (the target's prepared mesh)", tmp_path / "missing.h5")):
+        log = tmp_path / f"{target.stem}.log"
+        out = video_job(target, log)
+        assert out.returncode == 2, out.stderr[-2000:]
+        assert "Traceback" not in out.stderr and "Traceback" not in log.read_text()
+        last = out.stderr.strip().splitlines()[-1]  # (the lines before: Taichi's banner)
+        assert log.read_text().strip().splitlines()[-1] == last and says in last and str(culprit) in last

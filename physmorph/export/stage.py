@@ -18,7 +18,29 @@ import numpy as np
 
 from physmorph.export.runs import frame_state, saved_frames
 from physmorph.export.settings import ExportConfig
+from physmorph.h5io import StageInputError
+from physmorph.meshes.errors import exit_on_refusal
+from physmorph.runfile import RunFileError
 from physmorph.stages import stage_log, typed
+
+# a run or input file the export cannot use (made before every frame's motion was kept, damaged,
+# not the run's own particles) ends the job in one line naming the file, not a traceback
+USER_ERRORS = (RunFileError, StageInputError)
+
+
+def video_stage(*args, log: str | None = None, **kwargs) -> None:
+    """A run's videos and stills (see _video_stage); a file it cannot use ends the job in one line."""
+    exit_on_refusal(lambda: _video_stage(*args, log=log, **kwargs), log=log, refusals=USER_ERRORS)
+
+
+def meshes_stage(*args, log: str | None = None, **kwargs) -> None:
+    """A run's surfaces and their measures (see _meshes_stage); one line for a file it cannot use."""
+    exit_on_refusal(lambda: _meshes_stage(*args, log=log, **kwargs), log=log, refusals=USER_ERRORS)
+
+
+def splats_stage(*args, log: str | None = None, **kwargs) -> None:
+    """A run's splat files (see _splats_stage); one line for a file it cannot use."""
+    exit_on_refusal(lambda: _splats_stage(*args, log=log, **kwargs), log=log, refusals=USER_ERRORS)
 
 
 def _transforms(source_mesh_h5: Path, target_mesh_h5: Path) -> dict:
@@ -28,7 +50,7 @@ def _transforms(source_mesh_h5: Path, target_mesh_h5: Path) -> dict:
             "to_source_input": domain_to_input(source_mesh_h5).tolist()}
 
 
-def video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, export: str | dict, mp4: str, webm: str | None,
+def _video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, export: str | dict, mp4: str, webm: str | None,
                 stills_dir: str, log: str | None = None) -> None:
     from physmorph.export.video import video_record, write_videos
 
@@ -46,7 +68,7 @@ def video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, export
               f"{rec['bytes'] / 1e6:.1f} MB")
 
 
-def meshes_stage(run_h5: str, particles_h5: str, source_mesh_h5: str, target_mesh_h5: str,
+def _meshes_stage(run_h5: str, particles_h5: str, source_mesh_h5: str, target_mesh_h5: str,
                  export: str | dict, out_dir: str, log: str | None = None) -> None:
     """Every saved frame's surface as frame_{k:04d}.ply and the last as final.glb, in the
     simulation domain (export.frame: domain) or the target mesh's input frame (target);
@@ -77,7 +99,7 @@ def meshes_stage(run_h5: str, particles_h5: str, source_mesh_h5: str, target_mes
         write_measures(rows, out / "measures.csv")
 
 
-def splats_stage(run_h5: str, export: str | dict, target_mesh_h5: str, out_dir: str, log: str | None = None) -> None:
+def _splats_stage(run_h5: str, export: str | dict, target_mesh_h5: str, out_dir: str, log: str | None = None) -> None:
     """Every saved frame's Gaussians as splats/{experiment}/frame_{k:04d}.ply."""
     from physmorph.export.splats import write_splats
     from physmorph.export.surface import domain_to_input

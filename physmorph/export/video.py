@@ -51,6 +51,10 @@ def target_gaussians(mesh_h5: Path, count: int = 40_000, seed: int = 0) -> tuple
     the points' spacing sqrt(area / count): a closed, evenly lit skin."""
     import trimesh
 
+    from physmorph.h5io import StageInputError
+
+    if not Path(mesh_h5).exists():
+        raise StageInputError(f"{mesh_h5}: missing (the target's prepared mesh)")
     with h5py.File(mesh_h5, "r") as f:
         mesh = trimesh.Trimesh(f["vertices"][()], f["faces"][()], process=False)
     pts = np.asarray(trimesh.sample.sample_surface_even(mesh, count, seed=seed)[0], dtype=np.float64)

@@ -31,13 +31,14 @@ def refusal_line(exc: BaseException, path: str | os.PathLike | None = None) -> s
 
 
 def exit_on_refusal(run: Callable[[], T], log: str | os.PathLike | None = None,
-                    path: str | os.PathLike | None = None) -> T:
-    """``run()``'s result; on a MeshError its refusal_line goes to stderr (and is appended to
-    ``log``, so a job's log ends in it) and the process exits with REFUSED_STATUS. Other errors
-    still raise: they are bugs, and their traceback is what finds them."""
+                    path: str | os.PathLike | None = None, refusals: tuple[type, ...] = ()) -> T:
+    """``run()``'s result; on a MeshError (or one of ``refusals``: the user's input, not a bug)
+    its refusal_line goes to stderr (and is appended to ``log``, so a job's log ends in it) and
+    the process exits with REFUSED_STATUS. Other errors still raise: they are bugs, and their
+    traceback is what finds them."""
     try:
         return run()
-    except MeshError as exc:
+    except (MeshError, *refusals) as exc:
         line = refusal_line(exc, path)
         if log is not None:
             Path(log).parent.mkdir(parents=True, exist_ok=True)
