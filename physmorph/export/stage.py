@@ -50,13 +50,12 @@ def _transforms(source_mesh_h5: Path, target_mesh_h5: Path) -> dict:
             "to_source_input": domain_to_input(source_mesh_h5).tolist()}
 
 
-def _video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, export: str | dict, mp4: str, webm: str | None,
-                stills_dir: str, log: str | None = None) -> None:
-    from physmorph.export.video import video_record, write_videos
-
+def _video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, export: str | dict, mp4: str,
+                 webm: str | None, stills_dir: str, log: str | None = None) -> None:
     from dataclasses import asdict
 
     from physmorph.config import TargetConfig
+    from physmorph.export.video import video_record, write_videos
 
     cfg = typed(ExportConfig, export, "export")
     target = asdict(typed(TargetConfig, target_cfg, "target"))
