@@ -1,0 +1,194 @@
+"""The control field dFc (paper section 4: the per-particle actuation the optimiser steps) and
+its in-place operations: zero, scale, mean, rebase, the line search's base copy and the
+accepted frame's kept copy, without [Tc, N, 3, 3] NumPy copies. A mixin of MPMSolver.
+"""
+
+import numpy as np
+import taichi as ti
+
+from .config import MPMStateError
+
+
+class ControlField:
+    """dFc and its gradient: in-place kernels and the public control API."""
+
+    @ti.kernel
+    def _zero_control_field(self, g: ti.template()):
+        for s, p in g:
+            g[s, p] = ti.Matrix.zero(self.dtype, 3, 3)
+
+    @ti.kernel
+    def _norm_sq(self, g: ti.template()):
+        self.norm_acc[None] = 0.0
+        for s, p in g:
+            self.norm_acc[None] += ti.cast((g[s, p] * g[s, p]).sum(), ti.f64)
+
+    def _grad_norm_sq(self) -> None:
+        self._norm_sq(self.ctrl_grad)
+
+    @ti.kernel
+    def _scale_ctrl(self, factor: ti.f64):
+        for s, p in self.ctrl:
+            self.ctrl[s, p] = ti.cast(factor, self.dtype) * self.ctrl[s, p]
+
+    @ti.kernel
+    def _save_ctrl_base(self):
+        for s, p in self.ctrl:
+            self.ctrl_base[s, p] = self.ctrl[s, p]
+
+    @ti.kernel
+    def _restore_ctrl_base(self):
+        for s, p in self.ctrl:
+            self.ctrl[s, p] = self.ctrl_base[s, p]
+
+    @ti.kernel
+    def _copy_slots(self, dst: ti.template(), src: ti.template()):
+        for s, p in src:
+            dst[s, p] = src[s, p]
+
+    @ti.kernel
+    def _copy_grad_to_base(self):
+        for s, p in self.ctrl_grad:
+            self.ctrl_base[s, p] = self.ctrl_grad[s, p]
+
+    @ti.kernel
+    def _combine_gradients(self, scale: ti.f64):
+        """g = g_mass + scale g_inj: ctrl_base holds g_mass, ctrl_grad g_inj (calibration_gradients)."""
+        for s, p in self.ctrl_grad:
+            self.ctrl_grad[s, p] = self.ctrl_base[s, p] + ti.cast(scale, self.dtype) * self.ctrl_grad[s, p]
+
+    @ti.kernel
+    def _control_mean(self, out: ti.types.ndarray()):
+        """out_p = (1 / Tc) sum_t dFc_t,p, in float64."""
+        for p in range(self.n):
+            acc = ti.Matrix.zero(ti.f64, 3, 3)
+            for s in range(ti.static(self.cfg.n_control_slots)):
+                acc += ti.cast(self.ctrl[s, p], ti.f64)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                out[p, a, b] = acc[a, b] / ti.static(self.cfg.n_control_slots)
+
+    @ti.kernel
+    def _rebase_ctrl(self, F: ti.types.ndarray(), M: ti.types.ndarray()):
+        """dFc_t <- (F + dFc_t) M - F for every slot t (physmorph.plasticity.rebase_control), in
+        float64 as the NumPy formula, stored in the solver's precision."""
+        for s, p in self.ctrl:
+            Fp = ti.Matrix.zero(ti.f64, 3, 3)
+            Mp = ti.Matrix.zero(ti.f64, 3, 3)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                Fp[a, b] = F[p, a, b]
+                Mp[a, b] = M[p, a, b]
+            self.ctrl[s, p] = ti.cast((Fp + ti.cast(self.ctrl[s, p], ti.f64)) @ Mp - Fp, self.dtype)
+
+    def reset_control(self) -> None:
+        """Zero dFc and the Adam moments (and the Adam step counter)."""
+        self.ctrl.fill(0.0)
+        self.ctrl_grad.fill(0.0)
+        if self.adam_m is not None:
+            self.adam_m.fill(0.0)
+            self.adam_v.fill(0.0)
+        self.adam.steps = 0
+        self.current.stale()
+
+    def control(self, native: bool = False) -> np.ndarray:  # [Tc, N, 3, 3]
+        """dFc, float64 (native: in the solver's precision, no conversion)."""
+        c = self.ctrl.to_numpy()
+        return c if native else c.astype(np.float64)
+
+    def set_control(self, dFc: np.ndarray) -> None:  # [Tc, N, 3, 3]
+        dFc = np.asarray(dFc)
+        if not np.issubdtype(dFc.dtype, np.floating):
+            dFc = dFc.astype(np.float64)
+        shape = (self.cfg.n_control_slots, self.n, 3, 3)
+        if dFc.shape != shape or not np.isfinite(dFc).all():
+            raise MPMStateError(f"dFc must be finite with shape {shape}, got {dFc.shape}")
+        self.ctrl.from_numpy(np.ascontiguousarray(dFc, dtype=self.np_dtype))
+        self.current.stale()
+
+    def scale_control(self, factor: float) -> None:
+        """dFc <- factor dFc, in place (the morph loop's leak and restart; no copy of the control)."""
+        if not np.isfinite(factor):
+            raise ValueError(f"factor must be finite, got {factor!r}")
+        self._scale_ctrl(float(factor))
+        self.current.stale()
+
+    def control_mean(self) -> np.ndarray:  # [N, 3, 3]
+        """mean_t dFc_t, float64 (no [Tc, N, 3, 3] copy of the control)."""
+        out = np.empty((self.n, 3, 3))
+        self._control_mean(out)
+        return out
+
+    def rebase_control(self, F: np.ndarray,  # [N, 3, 3]
+                       M: np.ndarray) -> None:  # [N, 3, 3]
+        """dFc_t <- (F + dFc_t) M - F for every slot, in place (physmorph.plasticity.rebase_control
+        with M = Fp_old^-1 Fp_new; no [Tc, N, 3, 3] copy of the control)."""
+        F = np.ascontiguousarray(F, dtype=np.float64)
+        M = np.ascontiguousarray(M, dtype=np.float64)
+        if F.shape != (self.n, 3, 3) or M.shape != (self.n, 3, 3):
+            raise MPMStateError(f"F and M must have shape {(self.n, 3, 3)}, got {F.shape} and {M.shape}")
+        if not (np.isfinite(F).all() and np.isfinite(M).all()):
+            raise MPMStateError("F and M must be finite")
+        self._rebase_ctrl(F, M)
+        self.current.stale()
+
+    def control_gradient(self, native: bool = False) -> np.ndarray:  # [Tc, N, 3, 3]
+        """The last backward's dFc gradient, float64 (native: in the solver's precision)."""
+        g = self.ctrl_grad.to_numpy()
+        return g if native else g.astype(np.float64)
+
+    def keep_control(self) -> None:
+        """Copy the control (and the Adam moments where Adam has run) into fields of their own, for
+        :meth:`restore_kept_control`: the settle phase's undo without a host copy (340 MB at 471K
+        particles)."""
+        if self._kept is None:
+            mat = ti.types.matrix(3, 3, self.dtype)
+            self._kept = {"ctrl": mat.field(shape=(self.cfg.n_control_slots, self.n))}
+        self._copy_slots(self._kept["ctrl"], self.ctrl)
+        if self.adam_m is not None:
+            for name, src in (("adam_m", self.adam_m), ("adam_v", self.adam_v)):
+                if name not in self._kept:
+                    self._kept[name] = ti.types.matrix(3, 3, self.dtype).field(shape=src.shape)
+                self._copy_slots(self._kept[name], src)
+        self._kept_adam_step = (int(self.adam.steps), self.adam_m is not None)
+
+    def restore_kept_control(self) -> None:
+        """Put back what :meth:`keep_control` copied (moments Adam made since then: zero)."""
+        if self._kept is None:
+            raise MPMStateError("restore_kept_control before keep_control")
+        self._copy_slots(self.ctrl, self._kept["ctrl"])
+        step, had_moments = self._kept_adam_step
+        if self.adam_m is not None:
+            if had_moments:
+                self._copy_slots(self.adam_m, self._kept["adam_m"])
+                self._copy_slots(self.adam_v, self._kept["adam_v"])
+            else:
+                self.adam_m.fill(0.0)
+                self.adam_v.fill(0.0)
+        self.adam.steps = step
+        self.current.stale()
+
+    def optimizer_state(self) -> dict:
+        """dFc (in the solver's precision: exact), the Adam moments where Adam has run, and the
+        step count: everything needed to resume the optimization."""
+        out = {"control": self.ctrl.to_numpy(), "adam_step": int(self.adam.steps)}
+        if self.adam_m is not None:
+            out.update(adam_m=self.adam_m.to_numpy(), adam_v=self.adam_v.to_numpy())
+        return out
+
+    def set_optimizer_state(self, state: dict) -> None:
+        """Restore what :meth:`optimizer_state` returned (moments absent: zero)."""
+        self.set_control(state["control"])
+        shape = (self.cfg.n_control_slots, self.n, 3, 3)
+        has_moments = "adam_m" in state or "adam_v" in state
+        if has_moments:
+            for key in ("adam_m", "adam_v"):
+                arr = np.asarray(state[key])
+                if arr.shape != shape or not np.isfinite(arr).all():
+                    raise MPMStateError(f"{key} must be finite with shape {shape}, got {arr.shape}")
+            self._ensure_adam()
+            self.adam_m.from_numpy(np.asarray(state["adam_m"]).astype(self.np_dtype, copy=False))
+            self.adam_v.from_numpy(np.asarray(state["adam_v"]).astype(self.np_dtype, copy=False))
+        elif self.adam_m is not None:
+            self.adam_m.fill(0.0)
+            self.adam_v.fill(0.0)
+        self.adam.steps = int(state["adam_step"])
+        self.current.stale()

@@ -1,0 +1,275 @@
+"""The physics loss on the end-layer grid mass (paper section 4, "Physics rollout": the mass
+loss L between the grid mass of x_T and the target's), its forms and terms, and its adjoint.
+
+Forms (MPMConfig.mass_loss): "squared" sum_I (m_I - m*_I)^2, "log" (default) sum_I (log(m_I + e)
+- log(m*_I + e))^2, and the departures log_convex / sqrt; terms: the coarser pyramid levels
+(mass_loss_levels), a blurred level (mass_loss_blur), the packing term (overfill_weight) and
+the stray pull's position anchors w_p |x_T,p - a_p|^2. A mixin of MPMSolver.
+"""
+
+import numpy as np
+import taichi as ti
+
+from .config import MPMConfigError, MPMStateError
+
+
+class PhysicsLoss:
+    """The mass loss, its terms and its adjoint into the particles' x_T."""
+
+    @ti.kernel
+    def _splat_mass(self, t: ti.i32):
+        """m_I += sum_p w_Ip m_p of x_t (the physmorph.grid.splat_mass transfer)."""
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[t, p])
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = self._node(fx, w, i, j, k)
+                self.grid_m[base + off] += wt * self.mass[p]
+
+    @ti.kernel
+    def _mass_loss(self, log_eps: ti.f64, overfill_w: ti.f64):
+        """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2;
+        sqrt: (sqrt(m+e) - sqrt(m*+e))^2; log_bounded: log below m*, 4 (sqrt(m+e) - sqrt(m*+e))^2 / (m*+e)
+        above it; plus the packing term _overfill_term with weight overfill_w where the
+        configuration has one (overfill_weight > 0)."""
+        self.loss_acc[None] = 0.0
+        for I in ti.grouped(self.grid_m):
+            r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
+            if ti.static(self.cfg.overfill_weight > 0):
+                o2, oadj = self._overfill_term(self.grid_m[I], self.target_m[I], log_eps, overfill_w)
+                r2 += o2
+                adj += oadj
+            self.loss_acc[None] += r2
+            self.grid_m_adj[I] = adj
+
+    @ti.func
+    def _overfill_term(self, m, mt, log_eps: ti.f64, overfill_w: ti.f64):
+        """The packing term of MPMConfig.overfill_weight: w max(0, r)^2 with r = log(m + e) -
+        log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e);
+        with mass_loss = "log_convex", r^2 continued linearly in m above r = 1 (_log_convex_term)."""
+        e = ti.cast(log_eps, self.dtype)
+        w = ti.cast(overfill_w, self.dtype)
+        cap = ti.max(self.dtype(self.cfg.overfill_ratio * self.cfg.density * self.cfg.dx ** 3), mt)
+        r2 = ti.cast(0.0, ti.f64)
+        adj = ti.cast(0.0, self.dtype)
+        if ti.static(self.cfg.mass_loss == "log_convex"):
+            if m > cap:
+                r2, adj = self._log_convex_term(m, cap, e)
+        else:
+            r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
+            r2, adj = ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
+        return ti.cast(w, ti.f64) * r2, w * adj
+
+    @ti.func
+    def _node_loss(self, m, mt, log_eps: ti.f64):
+        """One node's loss term and its derivative dL/dm: squared (m - m*)^2, 2 (m - m*); log
+        (log(m + e) - log(m* + e))^2, 2 r / (m + e); sqrt (sqrt(m + e) - sqrt(m* + e))^2,
+        r / sqrt(m + e); log_bounded: log for m <= m*, else k r^2 and k r / sqrt(m + e) with
+        r = sqrt(m + e) - sqrt(m* + e) and k = 4 / (m* + e); log_convex: _log_convex_term."""
+        r2 = ti.cast(0.0, ti.f64)
+        adj = ti.cast(0.0, self.dtype)
+        e = ti.cast(log_eps, self.dtype)
+        if ti.static(self.cfg.mass_loss == "squared"):
+            r = m - mt
+            r2 = ti.cast(r * r, ti.f64)
+            adj = 2.0 * r
+        elif ti.static(self.cfg.mass_loss == "log_bounded"):
+            if m <= mt:
+                r2, adj = self._log_term(m, mt, e)
+            else:
+                k = 4.0 / (mt + e)
+                r2, adj = self._sqrt_term(m, mt, e)
+                r2, adj = ti.cast(k, ti.f64) * r2, k * adj
+        elif ti.static(self.cfg.mass_loss == "sqrt"):
+            r2, adj = self._sqrt_term(m, mt, e)
+        elif ti.static(self.cfg.mass_loss == "log_convex"):
+            r2, adj = self._log_convex_term(m, mt, e)
+        else:
+            r2, adj = self._log_term(m, mt, e)
+        return r2, adj
+
+    @ti.func
+    def _log_term(self, m, mt, e):
+        """(log(m + e) - log(m* + e))^2 and its derivative 2 r / (m + e)."""
+        r = ti.log(m + e) - ti.log(mt + e)
+        return ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
+
+    @ti.func
+    def _log_convex_term(self, m, mt, e):
+        """The log term r^2, r = log(m + e) - log(m* + e), up to r = 1, where it turns concave in m,
+        and its tangent above: 1 + s (m - m1), m1 = (m* + e) exp(1) - e, s = 2 / (m1 + e); its
+        derivative 2 r / (m + e), then s. Convex in m, so packing mass into fewer nodes never lowers it."""
+        r = ti.log(m + e) - ti.log(mt + e)
+        r2 = ti.cast(r * r, ti.f64)
+        adj = 2.0 * r / (m + e)
+        if r > 1.0:
+            m1 = (mt + e) * self.dtype(np.e) - e
+            s = 2.0 / (m1 + e)
+            r2 = ti.cast(1.0 + s * (m - m1), ti.f64)
+            adj = s
+        return r2, adj
+
+    @ti.func
+    def _sqrt_term(self, m, mt, e):
+        """(sqrt(m + e) - sqrt(m* + e))^2 and its derivative r / sqrt(m + e)."""
+        root = ti.sqrt(m + e)
+        r = root - ti.sqrt(mt + e)
+        return ti.cast(r * r, ti.f64), r / root
+
+    @ti.kernel
+    def _pyramid_loss(self, cm: ti.template(), ct: ti.template(), ca: ti.template(), block: ti.i32,
+                      log_eps: ti.f64):
+        """One coarse level of the mass loss (MPMConfig.mass_loss_levels): M_J = sum of m_I over
+        the block^3 nodes I of block J; the node loss of _node_loss on M and M* added to
+        loss_acc, and its adjoint dL/dM_J added to dL/dm_I of every node of the block."""
+        for J in ti.grouped(cm):
+            cm[J] = 0.0
+        for I in ti.grouped(self.grid_m):
+            cm[I // block] += self.grid_m[I]
+        for J in ti.grouped(cm):
+            r2, adj = self._node_loss(cm[J], ct[J], log_eps)
+            self.loss_acc[None] += r2
+            ca[J] = adj
+        for I in ti.grouped(self.grid_m):
+            self.grid_m_adj[I] += ca[I // block]
+
+    @ti.kernel
+    def _blur_axis(self, src: ti.template(), dst: ti.template(), axis: ti.template()):
+        """One separable pass of MPMConfig.mass_loss_blur: dst_I = sum_k w_k src_(I + k e_axis) over
+        |k| <= r, nodes outside the grid counting as zero (so the pass is a symmetric matrix)."""
+        R = self.cfg.grid_res
+        r = ti.static(self._blur_radius)
+        for I in ti.grouped(dst):
+            acc = ti.cast(0.0, self.dtype)
+            for k in ti.static(range(-r, r + 1)):
+                J = I + ti.Vector([k if axis == 0 else 0, k if axis == 1 else 0, k if axis == 2 else 0])
+                if 0 <= J[axis] < R:
+                    acc += self.blur_w[k + r] * src[J]
+            dst[I] = acc
+
+    def _blur(self, src, dst) -> None:
+        """dst = B src, B the 3D Gaussian blur (three passes through the scratch grids)."""
+        t1, t2 = self.blur_grids[3], self.blur_grids[4]
+        self._blur_axis(src, t1, 0)
+        self._blur_axis(t1, t2, 1)
+        self._blur_axis(t2, dst, 2)
+
+    @ti.kernel
+    def _blur_level_loss(self, bm: ti.template(), bt: ti.template(), ba: ti.template(), log_eps: ti.f64,
+                         weight: ti.f64):
+        """The blurred level (MPMConfig.mass_loss_blur): weight x _node_loss of B m against B m* added
+        to loss_acc, its adjoint into ba."""
+        for I in ti.grouped(bm):
+            r2, adj = self._node_loss(bm[I], bt[I], log_eps)
+            self.loss_acc[None] += weight * r2
+            ba[I] = ti.cast(weight, self.dtype) * adj
+
+    @ti.kernel
+    def _add_to_mass_adjoint(self, a: ti.template()):
+        """dL/dm_I += a_I (a coarser or blurred level's adjoint brought back to the grid)."""
+        for I in ti.grouped(a):
+            self.grid_m_adj[I] += a[I]
+
+    def _loss_with_adjoint(self) -> None:
+        """Mass loss of the splatted grid_m into loss_acc, dL/dm_I into grid_m_adj (all levels)."""
+        self._mass_loss(self._log_eps, self._overfill_weight)
+        for lv, (cm, ct, ca) in enumerate(self.pyramid, start=1):
+            self._pyramid_loss(cm, ct, ca, 1 << lv, self._log_eps * 8.0 ** lv)
+        if self.blur_grids:
+            bm, bt, ba = self.blur_grids[:3]
+            self._blur(self.grid_m, bm)
+            self._blur_level_loss(bm, bt, ba, self._log_eps, self.cfg.mass_loss_blur_weight)
+            self._blur(ba, bm)  # B is symmetric: dL/dm = B dL/d(B m)
+            self._add_to_mass_adjoint(bm)
+
+    @ti.kernel
+    def _anchor_loss(self):
+        """The anchors' term of the loss (set_position_anchors): loss_acc += sum_p w_p |x_T,p - a_p|^2."""
+        T = self.cfg.substeps
+        for p in range(self.n):
+            d = self.x[T, p] - self.anchor[p]
+            self.loss_acc[None] += ti.cast(self.anchor_w[p] * d.dot(d), ti.f64)
+
+    @ti.kernel
+    def _anchor_backward(self, xa: ti.template()):
+        """Reverse of _anchor_loss: x_bar_T,p += 2 w_p (x_T,p - a_p)."""
+        T = self.cfg.substeps
+        for p in range(self.n):
+            xa[p] += 2.0 * self.anchor_w[p] * (self.x[T, p] - self.anchor[p])
+
+    @ti.kernel
+    def _loss_backward(self, xa: ti.template()):
+        """Reverse of _splat_mass(T) and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
+        of the injected g^x already there)."""
+        T = self.cfg.substeps
+        for p in range(self.n):
+            base, fx, w, dw = self._stencil(self.x[T, p])
+            g = ti.Vector.zero(self.dtype, 3)
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = self._node(fx, w, i, j, k)
+                gw = self._node_grad(w, dw, i, j, k)
+                g += gw * (self.mass[p] * self.grid_m_adj[base + off])
+            xa[p] += g
+
+    def set_target_grid_mass(self, m: np.ndarray) -> None:  # m: [res, res, res]
+        """Target grid mass (physmorph.grid.splat_mass convention)."""
+        m = np.asarray(m, dtype=np.float64)
+        R = self.cfg.grid_res
+        if m.shape != (R, R, R):
+            raise MPMStateError(f"target grid mass must have shape {(R, R, R)}, got {m.shape}")
+        if not np.isfinite(m).all() or (m < 0).any():
+            raise MPMStateError("target grid mass must be finite and >= 0")
+        self.target_m.from_numpy(m.astype(self.np_dtype))
+        for lv, (_, ct, _) in enumerate(self.pyramid, start=1):
+            b = 1 << lv
+            ct.from_numpy(m.reshape(R // b, b, R // b, b, R // b, b).sum(axis=(1, 3, 5)).astype(self.np_dtype))
+        if self.blur_grids:
+            self._blur(self.target_m, self.blur_grids[1])
+        self.current.has_target = True
+        self.current.stale()  # the cached loss refers to the old target
+
+    def set_overfill_weight(self, weight: float) -> None:
+        """The packing term's weight from now on (MorphConfig.overfill_onset switches it on during a
+        run): 0 leaves the configured mass loss alone; any weight needs a solver built with
+        overfill_weight > 0, whose kernels carry the term."""
+        if not (np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"overfill weight must be finite and >= 0, got {weight!r}")
+        if weight > 0 and not self.cfg.overfill_weight > 0:
+            raise MPMConfigError("set_overfill_weight > 0 needs a solver built with overfill_weight > 0")
+        self._overfill_weight = float(weight)
+        self.current.stale()
+
+    def set_position_anchors(self, anchor: np.ndarray | None,  # [N, 3]
+                             weight: np.ndarray | None = None) -> None:  # [N]
+        """Add sum_p w_p |x_T,p - a_p|^2 to the loss from now on (the morph loop's stray pull,
+        MorphConfig.stray_pull); None removes the term. The fields are allocated on first use."""
+        if anchor is None:
+            self._anchored = False
+            self.current.stale()
+            return
+        a = self._check_adjoint(anchor, (self.n, 3), "anchor")
+        w = np.asarray(weight, dtype=np.float64)
+        if w.shape != (self.n,) or not np.isfinite(w).all() or (w < 0).any():
+            raise MPMStateError(f"anchor weights must be [{self.n}], finite and >= 0")
+        self._ensure_anchors()
+        self.anchor.from_numpy(a.astype(self.np_dtype))
+        self.anchor_w.from_numpy(w.astype(self.np_dtype))
+        self._anchored = bool((w > 0).any())
+        self.current.stale()
+
+    @property
+    def overfill_weight(self) -> float:
+        """The packing term's weight in use (MPMConfig.overfill_weight unless set_overfill_weight)."""
+        return self._overfill_weight
+
+    def loss(self) -> float:
+        """The last forward's loss: the end-layer mass loss plus the anchors' term
+        (set_position_anchors), what forward() returned."""
+        if self._last_loss is None:
+            raise RuntimeError("loss needs a forward first")
+        return self._last_loss
+
+    def mass_loss(self) -> float:
+        """The last forward's end-layer mass loss (with the packing term), without the anchors' term."""
+        if self._last_mass_loss is None:
+            raise RuntimeError("mass_loss needs a forward first")
+        return self._last_mass_loss
