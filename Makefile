@@ -10,7 +10,7 @@ WHEEL_DIR ?= /opt/wheels
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 WHEELS := $(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX))
 
-.PHONY: venv tables figures tradeoff export report test gpu-check slurm-check dag recover clean-venv
+.PHONY: venv conda-env tables figures tradeoff export report test gpu-check slurm-check dag recover clean-venv
 
 $(STAMP): environment.lock pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ $(STAMP): environment.lock pyproject.toml
 ARGS ?=
 
 venv: $(STAMP)
+
+# workflow/envs/physmorph.yaml, the conda environment of every rule (snakemake --use-conda), from
+# environment.lock: rerun after the lock changed (tests/test_workflow_lint.py checks they agree).
+conda-env:
+	$(PYTHON) workflow/envs/make_env.py
 
 tables: $(STAMP)
 	$(VENV)/bin/snakemake --cores $(CORES) tables $(ARGS)

@@ -1,6 +1,7 @@
 # physmorph workflow entry point. Stages live in workflow/rules/*.smk, one per stage; each rule
-# runs a thin script in workflow/scripts/ that calls one physmorph function. Outputs go to
-# results/{profile}/ (the config's `profile`), so profiles never share a file.
+# runs a thin script in workflow/scripts/ that calls one physmorph function, in the conda environment
+# workflow/envs/physmorph.yaml under --use-conda. The rules' helper functions are in workflow/rules/common.py.
+# Outputs go to results/{profile}/ (the config's `profile`), so profiles never share a file.
 configfile: "config/config.yaml"
 
 

@@ -28,6 +28,8 @@ rule export_video:
     resources:
         mem_mb=4000,
         runtime=30,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/export_video.py"
 
@@ -52,6 +54,8 @@ rule export_meshes:
     resources:
         mem_mb=4000,
         runtime=30,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/export_meshes.py"
 
@@ -72,6 +76,8 @@ rule export_splats:
     resources:
         mem_mb=4000,
         runtime=20,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/export_splats.py"
 
@@ -96,5 +102,7 @@ rule export_viewer:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/export_viewer.py"

@@ -17,5 +17,7 @@ rule fetch_mesh:
     resources:
         mem_mb=1000,
         runtime=10,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/fetch_mesh.py"

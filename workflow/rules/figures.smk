@@ -12,7 +12,7 @@ rule make_figures:
         names=list(S.tables.experiments),
         shapes=list(S.tables.shapes),
         target=params_json(S.target),
-        out_dir=f"{R}/figures",
+        out_dir=folder_of_first_output,
     log:
         f"{R}/logs/make_figures.log",
     benchmark:
@@ -21,6 +21,8 @@ rule make_figures:
     resources:
         mem_mb=4000,
         runtime=20,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/make_figures.py"
 
@@ -39,7 +41,7 @@ rule make_main_figures:
         names=MAIN_EXPERIMENTS,
         shapes=MAIN_TARGETS,
         target=params_json(S.target),
-        out_dir=f"{R}/main_figures",
+        out_dir=folder_of_first_output,
         figures=list(MAIN_FIGURES),
     log:
         f"{R}/logs/make_main_figures.log",
@@ -49,5 +51,7 @@ rule make_main_figures:
     resources:
         mem_mb=4000,
         runtime=20,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/make_figures.py"

@@ -30,5 +30,7 @@ rule morph:
             or particle_estimate(experiment_source(wc.experiment), S.sampling, S.domain),
             S.experiment_config(wc.experiment).frames),
         gpu=S.morph_gpus,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/morph.py"

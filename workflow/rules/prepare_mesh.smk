@@ -18,5 +18,7 @@ rule prepare_mesh:
     resources:
         mem_mb=4000,
         runtime=20,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/prepare_mesh.py"

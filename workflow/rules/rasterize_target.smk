@@ -19,5 +19,7 @@ rule rasterize_target:
     resources:
         mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
         runtime=30,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/rasterize_target.py"

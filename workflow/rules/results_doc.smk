@@ -7,8 +7,8 @@ rule results_doc:
     output:
         f"{R}/results.md",
     params:
-        tables_dir=f"{R}/tables",
-        figures_dir=f"{R}/figures",
+        tables_dir=folder_of_input("tables"),
+        figures_dir=folder_of_input("figures"),
         profile=S.profile,
     log:
         f"{R}/logs/results_doc.log",
@@ -18,5 +18,7 @@ rule results_doc:
     resources:
         mem_mb=1000,
         runtime=5,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/results_doc.py"

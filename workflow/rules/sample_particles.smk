@@ -16,5 +16,7 @@ rule sample_particles:
     resources:
         mem_mb=lambda wc: mb(sampling_memory(S.shape(wc.shape), S.sampling.with_tag(wc.res), S.domain, "")),
         runtime=30,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/sample_particles.py"

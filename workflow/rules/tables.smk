@@ -14,7 +14,7 @@ rule make_tables:
     params:
         names=list(S.tables.experiments),
         full=FULL_RUNS,
-        out_dir=f"{R}/tables",
+        out_dir=folder_of_first_output,
     log:
         f"{R}/logs/make_tables.log",
     benchmark:
@@ -23,6 +23,8 @@ rule make_tables:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/make_tables.py"
 
@@ -41,7 +43,7 @@ rule make_main_tables:
     params:
         names=MAIN_EXPERIMENTS,
         full=FULL_RUNS,
-        out_dir=f"{R}/main_tables",
+        out_dir=folder_of_first_output,
     log:
         f"{R}/logs/make_main_tables.log",
     benchmark:
@@ -50,5 +52,7 @@ rule make_main_tables:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/make_tables.py"

@@ -22,6 +22,8 @@ rule rasterize_target_image:
     resources:
         mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
         runtime=30,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/rasterize_target.py"
 
@@ -50,6 +52,8 @@ rule tradeoff_point:
         runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(S.tradeoff.experiment),
                                                                point_settings(wc.point)[0], S.domain), POINTS[wc.point].frames),
         gpu=S.morph_gpus,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/morph.py"
 
@@ -64,7 +68,7 @@ rule make_tradeoff:
     params:
         names=list(POINTS),
         points=params_json(POINTS),
-        out_dir=f"{R}/tradeoff",
+        out_dir=folder_of_first_output,
         domain_width=S.domain[1] - S.domain[0],
     log:
         f"{R}/logs/make_tradeoff.log",
@@ -74,5 +78,7 @@ rule make_tradeoff:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        "../envs/physmorph.yaml"
     script:
         "../scripts/make_tradeoff.py"
