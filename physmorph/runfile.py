@@ -70,7 +70,7 @@ MOTION = {"x": np.float32, "F": np.float16}  # what every other frame keeps (the
 STATE_COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
 
 FRAME_FORMAT = "physmorph-run-frame/1"
-CHECKPOINT_FORMAT = "physmorph-checkpoint/1"
+CHECKPOINT_FORMAT = "physmorph-checkpoint/2"
 CHECKPOINT_NAME = "checkpoint.h5"
 # The most of a run's wall time its checkpoints take: a checkpoint that took c seconds to write is
 # followed by the next once c / CHECKPOINT_WALL_SHARE seconds have passed, so a kill loses at most

@@ -216,8 +216,24 @@ def test_foreign_file_as_checkpoint_is_refused(tmp_path):
     ck = runfile.partial_dir(out) / "checkpoint.h5"
     with h5py.File(ck, "w") as f:
         f["x"] = np.zeros(3)
-    with RunWriter(out, KEY) as w, pytest.raises(RunFileError, match=r"checkpoint\.h5: not a physmorph-checkpoint/1 file"):
+    with RunWriter(out, KEY) as w, pytest.raises(RunFileError, match=r"checkpoint\.h5: not a physmorph-checkpoint/2 file"):
         w.resume(log=lambda m: None)
+
+
+def test_a_checkpoint_of_the_earlier_format_is_refused_by_name(tmp_path):
+    """The loop state's format changed (one FrameState, physmorph.frame_state): a checkpoint an
+    older version wrote is refused naming both formats and the way to restart, not half read."""
+    out = tmp_path / "run.h5"
+    _write_frames(out, 2)
+    ck = runfile.partial_dir(out) / "checkpoint.h5"
+    with h5py.File(ck, "r+") as f:
+        f.attrs["format"] = "physmorph-checkpoint/1"
+    with RunWriter(out, KEY) as w, pytest.raises(RunFileError) as err:
+        w.resume(log=lambda m: None)
+    msg = str(err.value)
+    assert "checkpoint.h5: not a physmorph-checkpoint/2 file (format 'physmorph-checkpoint/1')" in msg, msg
+    assert "rm -r" in msg and "restart the run from frame 0" in msg
+    assert ck.exists()
 
 
 def test_old_single_file_partial_is_refused(tmp_path):
