@@ -30,21 +30,18 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 import yaml
 
+from physmorph.config_error import ConfigError
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO
-from physmorph.morph_config import METHODS, MorphConfig
+from physmorph.morph_config import MorphConfig
 from physmorph.mpm.config import MPMConfig
+from physmorph.mpm.memory import bytes_per_particle_substep
 from physmorph.plasticity import PlasticityConfig
 from physmorph.render.config import RenderConfig
 from physmorph.export.settings import ExportConfig
 from physmorph.surface import SurfaceMaskConfig
+from physmorph.tradeoff_points import TradeoffPoint, tradeoff_points
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
 RES_PATTERN = r"(\d+)x(\d+)x(\d+)"
-
-
-class ConfigError(ValueError):
-    """Invalid configuration; the message names the offending key."""
 
 
 def deep_merge(base: dict, override: dict) -> dict:
@@ -66,7 +63,7 @@ def _join(where: str, key: str) -> str:
 
 
 def _fail(key: str, msg: str):
-    raise ConfigError(f"config key '{key or '<root>'}': {msg}")
+    raise ConfigError.for_key(key or "<root>", msg)
 
 
 def _number(value, key: str, what: str = "a number") -> float:
@@ -172,7 +169,7 @@ def build(cls, data: Any, where: str = "", derived: dict[str, tuple[str, Any]] |
     except ConfigError:
         raise
     except (ValueError, TypeError) as exc:
-        raise ConfigError(f"config key '{_failing_key(cls, exc, where) or '<root>'}': {exc}") from exc
+        raise ConfigError.for_key(_failing_key(cls, exc, where) or "<root>", exc) from exc
 
 
 def to_plain(obj: Any) -> Any:
@@ -199,11 +196,11 @@ def canonical_json(obj: Any) -> str:
 # of every job that holds that class and rerun whole result trees for identical numbers. So a
 # field at its default is left out, and the job rebuilds its config from what is left (a left-out
 # field takes its default). The one case this would get wrong is a *changed* default: runs made
-# with the old one would keep their params and not rerun. FIRST_DEFAULTS_PATH records each
-# field's first default (append-only); a field whose default has changed since must be named in
-# its class's ALWAYS_IN_PARAMS (a ClassVar), which puts it in every params string, so the runs
-# that omitted it rerun once (tests/test_config.py checks both).
-FIRST_DEFAULTS_PATH = REPO_ROOT / "workflow" / "schemas" / "first_defaults.json"
+# with the old one would keep their params and not rerun. A record of first defaults (the
+# workflow's workflow/schemas/first_defaults.json, which ``python -m physmorph.config --defaults``
+# extends) holds each field's first default (append-only); a field whose default has changed since
+# must be named in its class's ALWAYS_IN_PARAMS (a ClassVar), which puts it in every params string,
+# so the runs that omitted it rerun once (tests/test_config.py checks both).
 
 
 def _field_default(f) -> Any:
@@ -248,8 +245,6 @@ def params_json(obj: Any) -> str:
 
 def settings_classes() -> list[type]:
     """Every config dataclass reachable from Settings and MorphConfig (and the tradeoff point)."""
-    from physmorph.tradeoff import TradeoffPoint
-
     seen: list[type] = []
 
     def walk(tp: Any) -> None:
@@ -278,8 +273,9 @@ def current_defaults() -> dict[str, Any]:
     return out
 
 
-def record_first_defaults(path: Path = FIRST_DEFAULTS_PATH) -> list[str]:
+def record_first_defaults(path: str | Path) -> list[str]:
     """Add the fields not yet recorded to ``path`` (never rewrites a recorded default); returns them."""
+    path = Path(path)
     recorded = json.loads(path.read_text()) if path.exists() else {}
     new = {k: v for k, v in current_defaults().items() if k not in recorded}
     if new:
@@ -287,9 +283,10 @@ def record_first_defaults(path: Path = FIRST_DEFAULTS_PATH) -> list[str]:
     return sorted(new)
 
 
-def defaults_changed(path: Path = FIRST_DEFAULTS_PATH) -> list[str]:
+def defaults_changed(path: str | Path) -> list[str]:
     """Problems with the first-defaults record: fields not yet recorded, and fields whose default
     changed but which are not in their class's ALWAYS_IN_PARAMS (their old runs would not rerun)."""
+    path = Path(path)
     recorded = json.loads(path.read_text()) if path.exists() else {}
     problems = []
     classes = {c.__name__: c for c in settings_classes()}
@@ -579,8 +576,6 @@ class Settings:
         for name in s.experiments:
             s.experiment_config(name)  # every experiment's full settings, checked now
         if s.tradeoff is not None:
-            from physmorph.tradeoff import tradeoff_points
-
             try:
                 points = tradeoff_points(s)
             except ValueError as exc:
@@ -687,8 +682,6 @@ class Settings:
             out.append(morph_memory(self.shapes[self.experiments[name].source], self.sampling, self.target,
                                     mpm, self.domain, f"morph {name}"))
         if self.tradeoff is not None:
-            from physmorph.tradeoff import tradeoff_points
-
             src = self.shapes[self.experiments[self.tradeoff.experiment].source]
             try:
                 points = tradeoff_points(self)
@@ -713,7 +706,7 @@ class Settings:
                 f"{self.sampling.grid_res}, sampling.ppc_surface {self.sampling.ppc_surface}, "
                 f"{self.target.width}x{self.target.height} images: above the limit of {limit:,.0f} MB ({key}); "
                 "lower sampling.grid_res, sampling.ppc_surface or the image size, or raise max_memory_mb on a "
-                "bigger machine")
+                "bigger machine", key="max_memory_mb")
 
 
 def _section_derived(section: str, sampling: SamplingConfig, device: str, domain) -> dict:
@@ -731,7 +724,7 @@ def _replace(obj, section: str, keys: dict, **changes):
     except (ValueError, TypeError) as exc:
         bad = _failing_key(type(obj), exc, section)
         fname = bad.split(".")[-1] if "." in bad else ""
-        raise ConfigError(f"config key '{keys.get((section, fname), bad)}': {exc}") from exc
+        raise ConfigError.for_key(keys.get((section, fname), bad), exc) from exc
 
 
 def load_settings(*paths: str | Path, overrides: dict | None = None) -> Settings:
@@ -777,11 +770,10 @@ def json_schema() -> dict:
 # --------------------------------------------------------------------------------------------
 
 BASE_PROCESS_MB = 600.0  # python + numpy + torch + taichi runtime, measured ~500 MB
-# Per particle in the morph: x, v, C, F stored per substep (96 B in float32, doubled for float64)
-# and the control field, its gradient and optimizer moments (144 B per slot), plus ~8 KB of
-# per-frame work arrays (plasticity neighbours, renderer, mask); calibrated on the paper profile
-# with its real particle count (iso, 471,282 particles, 8 x 960x540: 7.04 GB peak RSS; the estimate
-# with this constant 7.3 GB).
+# Per particle in the morph, besides what the solver stores per substep and per control slot
+# (morph_memory): the per-frame work arrays (plasticity neighbours, renderer, mask); calibrated on
+# the paper profile with its real particle count (iso, 471,282 particles, 8 x 960x540: 7.04 GB
+# peak RSS; the estimate with this constant 7.1 GB).
 MORPH_BYTES_PER_PARTICLE = 10000.0
 # Seconds a morph's particle-frame takes on a 2-core CPU (measured 1.4-2e-4): the morph rule's
 # runtime request and the stability map's wall-clock limits
@@ -836,10 +828,11 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
     n = particle_estimate(source, sampling, domain) if n_particles is None else int(n_particles)
     scale = 2 if mpm.precision == "float64" else 1
     slots = mpm.substeps if mpm.control == "per_substep" else 1
-    # stored per substep: x, v, C, F and the polar rotation and pair sum (136 B in float32); per
-    # control slot dFc and its gradient (72 B), and Adam's two moments when Adam runs (72 B)
+    # stored per substep: what the solver keeps for its backward (physmorph.mpm.memory); per
+    # control slot dFc and its gradient (72 B in float32), and Adam's two moments when Adam runs (72 B)
     moments = 72 if mpm.optimizer == "adam" else 0
-    per_particle = mpm.substeps * 136 * scale + slots * (72 + moments) * scale + MORPH_BYTES_PER_PARTICLE
+    per_particle = (mpm.substeps * bytes_per_particle_substep(mpm) + slots * (72 + moments) * scale
+                    + MORPH_BYTES_PER_PARTICLE)
     pixels = target.cameras * target.width * target.height
     grid = sampling.grid_res ** 3 * (64 + 16 * mpm.substeps) * scale  # and the P2G grid kept per substep
     mb = BASE_PROCESS_MB + (n * per_particle + grid + pixels * 64) / 2**20
@@ -889,17 +882,29 @@ def schema_text() -> str:
     return SCHEMA_HEADER + yaml.safe_dump(json_schema(), sort_keys=False, width=110)
 
 
-if __name__ == "__main__":  # pragma: no cover - a maintenance command
-    import sys
+def main(argv: list[str] | None = None) -> None:
+    """The maintenance command: ``--schema [PATH]`` writes the config's JSON schema, ``--defaults
+    [PATH]`` records new fields' first defaults. Without PATH they write this checkout's workflow
+    files (workflow/schemas/config.schema.yaml, workflow/schemas/first_defaults.json)."""
+    import argparse
 
-    if sys.argv[1:] == ["--schema"]:
-        SCHEMA_PATH.write_text(schema_text())
-        print(f"wrote {SCHEMA_PATH}")
-    elif sys.argv[1:] == ["--defaults"]:
-        added = record_first_defaults()
-        print(f"{FIRST_DEFAULTS_PATH}: recorded {len(added)} new field(s)" + (": " + ", ".join(added) if added else ""))
-        for problem in defaults_changed():
-            print("  " + problem)
-    else:
-        print("usage: python -m physmorph.config --schema     (regenerates workflow/schemas/config.schema.yaml)\n"
-              "       python -m physmorph.config --defaults   (records new fields' first defaults)")
+    schemas = Path(__file__).resolve().parent.parent / "workflow" / "schemas"
+    parser = argparse.ArgumentParser(prog="python -m physmorph.config")
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--schema", nargs="?", const=schemas / "config.schema.yaml", type=Path, metavar="PATH",
+                      help="regenerate the schema (default: workflow/schemas/config.schema.yaml)")
+    what.add_argument("--defaults", nargs="?", const=schemas / "first_defaults.json", type=Path, metavar="PATH",
+                      help="record new fields' first defaults (default: workflow/schemas/first_defaults.json)")
+    args = parser.parse_args(argv)
+    if args.schema is not None:
+        args.schema.write_text(schema_text())
+        print(f"wrote {args.schema}")
+        return
+    added = record_first_defaults(args.defaults)
+    print(f"{args.defaults}: recorded {len(added)} new field(s)" + (": " + ", ".join(added) if added else ""))
+    for problem in defaults_changed(args.defaults):
+        print("  " + problem)
+
+
+if __name__ == "__main__":  # pragma: no cover - a maintenance command
+    main()

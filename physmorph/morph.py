@@ -243,12 +243,13 @@ class MorphRun:
             new = solver.state_at(cfg.mpm.substeps)
             check_state(new, k, cfg)
         except (MPMError, MorphDivergenceError) as exc:
-            msg = str(exc) if str(exc).startswith("frame") else f"frame {k}: {exc}"
+            # the state check names its frame; the solver's divergence is named here
+            msg = str(exc) if getattr(exc, "frame", None) is not None else f"frame {k}: {exc}"
             if cfg.method == "position_inject":
                 self.status = f"diverged: {msg}"
                 self.log(f"[{self.name}] {self.status} (recorded; position injection is the negative control)")
                 return None
-            raise MorphDivergenceError(f"{msg} (completed frames are kept in {self.run.dir})") from exc
+            raise MorphDivergenceError(f"{msg} (completed frames are kept in {self.run.dir})", frame=k) from exc
         return stats, new, frame_step
 
     def calibrate(self, k: int):

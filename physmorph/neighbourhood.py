@@ -169,6 +169,38 @@ def _cell_of(xi, lo: ti.template(), dims: ti.template(), h):
     return c
 
 
+@ti.func
+def _block_reach2(xi, c, lo: ti.template(), dims: ti.template(), h):
+    """R_b^2 of x_i's 3x3x3 block around cell c: the squared distance to the block's nearest face
+    with cells beyond it (no point outside the block is nearer), at most the block's farthest
+    corner's (every point of the block is within it)."""
+    bound = ti.f64(1e300)
+    far = ti.f64(0.0)
+    for a in ti.static(range(3)):
+        below = xi[a] - (lo[a] + (c[a] - 1) * h)
+        above = lo[a] + (c[a] + 2) * h - xi[a]
+        far += ti.max(below, above) ** 2
+        if c[a] > 1:
+            bound = ti.min(bound, below)
+        if c[a] < dims[a] - 2:
+            bound = ti.min(bound, above)
+    return ti.min(bound * bound, far) if bound < 1e300 else far
+
+
+@ti.func
+def _kth_bin(nb: ti.template(), i, k):
+    """The histogram bin (in row i's slots) holding the k-th nearest point, and how many points
+    the bins before it hold."""
+    kb = 0
+    m0 = 0
+    for b in range(k):
+        if m0 + nb[i, b] >= k:
+            kb = b
+            break
+        m0 += nb[i, b]
+    return kb, m0
+
+
 @ti.kernel
 def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the queries
                      pts: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [P, 3] the pool, sorted by cell
@@ -191,18 +223,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
         i = row0 + r
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
         c = _cell_of(xi, lo, dims, h)
-        rb2 = ti.f64(0.0)
-        bound = ti.f64(1e300)
-        far = ti.f64(0.0)  # the block's farthest corner from x_i: every point of the block is within
-        for a in ti.static(range(3)):
-            below = xi[a] - (lo[a] + (c[a] - 1) * h)
-            above = lo[a] + (c[a] + 2) * h - xi[a]
-            far += ti.max(below, above) ** 2
-            if c[a] > 1:
-                bound = ti.min(bound, below)
-            if c[a] < dims[a] - 2:
-                bound = ti.min(bound, above)
-        rb2 = ti.min(bound * bound, far) if bound < 1e300 else far
+        rb2 = _block_reach2(xi, c, lo, dims, h)
         to_bin = k / rb2
         # the histogram's k bins live in the row's index slots (a local array indexed at run time
         # would be lowered to a chain of selects); the second scan overwrites them
@@ -220,13 +241,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                     n_in += 1
         settled[i] = 0
         if n_in >= k:
-            kb = 0
-            m0 = 0
-            for b in range(k):
-                if m0 + nb[i, b] >= k:
-                    kb = b
-                    break
-                m0 += nb[i, b]
+            kb, m0 = _kth_bin(nb, i, k)
             left = 0
             held = 0
             cap = k - m0

@@ -13,16 +13,26 @@ from __future__ import annotations
 import json
 import re
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from physmorph.provenance import differing_keys, git_state, merge_settings, method_settings, method_sha, \
-    shipped_method_settings
+from physmorph.provenance import differing_keys, git_state, merge_settings, method_settings, method_sha
 
 BLOCK_RE = re.compile(r"<!-- physmorph-page (\{.*\}) -->")
+
+
+@lru_cache(maxsize=1)
+def shipped_method_settings() -> dict[str, Any]:
+    """The method settings this code ships (MorphConfig's defaults, which config/config.yaml states):
+    what a page's method is compared with."""
+    from physmorph.morph_config import MorphConfig
+
+    return method_settings(json.loads(json.dumps(asdict(MorphConfig(method="full")), default=str)))
 
 
 @dataclass

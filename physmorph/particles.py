@@ -92,8 +92,8 @@ def sample_volume(
         raise MeshError(
             f"{label}: mesh bounds {np.round(mesh.bounds, 3).tolist()} do not fit the grid's particle region "
             f"[{inner_lo}, {inner_hi}]^3 (res {grid.res}, domain [{grid.lo}, {grid.hi}]; particles keep {BOUNDARY_CELLS} "
-            f"cells from each face); raise sampling.grid_res, shrink the shape (shapes.{label}.size) or enlarge the domain"
-        )
+            f"cells from each face); raise sampling.grid_res, shrink the shape (shapes.{label}.size) or enlarge the domain",
+            key="sampling.grid_res")
     rng = np.random.default_rng(seed)
     dx = grid.dx
 

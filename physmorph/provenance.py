@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import subprocess
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -55,16 +54,6 @@ def method_sha(settings: dict[str, Any]) -> str:
     """12 hex digits of the SHA-256 of ``settings`` (:func:`method_settings`) as canonical JSON."""
     text = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
-
-
-@lru_cache(maxsize=1)
-def shipped_method_settings() -> dict[str, Any]:
-    """The method settings this code ships (MorphConfig's defaults, which config/config.yaml states)."""
-    from dataclasses import asdict
-
-    from physmorph.morph_config import MorphConfig
-
-    return method_settings(json.loads(json.dumps(asdict(MorphConfig(method="full")), default=str)))
 
 
 def differing_keys(settings: dict[str, Any], reference: dict[str, Any]) -> list[str]:

@@ -7,12 +7,39 @@ import numpy as np
 
 from physmorph.linalg3 import det3, singular_values
 
-from physmorph.mpm import ParticleState
+from physmorph.mpm import MPMDivergenceError, ParticleState
 from physmorph.plasticity import PlasticityConfig
 
 
 class MorphDivergenceError(RuntimeError):
-    """A run diverged; the message names the frame and the quantity."""
+    """A run diverged at ``frame``: ``quantity`` (x, F, Fp, or what the solver names, e.g. the dFc
+    gradient) became non-finite or passed its bound, at ``particle`` where one is known. The
+    message says the same in words; code reads the attributes. Raised from another divergence
+    (``raise MorphDivergenceError(...) from exc``: a MorphDivergenceError, or the solver's
+    MPMDivergenceError), it takes what it is not given from that one."""
+
+    def __init__(self, message: str, frame: int | None = None, quantity: str | None = None,
+                 particle: int | None = None):
+        super().__init__(message)
+        self._frame, self._quantity, self._particle = frame, quantity, particle
+
+    def _given_or_cause(self, name: str):
+        own = getattr(self, f"_{name}")
+        if own is None and isinstance(self.__cause__, (MorphDivergenceError, MPMDivergenceError)):
+            return getattr(self.__cause__, name, None)
+        return own
+
+    @property
+    def frame(self) -> int | None:
+        return self._given_or_cause("frame")
+
+    @property
+    def quantity(self) -> str | None:
+        return self._given_or_cause("quantity")
+
+    @property
+    def particle(self) -> int | None:
+        return self._given_or_cause("particle")
 
 
 def anisotropy(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N]
@@ -27,11 +54,13 @@ def check_state(st: ParticleState, frame: int, cfg) -> None:
     for name, arr, bound in (("x", st.x, 1e6), ("F", st.F, cfg.max_F_norm), ("Fp", st.Fp, cfg.max_Fp_norm)):
         if not np.isfinite(arr).all():
             p = int(np.argwhere(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0, 0])
-            raise MorphDivergenceError(f"frame {frame}: {name} became non-finite (particle {p})")
+            raise MorphDivergenceError(f"frame {frame}: {name} became non-finite (particle {p})", frame=int(frame),
+                                       quantity=name, particle=p)
         big = np.abs(arr).reshape(len(arr), -1).max(axis=1)
         if big.max() > bound:
             p = int(np.argmax(big))
-            raise MorphDivergenceError(f"frame {frame}: |{name}| = {big[p]:.3g} exceeds {bound:g} (particle {p})")
+            raise MorphDivergenceError(f"frame {frame}: |{name}| = {big[p]:.3g} exceeds {bound:g} (particle {p})",
+                                       frame=int(frame), quantity=name, particle=p)
 
 
 class StabilityMonitor:

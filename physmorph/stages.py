@@ -172,17 +172,20 @@ def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets:
 
 def results_doc_stage(tables_dir: str, figures_dir: str, output: str, profile: str, log=None):
     """The profile's results page (physmorph.userdocs.write_results_doc): its tables' numbers and its
-    figures, linked in place."""
+    figures, linked in place, and a link to the guide to the tables, docs/outputs.md of the
+    directory the workflow runs in (its checkout)."""
     from physmorph.userdocs import write_results_doc
 
     with stage_log(log):
         return write_results_doc(tables_dir, output, profile, figures_dir,
-                                 command=f"snakemake --cores 2 results_page (profile {profile})")
+                                 command=f"snakemake --cores 2 results_page (profile {profile})",
+                                 outputs_md=Path("docs") / "outputs.md")
 
 
 def tradeoff_stage(points, names: list[str], runs: list[str], out_dir: str, domain_width: float, log=None):
     """``points``: {name: TradeoffPoint fields} (or its JSON), as the workflow's params hold them."""
-    from physmorph.tradeoff import TradeoffPoint, build_tradeoff
+    from physmorph.tradeoff import build_tradeoff
+    from physmorph.tradeoff_points import TradeoffPoint
 
     if isinstance(points, str):
         points = json.loads(points)

@@ -20,6 +20,7 @@ import pandas as pd
 from physmorph.metrics import (TABLE_NAMES, delta_e_percent, improvement_percent, matched_convergence_frame,
                                rebound_percent, release_rebound_percent, sign_changes, spread, swing_percent)
 from physmorph.layout import PaperLayout, TableLayout
+from physmorph.markdown import markdown_table
 from physmorph.runfile import read_metrics
 from physmorph.quality import gap_closed
 
@@ -260,13 +261,3 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: Paper
         (out / f"{name}.tex").write_text(df.to_latex(index=False, float_format="%.4g", na_rep="--", escape=True))
     return tables
 
-
-def markdown_table(df: pd.DataFrame) -> str:
-    """A GitHub table without the optional tabulate dependency."""
-    def fmt(v):
-        if isinstance(v, float):
-            return "" if np.isnan(v) else f"{v:.4g}"
-        return str(v)
-    lines = ["| " + " | ".join(map(str, df.columns)) + " |", "|" + "---|" * len(df.columns)]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
-    return "\n".join(lines) + "\n"

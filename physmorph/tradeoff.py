@@ -1,9 +1,7 @@
 """The speed/accuracy study: one knob at a time around a base experiment, on converging runs.
 
-A point is the base experiment with one knob changed (``KNOBS``): a resolution (``grid_res``,
-``ppc_surface``, ``ppc_interior``, ``image`` as [width, height], ``cameras``), the optimiser's work
-(``grad_iters``, ``learning_rate``, ``frames``), the arithmetic (``precision``) or the machine
-(``threads``). Its name is ``{knob}-{value}`` (``base`` for the unchanged base).
+A point is the base experiment with one knob changed (physmorph.tradeoff_points: the knobs, the
+points the config asks for). Its name is ``{knob}-{value}`` (``base`` for the unchanged base).
 
 Each point is judged by what a unit of time buys on a run that converges: the wall time to reach
 90 % of the reachable gap (``time_to_90_s``; NaN when the run never gets there), the share of the
@@ -15,92 +13,16 @@ the final gap it buys per extra second.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-KNOBS = ("grid_res", "ppc_surface", "ppc_interior", "image", "cameras", "grad_iters", "learning_rate", "frames",
-         "precision", "threads")
-PRECISIONS = ("float32", "float64")
+from physmorph.markdown import markdown_table
+# workflow/rules/common.smk takes the points from here, with the study
+from physmorph.tradeoff_points import TradeoffPoint, tradeoff_points  # noqa: F401
+
 QUALITY = 0.9  # the share of the reachable gap that time-to-quality is measured to
-
-
-@dataclass(frozen=True)
-class TradeoffPoint:
-    name: str
-    knob: str  # "" for the base point
-    value: str
-    grid_res: int
-    ppc_surface: int
-    ppc_interior: int
-    width: int
-    height: int
-    cameras: int
-    grad_iters: int
-    learning_rate: float
-    frames: int
-    precision: str
-    threads: int
-
-    @property
-    def res_tag(self) -> str:
-        return f"{self.grid_res}x{self.ppc_surface}x{self.ppc_interior}"
-
-    @property
-    def image_tag(self) -> str:
-        return f"{self.width}x{self.height}"
-
-
-def _knob_value(knob: str, v):
-    """(the point's field changes, its label) of one knob value; ValueError names what it expects."""
-    if knob == "image":
-        if not isinstance(v, (list, tuple)) or len(v) != 2:
-            raise ValueError("[width, height]")
-        w, h = int(v[0]), int(v[1])
-        return {"width": w, "height": h}, f"{w}x{h}"
-    if knob == "precision":
-        if v not in PRECISIONS:
-            raise ValueError(" or ".join(PRECISIONS))
-        return {"precision": v}, v
-    if knob == "learning_rate":
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-            raise ValueError("a positive number")
-        return {"learning_rate": float(v)}, f"{float(v):g}"
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v or int(v) < 1:
-        raise ValueError("a positive integer")
-    return {knob: int(v)}, str(int(v))
-
-
-def tradeoff_points(settings) -> dict[str, TradeoffPoint]:
-    """Every point of the study (base first), from the settings' ``tradeoff`` section
-    (``settings``: physmorph.config.Settings)."""
-    t = settings.tradeoff
-    exp = settings.experiment(t.experiment)
-    s, tg = settings.sampling, settings.target
-    base = dict(grid_res=s.grid_res, ppc_surface=s.ppc_surface, ppc_interior=s.ppc_interior,
-                width=tg.width, height=tg.height, cameras=exp.cameras or tg.cameras,
-                grad_iters=exp.grad_iters or settings.mpm.grad_iters,
-                learning_rate=float(settings.mpm.learning_rate), frames=t.frames,
-                precision=settings.mpm.precision, threads=t.threads)
-    points = {"base": TradeoffPoint("base", "", "", **base)}
-    for knob, values in t.knobs.items():
-        if knob not in KNOBS:
-            raise ValueError(f"config key 'tradeoff.knobs.{knob}': unknown knob (known: {', '.join(KNOBS)})")
-        for i, v in enumerate(values):
-            try:
-                change, label = _knob_value(knob, v)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"config key 'tradeoff.knobs.{knob}[{i}]': expected {exc}, got {v!r}") from None
-            p = {**base, **change}
-            if p == base:
-                continue
-            if knob == "cameras" and p["cameras"] > tg.cameras:
-                raise ValueError(f"config key 'tradeoff.knobs.cameras': {p['cameras']} exceeds target.cameras {tg.cameras}")
-            name = f"{knob}-{label}"
-            points[name] = TradeoffPoint(name, knob, label, **p)
-    return points
 
 
 def pareto_front(time_s: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -245,8 +167,6 @@ def _seconds_axis(ax) -> None:
 
 
 def tradeoff_markdown(df: pd.DataFrame) -> str:
-    from physmorph.tables import markdown_table
-
     return ("## Points, by time to 90 % of the reachable gap (empty: never)\n\n" + markdown_table(df)
             + "\n## Which knob buys the most final gap per second\n\n" + markdown_table(knob_ranking(df))
             + "\n## What to run for a budget\n\n" + markdown_table(recommendations(df)))

@@ -9,9 +9,10 @@
 * ``output_captions`` / ``write_captions``: the HTML report's caption of each table and figure, taken
   from docs/outputs.md (the paragraph after each ``### `name` `` heading), so the two say the same.
 
-Command line: ``python -m physmorph.userdocs results default`` (writes docs/results.md and copies the
-figures to docs/images/), ``python -m physmorph.userdocs config`` (config/README.md),
-``python -m physmorph.userdocs captions`` (workflow/report/captions/),
+The functions write where their caller says. The command line writes into a checkout (``--root``,
+default: the one holding this package): ``python -m physmorph.userdocs results default`` (writes
+docs/results.md and copies the figures to docs/images/), ``python -m physmorph.userdocs config``
+(config/README.md), ``python -m physmorph.userdocs captions`` (workflow/report/captions/),
 ``python -m physmorph.userdocs tradeoff default mid`` (docs/tradeoff.md, docs/images/pareto_scales.png),
 ``python -m physmorph.userdocs readme`` (README.md's profile table, from the pages' records:
 physmorph.page_meta) and ``python -m physmorph.userdocs check`` (which pages ran another method).
@@ -29,16 +30,11 @@ import numpy as np
 import pandas as pd
 
 from physmorph.figures import figure_runs
+from physmorph.markdown import markdown_table
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.page_meta import PageProvenance, block, check_pages, from_checkout, from_runs, results_summary, \
     update_readme
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-OUTPUTS_MD = REPO_ROOT / "docs" / "outputs.md"
-CAPTIONS_DIR = REPO_ROOT / "workflow" / "report" / "captions"
-CONFIG_README = REPO_ROOT / "config" / "README.md"
-RESULTS_MD = REPO_ROOT / "docs" / "results.md"
-TRADEOFF_MD = REPO_ROOT / "docs" / "tradeoff.md"
+from physmorph.stability_map import FAILURES, MAP_EXPERIMENT, OUTCOMES
 
 FIGURE_TITLES = {
     "sequences_main": "iso -> bunny, cow, duck (full method), frames 0 to the last and the target",
@@ -132,6 +128,48 @@ def _convergence_section(conv: pd.DataFrame) -> list[str]:
     return out
 
 
+def _paper_sections(direc: pd.DataFrame, main: pd.DataFrame, source: pd.DataFrame,
+                    plast: pd.DataFrame) -> list[str]:
+    """The results page's sections beside the paper's: its three directions, its main table, source
+    invariance and persistence. Rows whose runs this profile does not have are left out, and a
+    section with none."""
+    out: list[str] = []
+    direc = _with_data(direc, "ours")
+    if len(direc):
+        out.append("## The paper's three directions\n")
+        out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, `holds` is yes "
+                   "when ours is lower.\n")
+        rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
+                 _pct(r["ours_vs_baseline_%"]), _fmt(r["holds"]) if isinstance(r["holds"], str) else "",
+                 _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
+        out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain", "holds", "paper"], rows))
+
+    main, source, plast = _with_data(main, "ours"), _with_data(source, "best"), _with_data(plast, "rebound_%")
+    if len(main):
+        out.append("## Main table: full vs physics-only at the matched frame\n")
+        rows = [[str(r["target"]), _fmt(r.get("frame"), 3), _fmt(r.get("physics_only")), _fmt(r.get("ours")),
+                 _pct(r.get("improvement_%", np.nan)), f"{r['paper_improvement_%']:+g} %"]
+                for _, r in main.iterrows()]
+        out.append(_table(["target", "matched frame", "physics-only", "full", "improvement", "paper"], rows))
+
+    if len(source):
+        out.append("## Source invariance\n")
+        rows = [[str(r["experiment"]), _fmt(r["best"]), _fmt(r["paper_best"]), _pct(r["closed_best_%"])]
+                for _, r in source.iterrows() if r["experiment"] not in ("mean", "std")]
+        out.append(_table(["source -> bunny", "best alpha MSE", "paper", "closed, best"], rows))
+
+    if len(plast):
+        out.append("## Does the morph persist?\n")
+        rows = []
+        for _, r in plast.iterrows():
+            rows.append([str(r["experiment"]), str(r["variant"]), _pct(r.get("rebound_%", np.nan)),
+                         _pct(r.get("release_rebound_%", np.nan)),
+                         _fmt(r.get("release_frames", np.nan), 3)])
+        out.append(_table(["experiment", "variant", "rebound in the run", "rebound released", "release frames"],
+                          rows))
+    return out
+
+
 def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
                      date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md",
                      provenance: PageProvenance | None = None, title: str | None = None) -> str:
@@ -168,40 +206,7 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
 
     out += _convergence_section(conv)
 
-    # rows whose runs this profile does not have are left out, and a section with none
-    direc = _with_data(direc, "ours")
-    if len(direc):
-        out.append("## The paper's three directions\n")
-        out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, `holds` is yes "
-                   "when ours is lower.\n")
-        rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
-                 _pct(r["ours_vs_baseline_%"]), _fmt(r["holds"]) if isinstance(r["holds"], str) else "",
-                 _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
-        out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain", "holds", "paper"], rows))
-
-    main, source, plast = _with_data(main, "ours"), _with_data(source, "best"), _with_data(plast, "rebound_%")
-    if len(main):
-        out.append("## Main table: full vs physics-only at the matched frame\n")
-        rows = [[str(r["target"]), _fmt(r.get("frame"), 3), _fmt(r.get("physics_only")), _fmt(r.get("ours")),
-                 _pct(r.get("improvement_%", np.nan)), f"{r['paper_improvement_%']:+g} %"]
-                for _, r in main.iterrows()]
-        out.append(_table(["target", "matched frame", "physics-only", "full", "improvement", "paper"], rows))
-
-    if len(source):
-        out.append("## Source invariance\n")
-        rows = [[str(r["experiment"]), _fmt(r["best"]), _fmt(r["paper_best"]), _pct(r["closed_best_%"])]
-                for _, r in source.iterrows() if r["experiment"] not in ("mean", "std")]
-        out.append(_table(["source -> bunny", "best alpha MSE", "paper", "closed, best"], rows))
-
-    if len(plast):
-        out.append("## Does the morph persist?\n")
-        rows = []
-        for _, r in plast.iterrows():
-            rows.append([str(r["experiment"]), str(r["variant"]), _pct(r.get("rebound_%", np.nan)),
-                         _pct(r.get("release_rebound_%", np.nan)),
-                         _fmt(r.get("release_frames", np.nan), 3)])
-        out.append(_table(["experiment", "variant", "rebound in the run", "rebound released", "release frames"],
-                          rows))
+    out += _paper_sections(direc, main, source, plast)
 
     if len(timing):
         out.append("## Time per frame (seconds, median over runs, each run's mean after frame 0) and memory\n")
@@ -220,20 +225,23 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     return "\n".join(out)
 
 
-def results_doc_paths(profile: str) -> tuple[Path, Path]:
-    """Where ``python -m physmorph.userdocs results PROFILE`` writes: docs/results.md and docs/images/
-    for the default profile, docs/results_{profile}.md and docs/images/{profile}/ for any other, so
+def results_doc_paths(profile: str, docs_dir: str | Path) -> tuple[Path, Path]:
+    """Where a profile's results page and its figures go in ``docs_dir``: results.md and images/
+    for the default profile, results_{profile}.md and images/{profile}/ for any other, so
     regenerating one profile's page never overwrites another's."""
+    docs = Path(docs_dir)
     if profile == "default":
-        return RESULTS_MD, REPO_ROOT / "docs" / "images"
-    return REPO_ROOT / "docs" / f"results_{profile}.md", REPO_ROOT / "docs" / "images" / profile
+        return docs / "results.md", docs / "images"
+    return docs / f"results_{profile}.md", docs / "images" / profile
 
 
 def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, figures_dir: str | Path | None = None,
                       images_dir: str | Path | None = None, command: str | None = None,
-                      provenance: PageProvenance | None = None, title: str | None = None) -> Path:
+                      provenance: PageProvenance | None = None, title: str | None = None,
+                      outputs_md: str | Path | None = None) -> Path:
     """Write ``results_markdown`` to ``out_md``. Figures from ``figures_dir`` are linked; with
-    ``images_dir`` they are first copied there (docs/images/ for docs/results.md)."""
+    ``images_dir`` they are first copied there (docs/images/ for docs/results.md). ``outputs_md``:
+    the guide to the tables (docs/outputs.md) the page links to; None: outputs.md beside the page."""
     out_md = Path(out_md)
     out_md.parent.mkdir(parents=True, exist_ok=True)
     figures = {}
@@ -248,7 +256,7 @@ def write_results_doc(tables_dir: str | Path, out_md: str | Path, profile: str, 
                 shutil.copyfile(src, dst)
                 src = dst
             figures[name] = Path(_relpath(src, out_md.parent)).as_posix()
-    outputs = Path(_relpath(REPO_ROOT / "docs" / "outputs.md", out_md.parent)).as_posix()
+    outputs = "outputs.md" if outputs_md is None else Path(_relpath(outputs_md, out_md.parent)).as_posix()
     text = results_markdown(tables_dir, profile, figures, command=command, outputs_link=outputs,
                             provenance=provenance, title=title)
     tmp = out_md.with_suffix(".partial")
@@ -296,11 +304,6 @@ def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Pa
                         provenance: PageProvenance | None = None) -> Path:
     """docs/stability.md: the stability map of ``results_root/{profile}/stability_map/`` (its figure
     copied to ``out_png``), the outcome counts, and every cell's row."""
-    import shutil
-
-    from physmorph.extremes import FAILURES, OUTCOMES
-    from physmorph.tables import markdown_table
-
     src = Path(results_root) / profile / "stability_map"
     csv = src / "stability_map.csv"
     if not csv.exists():
@@ -442,7 +445,7 @@ def config_reference() -> str:
 # Report captions from docs/outputs.md
 # --------------------------------------------------------------------------------------------
 
-def output_captions(outputs_md: str | Path = OUTPUTS_MD) -> dict[str, str]:
+def output_captions(outputs_md: str | Path) -> dict[str, str]:
     """name -> caption: the first paragraph after each ``### `name` `` heading of docs/outputs.md."""
     text = Path(outputs_md).read_text()
     out = {}
@@ -458,7 +461,7 @@ def caption_rst(caption: str) -> str:
     return text.replace("*", "") + "\n"
 
 
-def write_captions(outputs_md: str | Path = OUTPUTS_MD, out_dir: str | Path = CAPTIONS_DIR) -> list[Path]:
+def write_captions(outputs_md: str | Path, out_dir: str | Path) -> list[Path]:
     """One caption file per table and figure (workflow/report/captions/{name}.rst)."""
     captions = output_captions(outputs_md)
     missing = [n for n in (*TABLE_NAMES, *FIGURE_NAMES) if n not in captions]
@@ -479,15 +482,13 @@ def runs_provenance(tables_dir: str | Path, runs_dir: str | Path) -> PageProvena
     return from_runs(Path(runs_dir) / f"{exp}.h5" for exp in _read(Path(tables_dir), "timing").get("experiment", []))
 
 
-def profile_provenance(profile: str) -> PageProvenance:
-    """This checkout with the method of ``profile``'s base experiment (config/config.yaml, then
-    config/{profile}.yaml where there is one): for a page whose cells vary the method on purpose."""
+def profile_provenance(config_files: list[str | Path], experiment: str) -> PageProvenance:
+    """This checkout with the method of ``experiment`` in the config merged from ``config_files``:
+    for a page whose cells vary the method on purpose (the stability map's base experiment)."""
     from physmorph.config import load_settings, to_plain
-    from physmorph.extremes import MAP_EXPERIMENT
 
-    files = [REPO_ROOT / "config" / "config.yaml"] + [p for p in [REPO_ROOT / "config" / f"{profile}.yaml"] if p.exists()]
-    settings = load_settings(*files)
-    return from_checkout(to_plain(settings.experiment_config(MAP_EXPERIMENT)))
+    settings = load_settings(*config_files)
+    return from_checkout(to_plain(settings.experiment_config(experiment)))
 
 
 def tradeoff_provenance(profiles: list[str], results_root: str | Path) -> PageProvenance | None:
@@ -505,8 +506,11 @@ def tradeoff_provenance(profiles: list[str], results_root: str | Path) -> PagePr
     return PageProvenance(every.commit, every.dirty, base.method)
 
 
-def main(argv: list[str] | None = None) -> None:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m physmorph.userdocs", description=__doc__.split("\n")[0])
+    parser.add_argument("--root", type=Path, default=Path(__file__).resolve().parent.parent,
+                        help="the checkout whose results/ and config/ are read and whose docs/, config/README.md, "
+                             "README.md and workflow/report/captions/ are written (default: the one holding physmorph)")
     sub = parser.add_subparsers(dest="what", required=True)
     res = sub.add_parser("results", help="docs/results.md (docs/results_{profile}.md for another profile) "
                                          "from results/{profile}/tables/")
@@ -526,48 +530,63 @@ def main(argv: list[str] | None = None) -> None:
     sub.add_parser("check", help="list the pages under docs/ made with other method settings than the shipped "
                                  "ones (exit 1 when the default profile's page is one)")
     sub.add_parser("readme", help="README.md's profile table from the results pages under docs/")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _results_page(args, root: Path) -> Path:
+    """The ``results`` command: a profile's page, and for the default profile the README's picture."""
+    docs, tree = root / "docs", root / "results" / args.profile
+    out_md, images = results_doc_paths(args.profile, docs)
+    out_md = args.out or out_md
+    images = images if args.images is None else (args.images or None)
+    path = write_results_doc(tree / "tables", out_md, args.profile, tree / "figures", images,
+                             command=f"python -m physmorph.userdocs results {args.profile}",
+                             provenance=runs_provenance(tree / "tables", tree / "runs"),
+                             outputs_md=docs / "outputs.md")
+    video = tree / "videos" / "iso_bunny_full.mp4"
+    if args.profile == "default" and video.exists():  # the README's opening picture
+        from physmorph.export.video import write_gif
+
+        print(f"wrote {write_gif(video, docs / 'images' / 'iso_bunny.gif')}")
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The command line (module docstring); every path it reads or writes is under ``--root``."""
+    args = _parser().parse_args(argv)
+    root = Path(args.root)
+    docs, results = root / "docs", root / "results"
     if args.what == "check":
-        lines, default_bad = check_pages(REPO_ROOT / "docs")
+        lines, default_bad = check_pages(docs)
         print("\n".join(lines) if lines else "every page under docs/ was made with the shipped method settings")
         raise SystemExit(1 if default_bad else 0)
     if args.what == "results":
-        tree = REPO_ROOT / "results" / args.profile
-        out_md, images = results_doc_paths(args.profile)
-        out_md = args.out or out_md
-        images = images if args.images is None else (args.images or None)
-        path = write_results_doc(tree / "tables", out_md, args.profile, tree / "figures", images,
-                                 command=f"python -m physmorph.userdocs results {args.profile}",
-                                 provenance=runs_provenance(tree / "tables", tree / "runs"))
-        video = tree / "videos" / "iso_bunny_full.mp4"
-        if args.profile == "default" and video.exists():  # the README's opening picture
-            from physmorph.export.video import write_gif
-
-            print(f"wrote {write_gif(video, REPO_ROOT / 'docs' / 'images' / 'iso_bunny.gif')}")
+        path = _results_page(args, root)
     elif args.what == "paper_main":
-        tree = REPO_ROOT / "results" / args.profile
-        path = write_results_doc(tree / "main_tables", REPO_ROOT / "docs" / "paper_scale.md", args.profile,
-                                 tree / "main_figures", REPO_ROOT / "docs" / "images" / args.profile,
+        tree = results / args.profile
+        path = write_results_doc(tree / "main_tables", docs / "paper_scale.md", args.profile,
+                                 tree / "main_figures", docs / "images" / args.profile,
                                  command=f"python -m physmorph.userdocs paper_main {args.profile}",
                                  provenance=runs_provenance(tree / "main_tables", tree / "runs"),
-                                 title=f"The main table at the `{args.profile}` profile's scale")
+                                 title=f"The main table at the `{args.profile}` profile's scale",
+                                 outputs_md=docs / "outputs.md")
     elif args.what == "config":
-        CONFIG_README.write_text(config_reference())
-        path = CONFIG_README
+        path = root / "config" / "README.md"
+        path.write_text(config_reference())
     elif args.what == "tradeoff":
-        path = write_tradeoff_doc(args.profiles, REPO_ROOT / "results", TRADEOFF_MD,
-                                  REPO_ROOT / "docs" / "images" / "pareto_scales.png",
-                                  provenance=tradeoff_provenance(args.profiles, REPO_ROOT / "results"))
+        path = write_tradeoff_doc(args.profiles, results, docs / "tradeoff.md", docs / "images" / "pareto_scales.png",
+                                  provenance=tradeoff_provenance(args.profiles, results))
     elif args.what == "stability":
-        path = write_stability_doc(args.profile, REPO_ROOT / "results", REPO_ROOT / "docs" / "stability.md",
-                                   REPO_ROOT / "docs" / "images" / "stability_map.png",
-                                   provenance=profile_provenance(args.profile))
+        profile_yaml = root / "config" / f"{args.profile}.yaml"
+        files = [root / "config" / "config.yaml"] + ([profile_yaml] if profile_yaml.exists() else [])
+        path = write_stability_doc(args.profile, results, docs / "stability.md", docs / "images" / "stability_map.png",
+                                   provenance=profile_provenance(files, MAP_EXPERIMENT))
     elif args.what == "readme":
-        path = REPO_ROOT / "README.md"
-        update_readme(path, REPO_ROOT / "docs")
+        path = root / "README.md"
+        update_readme(path, docs)
     else:
-        path = CAPTIONS_DIR
-        write_captions()
+        path = root / "workflow" / "report" / "captions"
+        write_captions(docs / "outputs.md", path)
     print(f"wrote {path}")
 
 

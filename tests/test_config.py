@@ -10,14 +10,17 @@ import jsonschema
 import pytest
 import yaml
 
-from physmorph.config import (FIRST_DEFAULTS_PATH, SCHEMA_PATH, ConfigError, SamplingConfig, Settings, build,
-                              current_defaults, defaults_changed, load_mapping, load_settings, morph_params,
-                              params_json, record_first_defaults, schema_text, settings_classes, without_defaults)
+from physmorph.config import (ConfigError, SamplingConfig, Settings, build, current_defaults, defaults_changed,
+                              load_mapping, load_settings, morph_params, params_json, record_first_defaults,
+                              schema_text, settings_classes, without_defaults)
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO, Grid
 from physmorph.morph import MorphConfig
 from physmorph.mpm import MPMConfig
 
 BASE = "config/config.yaml"
+# the workflow's generated schema and its record of first defaults (python -m physmorph.config)
+SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "config.schema.yaml"
+FIRST_DEFAULTS_PATH = SCHEMA_PATH.with_name("first_defaults.json")
 # every profile overlay in config/ (paper_results.yaml is the paper's tables, not a profile)
 PROFILES = [[]] + [[str(p)] for p in sorted(Path("config").glob("*.yaml"))
                    if p.name not in ("config.yaml", "paper_results.yaml")]
@@ -126,6 +129,9 @@ def test_bad_config_names_the_key(override, message):
     with pytest.raises(ConfigError) as err:
         load_settings(BASE, overrides=override)
     assert message in str(err.value)
+    # the key and the reason are the error's data; the message is made of them
+    assert err.value.key == message.split("'")[1]
+    assert str(err.value) == f"config key '{err.value.key}': {err.value.reason}"
 
 
 def test_numbers_as_ints_floats_and_strings():
@@ -148,8 +154,9 @@ def test_memory_estimate_refuses_a_grid_too_big_for_the_machine():
         load_settings(BASE, overrides={"sampling": {"grid_res": 512}})
     # the limit is a setting: the paper profile fits 24 GB but not 2 GB
     load_settings(BASE, "config/paper.yaml", overrides={"max_memory_mb": 24000})
-    with pytest.raises(ConfigError, match=r"morph .* above the limit of 2,000 MB \(max_memory_mb\)"):
+    with pytest.raises(ConfigError, match=r"morph .* above the limit of 2,000 MB \(max_memory_mb\)") as err:
         load_settings(BASE, "config/paper.yaml", overrides={"max_memory_mb": 2000})
+    assert err.value.key == "max_memory_mb"
     est = {e.stage: e.mb for e in load_settings(BASE).memory_estimates()}
     assert 600 < est["morph iso_bunny_full"] < 1500  # measured peak RSS at this profile: 510-590 MB
 
@@ -230,7 +237,7 @@ def test_params_leave_out_defaults_so_a_new_option_reruns_nothing():
 
 def test_first_defaults_are_recorded_and_a_changed_default_must_stay_in_params(tmp_path):
     # the committed record holds every field, and no default changed behind the params' back
-    assert defaults_changed() == []
+    assert defaults_changed(FIRST_DEFAULTS_PATH) == []
     names = [c.__name__ for c in settings_classes()]
     assert len(names) == len(set(names)) and {"MPMConfig", "MorphConfig", "SamplingConfig", "Experiment"} <= set(names)
     # a changed default is caught, named, and told where to go

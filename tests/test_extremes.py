@@ -1,8 +1,10 @@
-"""The stability map of the extremes (physmorph.extremes): every cell's outcome is one of converged,
-not converged, warned, refused (naming the key) or stopped (naming frame and quantity, earlier
-frames kept), never a crash, a hang or a silent NaN. The classifier on hand-made runs, the
-refusals of the most extreme configs, the process guard, and the most extreme cells that run, on
-the tiny test profile with fewer frames (the outcome's class is what is tested)."""
+"""The stability map of the extremes (physmorph.extremes, physmorph.stability_map): every cell's
+outcome is one of converged, not converged, warned, refused (naming the key) or stopped (naming
+frame and quantity, earlier frames kept), never a crash, a hang or a silent NaN. The classifier on
+hand-made runs and on the exceptions themselves (their key, frame and quantity are data: a
+reworded message changes no outcome), the refusals of the most extreme configs, the process guard,
+and the most extreme cells that run, on the tiny test profile with fewer frames (the outcome's
+class is what is tested)."""
 
 import dataclasses
 import math
@@ -14,9 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from physmorph.config import deep_merge, load_mapping, load_settings
-from physmorph.extremes import (FAILURES, KNOBS, MAP_EXPERIMENT, OUTCOMES, CellRun, build_map, cell_mapping,
-                                check_cell, classify, map_cells, parse_stop, read_cell_run, run_cell, run_isolated)
+from physmorph.config import ConfigError, deep_merge, load_mapping, load_settings
+from physmorph.extremes import cell_mapping, check_cell, map_cells, read_cell_run, run_cell
+from physmorph.isolated_call import error_report, run_isolated
+from physmorph.meshes import MeshError
+from physmorph.mpm import MPMDivergenceError
+from physmorph.stability import MorphDivergenceError
+from physmorph.stability_map import (ERROR_FIELDS, FAILURES, KNOBS, MAP_EXPERIMENT, OUTCOMES, CellRun, build_map,
+                                     classify)
 from physmorph.stages import prepare_mesh_stage
 
 REPO = Path(__file__).resolve().parent.parent
@@ -35,33 +42,59 @@ def cells(base):
 
 # ------------------------------------------------------------------------------ classify
 
-STOP_F = "frame 7: |F| = 61.2 exceeds 50 (particle 3) (completed frames are kept in r.h5.partial)"
-STOP_X = "frame 3: x became non-finite (NaN/Inf or |x| > 1e+06) at substep 4 (particle 12) (completed frames are kept in p)"
-STOP_GRAD = "frame 2: the dFc gradient became non-finite (NaN/Inf) in the backward pass (completed frames are kept in p)"
 MESH_MISFIT = ("bunny: mesh bounds [[-8.5, -6.2, -8.4], [9.5, 11.6, 5.5]] do not fit the grid's particle region "
                "[-10.0, 10.0]^3 (res 16, domain [-16.0, 16.0]; particles keep 3 cells from each face); raise "
                "sampling.grid_res, shrink the shape (shapes.bunny.size) or enlarge the domain")
+MEMORY = ("config: morph iso_bunny_full needs an estimated 29,098 MB (...) above the limit of 24,105 MB "
+          "(max_memory_mb (null: this machine's memory)); lower sampling.grid_res")
+KEPT = " (completed frames are kept in r.h5.partial)"  # what the morph loop adds when it re-raises a stop
 DONE = dict(status="complete", frames_planned=12, frames_completed=12, gap_closed_last=0.5, gap_closed_best=0.6)
 
 
+def _refused(exc: ConfigError) -> CellRun:
+    """The CellRun of a config the check refused with ``exc`` (as physmorph.extremes.check_cell reads it)."""
+    return CellRun(refusal=exc.reason, refused_key=exc.key)
+
+
+def _raised(exc: BaseException, cause: BaseException | None = None, **run) -> CellRun:
+    """The CellRun of a cell whose process raised ``exc`` (``from cause``), reported as a cell's
+    process reports it (physmorph.isolated_call.error_report)."""
+    exc.__cause__ = cause
+    report = error_report(exc, ERROR_FIELDS)
+    return CellRun(returncode=1, error_type=report["error_type"], error_message=report["error_message"],
+                   error_data=report["error_data"], **run)
+
+
+def _stop_f(message: str = "frame 7: |F| = 61.2 exceeds 50 (particle 3)", **run) -> CellRun:
+    """A stop as the morph loop raises it: the state check's error re-raised with where the kept frames are."""
+    state_check = MorphDivergenceError(message, frame=7, quantity="F", particle=3)
+    return _raised(MorphDivergenceError(message + KEPT), state_check, **run)
+
+
+def _solver_stop(frame: int, message: str, quantity: str, **run) -> CellRun:
+    """A stop the solver raised, re-raised by the morph loop at its frame."""
+    return _raised(MorphDivergenceError(f"frame {frame}: {message}{KEPT}", frame=frame),
+                   MPMDivergenceError(message, quantity=quantity), **run)
+
+
 @pytest.mark.parametrize("run, outcome, named", [
-    (CellRun(refusal="config key 'mpm.dt': dt=0.0132 exceeds the stable step 0.011"), "refused", "mpm.dt"),
-    (CellRun(refusal="config: morph iso_bunny_full needs an estimated 29,098 MB (...) above the limit of 24,105 MB "
-                     "(max_memory_mb (null: this machine's memory)); lower sampling.grid_res"), "refused", "max_memory_mb"),
-    (CellRun(refusal="something is wrong"), "crash", "names no config key"),
+    (_refused(ConfigError.for_key("mpm.dt", "dt=0.0132 exceeds the stable step 0.011")), "refused", "mpm.dt"),
+    (_refused(ConfigError(MEMORY, key="max_memory_mb")), "refused", "max_memory_mb"),
+    (_refused(ConfigError("something is wrong")), "crash", "names no config key"),
+    # the key is the error's data: a message that reads like a refusal of a key is not one without it
+    (_refused(ConfigError("config key 'mpm.dt': dt=0.0132 exceeds")), "crash", "names no config key"),
     (CellRun(timed_out=True, returncode=-9, frames_completed=4), "hang", "after frame 4"),
-    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_F, frames_completed=6), "stopped", "F"),
-    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_X, frames_completed=2), "stopped", "x"),
-    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_GRAD, frames_completed=1), "stopped",
-     "dFc gradient"),
+    (_stop_f(frames_completed=6), "stopped", "F"),
+    (_solver_stop(3, "x became non-finite (NaN/Inf or |x| > 1e+08) at substep 4 (particle 12)", "x",
+                  frames_completed=2), "stopped", "x"),
+    (_solver_stop(2, "the dFc gradient became non-finite (NaN/Inf) in the backward pass", "dFc gradient",
+                  frames_completed=1), "stopped", "dFc gradient"),
     # a stop that lost frames, or names no frame, is a bug
-    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message=STOP_F, frames_completed=3), "crash",
-     "frames 0..3 are kept"),
-    (CellRun(returncode=1, error_type="MorphDivergenceError", error_message="it diverged"), "crash", "names no frame"),
-    (CellRun(returncode=1, error_type="ValueError", error_message="x of particle 3 is outside"), "crash", "ValueError"),
-    (CellRun(returncode=1, error_type="MeshError", error_message=MESH_MISFIT), "refused", "sampling.grid_res"),
-    (CellRun(returncode=1, error_type="MeshError", error_message="bunny: mesh is empty, nothing to sample"), "crash",
-     "MeshError"),
+    (_stop_f(frames_completed=3), "crash", "frames 0..3 are kept"),
+    (_raised(MorphDivergenceError("frame 7: it diverged")), "crash", "names no frame"),
+    (_raised(ValueError("x of particle 3 is outside")), "crash", "ValueError"),
+    (_raised(MeshError(MESH_MISFIT, key="sampling.grid_res")), "refused", "sampling.grid_res"),
+    (_raised(MeshError("bunny: mesh is empty, nothing to sample")), "crash", "MeshError"),
     (CellRun(returncode=-9), "crash", "SIGKILL"),
     (CellRun(**DONE), "converged", "50 %"),
     (CellRun(**{**DONE, "gap_closed_last": 0.1}), "not converged", "closed 10 %"),
@@ -77,7 +110,46 @@ def test_classify_names_what_happened(run, outcome, named):
     assert got.outcome == outcome, got
     assert named in " ".join(str(v) for v in (got.detail, got.key, got.quantity)), got
     if outcome == "stopped":
-        assert got.frame == parse_stop(run.error_message)[0] == run.frames_completed + 1
+        assert got.frame == run.error_data["frame"] == run.frames_completed + 1
+
+
+@pytest.mark.parametrize("said, reworded", [
+    (_refused(ConfigError.for_key("mpm.dt", "dt=0.0132 exceeds the stable step 0.011")),
+     _refused(ConfigError("the frame step is longer than the material allows", key="mpm.dt"))),
+    (_refused(ConfigError(MEMORY, key="max_memory_mb")),
+     _refused(ConfigError("too big for this machine", key="max_memory_mb"))),
+    (_raised(MeshError(MESH_MISFIT, key="sampling.grid_res")),
+     _raised(MeshError("the bunny does not fit", key="sampling.grid_res"))),
+    (_stop_f(frames_completed=6), _stop_f("the deformation gradient blew up", frames_completed=6)),
+    (_solver_stop(3, "x became non-finite at substep 4", "x", frames_completed=2),
+     _solver_stop(3, "positions went bad", "x", frames_completed=2)),
+])
+def test_a_reworded_message_changes_no_outcome(said, reworded):
+    """What a cell ends in is read from the errors' attributes (key, frame, quantity), never from
+    their text: the same error in other words is classified the same."""
+    a, b = classify(said), classify(reworded)
+    assert a.outcome in ("refused", "stopped"), a
+    assert (a.outcome, a.key, a.frame, a.quantity) == (b.outcome, b.key, b.frame, b.quantity), (a, b)
+
+
+def test_a_stops_frame_and_quantity_cross_the_cells_process_as_data(tmp_path, monkeypatch):
+    """A cell's process sends its exception's key, frame and quantity as JSON: a solver divergence
+    re-raised at its frame, under a message that names neither, is a stop at that frame and quantity."""
+    (tmp_path / "diverging_cell.py").write_text(
+        "from physmorph.mpm import MPMDivergenceError\n"
+        "from physmorph.stability import MorphDivergenceError\n\n\n"
+        "def run(frame, message):\n"
+        "    try:\n"
+        "        raise MPMDivergenceError('v blew up', quantity='v', substep=4, particle=12)\n"
+        "    except MPMDivergenceError as exc:\n"
+        "        raise MorphDivergenceError(message, frame=frame) from exc\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(tmp_path), os.environ.get("PYTHONPATH")) if p))
+    child = run_isolated("diverging_cell:run", {"frame": 3, "message": "it went wrong"}, timeout_s=120,
+                         error_fields=ERROR_FIELDS)
+    assert child.error_type == "MorphDivergenceError" and child.error_data == {"frame": 3, "quantity": "v"}, child
+    out = classify(CellRun(returncode=child.returncode, error_type=child.error_type, error_message=child.error_message,
+                           error_data=child.error_data, frames_completed=2))
+    assert (out.outcome, out.frame, out.quantity) == ("stopped", 3, "v"), out
 
 
 # ------------------------------------------------------------------------------ the sweep
@@ -111,8 +183,8 @@ def test_the_most_extreme_configs_are_refused_naming_the_key(base, cells, cell, 
     # the memory refusal with a limit below this machine's, so it holds on any machine
     mapping = deep_merge(cell_mapping(base, cells[cell]), {"max_memory_mb": 16000})
     check = check_cell(mapping)
-    assert check.settings is None
-    out = classify(CellRun(refusal=check.refusal))
+    assert check.settings is None and check.refused_key == key
+    out = classify(CellRun(refusal=check.refusal, refused_key=check.refused_key))
     assert (out.outcome, out.key) == ("refused", key), out
 
 
@@ -152,9 +224,10 @@ def test_the_map_writes_a_table_and_a_figure_with_failures_first(tmp_path):
         {**common, "cell": "dt-a", "knob": "dt", "value": "0.38 (default)", "is_default": True,
          "outcome": "converged", "detail": "closed 50 % of the gap"},
         {**common, "cell": "dt-b", "knob": "dt", "value": "1.2", "order": 1.2, "outcome": "refused",
-         "detail": "config key 'mpm.dt': dt=0.0132 exceeds", "refused_key": "mpm.dt", "n_particles": None,
+         "detail": "dt=0.0132 exceeds", "refused_key": "mpm.dt", "n_particles": None,
          "frames_planned": None, "frames_completed": None, "gap_closed_last": math.nan, "gap_closed_best": math.nan},
-        {**common, "cell": "eta-a", "knob": "eta", "value": "1", "outcome": "stopped", "detail": STOP_F,
+        {**common, "cell": "eta-a", "knob": "eta", "value": "1", "outcome": "stopped",
+         "detail": "frame 7: |F| = 61.2 exceeds 50 (particle 3)" + KEPT,
          "stop_frame": 7, "stop_quantity": "F", "frames_completed": 6},
         {**common, "cell": "eta-b", "knob": "eta", "value": "0.5", "order": 0.5, "outcome": "crash",
          "detail": "ValueError: boom"},

@@ -1,4 +1,5 @@
-"""Freed heap memory goes back to the system before a frame's render and its commit (physmorph.memory)."""
+"""Freed heap memory goes back to the system before a frame's render and its commit (physmorph.memory),
+and the morph's memory estimate asks the solver what it stores (physmorph.mpm.memory)."""
 
 import os
 import platform
@@ -27,3 +28,27 @@ def test_freed_heap_blocks_leave_the_resident_set():
     after = _rss_mb()
     assert freed - after > 100, (before, freed, after)
     assert keep.sum() == 12_800
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_the_solver_stores_what_the_memory_module_says(precision):
+    from physmorph.mpm import MPMConfig, MPMSolver
+    from physmorph.mpm.memory import bytes_per_particle_substep
+
+    cfg = MPMConfig(grid_res=16, precision=precision, device="cpu")
+    assert MPMSolver(cfg, 8).bytes_per_particle_substep() == bytes_per_particle_substep(cfg)
+
+
+def test_the_morph_estimate_asks_the_solvers_storage(monkeypatch):
+    """physmorph.config.morph_memory takes its bytes per particle-substep from physmorph.mpm.memory:
+    what that says more, the estimate holds more, for every particle and substep."""
+    from physmorph import config
+    from physmorph.mpm.memory import bytes_per_particle_substep
+
+    s = config.load_settings("config/config.yaml")
+    n, extra = 10_000, 1000
+    args = (s.shape("iso"), s.sampling, s.target, s.mpm, s.domain, "")
+    before = config.morph_memory(*args, n_particles=n).mb
+    monkeypatch.setattr(config, "bytes_per_particle_substep", lambda cfg: bytes_per_particle_substep(cfg) + extra)
+    after = config.morph_memory(*args, n_particles=n).mb
+    assert after - before == pytest.approx(n * s.mpm.substeps * extra / 2**20)

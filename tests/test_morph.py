@@ -157,8 +157,10 @@ def test_divergence_names_frame_and_quantity_and_keeps_frames(tiny, monkeypatch)
 
     monkeypatch.setattr(morph, "chamfer_plasticity_step", poisons_fp)
     pl = dataclasses.replace(morph_config(tiny[0], "iso_bunny_full").plasticity, start_frame=3)
-    with pytest.raises(MorphDivergenceError, match=r"frame 3: Fp became non-finite \(particle 7\)"):
+    with pytest.raises(MorphDivergenceError, match=r"frame 3: Fp became non-finite \(particle 7\)") as stop:
         _run(tiny, "iso_bunny_full", "diverged.h5", frames=5, plasticity=pl)
+    # the stop's frame, quantity and particle are data too (the stability map reads them, not the text)
+    assert (stop.value.frame, stop.value.quantity, stop.value.particle) == (3, "Fp", 7)
     kept = read_metrics(tiny[1] / "diverged.h5.partial")  # frames 0..2 stay readable
     assert len(kept["alpha_mse"]) == 3 and np.isfinite(kept["alpha_mse"]).all()
     assert not (tiny[1] / "diverged.h5").exists()

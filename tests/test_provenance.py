@@ -12,8 +12,9 @@ import pytest
 
 from physmorph import h5io, page_meta
 from physmorph.config import load_settings, to_plain
-from physmorph.page_meta import PageProvenance, check_pages, from_runs, read_block, readme_table
-from physmorph.provenance import differing_keys, git_state, method_settings, method_sha, shipped_method_settings
+from physmorph.page_meta import (PageProvenance, check_pages, from_runs, read_block, readme_table,
+                                 shipped_method_settings)
+from physmorph.provenance import differing_keys, git_state, method_settings, method_sha
 from physmorph.userdocs import results_markdown
 from test_userdocs import _fake_tables
 

@@ -61,8 +61,12 @@ def test_point_settings_carry_the_knob():
 
 
 def test_bad_knobs_are_named():
-    with pytest.raises(ConfigError, match="tradeoff.knobs.shininess"):
+    with pytest.raises(ConfigError, match="tradeoff.knobs.shininess") as refused:
         load_settings("config/config.yaml", overrides={"tradeoff": {"knobs": {"shininess": [1]}}})
+    assert refused.value.key == "tradeoff.knobs.shininess"  # as data, not only in the message
+    with pytest.raises(ConfigError) as refused:
+        load_settings("config/config.yaml", overrides={"tradeoff": {"knobs": {"cameras": [1, 99]}}})
+    assert refused.value.key == "tradeoff.knobs.cameras" and "exceeds target.cameras" in refused.value.reason
     with pytest.raises(ConfigError, match=r"tradeoff.knobs.image\[0\]'.*\[width, height\]"):
         load_settings("config/config.yaml", overrides={"tradeoff": {"knobs": {"image": [320]}}})
     with pytest.raises(ConfigError, match=r"tradeoff.knobs.precision\[0\]'.*float32 or float64"):

@@ -3,16 +3,18 @@ the config reference against the schema, and the report captions against docs/ou
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pandas as pd
 
 from physmorph.config_docs import FIELD_DOCS, SECTIONS
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
-from physmorph.userdocs import (CAPTIONS_DIR, CONFIG_README, OUTPUTS_MD, caption_rst, config_reference,
-                                output_captions, results_markdown, runs_provenance, schema_keys,
-                                tradeoff_provenance, write_results_doc)
-from physmorph.page_meta import PageProvenance, read_block
-from physmorph.provenance import shipped_method_settings
+from physmorph.userdocs import (caption_rst, config_reference, output_captions, results_markdown, runs_provenance,
+                                schema_keys, tradeoff_provenance, write_results_doc)
+from physmorph.page_meta import PageProvenance, read_block, shipped_method_settings
 from physmorph import userdocs
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _fake_tables(d):
@@ -115,21 +117,20 @@ def test_a_profile_without_the_papers_runs_gets_no_empty_sections_or_figures(tmp
     assert not (tmp_path / "docs" / "images" / "heldout" / "sequences_main.png").exists()
 
 
-def test_each_profile_regenerates_its_own_page(tmp_path, monkeypatch):
+def test_each_profile_regenerates_its_own_page(tmp_path):
     """python -m physmorph.userdocs results PROFILE: the default profile writes docs/results.md and
     docs/images/, any other docs/results_PROFILE.md and docs/images/PROFILE/, so regenerating mid's
-    page leaves the default page and its images alone."""
-    monkeypatch.setattr(userdocs, "REPO_ROOT", tmp_path)
-    monkeypatch.setattr(userdocs, "RESULTS_MD", tmp_path / "docs" / "results.md")
+    page leaves the default page and its images alone; all of it under --root, nothing elsewhere."""
     for profile in ("default", "mid"):
         _fake_tables(tmp_path / "results" / profile / "tables")
         figures = tmp_path / "results" / profile / "figures"
         figures.mkdir()
         (figures / "sequences_main.png").write_bytes(profile.encode())
-    userdocs.main(["results"])
-    userdocs.main(["results", "mid"])
+    userdocs.main(["--root", str(tmp_path), "results"])
+    userdocs.main(["--root", str(tmp_path), "results", "mid"])
     docs = tmp_path / "docs"
     assert "results/default/tables/" in (docs / "results.md").read_text()
+    assert "[docs/outputs.md](outputs.md)" in (docs / "results.md").read_text()
     assert "results/mid/tables/" in (docs / "results_mid.md").read_text()
     assert "![sequences_main](images/mid/sequences_main.png)" in (docs / "results_mid.md").read_text()
     assert (docs / "images" / "sequences_main.png").read_bytes() == b"default"
@@ -181,7 +182,7 @@ def test_config_reference_documents_every_schema_key():
     assert not undocumented, f"add these keys to physmorph/config_docs.py: {undocumented}"
     stale = sorted(set(FIELD_DOCS) - set(keys))
     assert not stale, f"physmorph/config_docs.py documents keys the schema no longer has: {stale}"
-    text = CONFIG_README.read_text()
+    text = (ROOT / "config" / "README.md").read_text()
     for k in keys:
         if k not in SECTIONS:
             assert f"`{k}`" in text, k
@@ -189,9 +190,9 @@ def test_config_reference_documents_every_schema_key():
 
 
 def test_report_captions_come_from_outputs_md():
-    captions = output_captions(OUTPUTS_MD)
+    captions = output_captions(ROOT / "docs" / "outputs.md")
     for name in (*TABLE_NAMES, *FIGURE_NAMES):
         assert name in captions, f"docs/outputs.md has no section ### `{name}`"
-        path = CAPTIONS_DIR / f"{name}.rst"
+        path = ROOT / "workflow" / "report" / "captions" / f"{name}.rst"
         assert path.read_text() == caption_rst(captions[name]), \
             f"{path} is stale: python -m physmorph.userdocs captions"

@@ -14,7 +14,13 @@ REFUSED_STATUS = 2
 
 
 class MeshError(ValueError):
-    """A mesh cannot be used: the message names the file/shape and why."""
+    """A mesh cannot be used: the message names the file/shape and why. ``key``: the config key
+    whose value refuses it (e.g. a grid too coarse to hold the shape: sampling.grid_res), None when
+    the mesh itself is at fault; code reads it, not the message."""
+
+    def __init__(self, message: str, key: str | None = None):
+        super().__init__(message)
+        self.key = key
 
 
 class FetchError(RuntimeError):

@@ -27,7 +27,14 @@ class MPMStateError(ValueError):
 
 
 class MPMDivergenceError(MPMError):
-    """The simulation or its gradient became non-finite; names quantity, substep and particle."""
+    """The simulation or its gradient became non-finite. ``quantity``: what did (x, v, F, the dFc
+    gradient, ...); ``substep`` and ``particle`` where they are known. The message says the same
+    in words; code reads the attributes."""
+
+    def __init__(self, message: str, quantity: str | None = None, substep: int | None = None,
+                 particle: int | None = None):
+        super().__init__(message)
+        self.quantity, self.substep, self.particle = quantity, substep, particle
 
 
 class CFLWarning(UserWarning):
@@ -45,7 +52,7 @@ VOLUME_LAWS = ("fixed_corotated", "barrier")
 BARRIER_J_LINEAR = 0.05
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
-# (MPMSolver.configure, solver_for). tests/test_mpm.py checks no kernel reads them.
+# (MPMSolver.configure, solver_for). tests/test_mpm_solver.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume_power", "step_rms",
                            "step_smoothing", "step_volume", "step_volume_share",

@@ -36,6 +36,7 @@ from .config import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
 from .control import ControlField
 from .currency import Currency
 from .fields import SolverFields
+from .memory import bytes_per_particle_substep
 from .optimiser import Adam, NormalizedGD
 from .physics_loss import PhysicsLoss
 from .state import ParticleState
@@ -190,7 +191,8 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         self._norm_sq(self.ctrl_base)
         n_mass = float(self.norm_acc[None])
         if not np.isfinite(n_mass):
-            raise MPMDivergenceError("the mass loss's dFc gradient became non-finite (NaN/Inf) in the backward pass")
+            raise MPMDivergenceError("the mass loss's dFc gradient became non-finite (NaN/Inf) in the backward pass",
+                                      quantity="mass loss's dFc gradient")
         return float(np.sqrt(n_mass)), self._grad_norm
 
     def _reverse(self, grad_F_final, grad_x_final, include_mass_loss: bool, pair: bool) -> None:
@@ -229,7 +231,8 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         self._grad_norm_sq()
         gn = float(self.norm_acc[None])
         if not np.isfinite(gn):
-            raise MPMDivergenceError("the dFc gradient became non-finite (NaN/Inf) in the backward pass")
+            raise MPMDivergenceError("the dFc gradient became non-finite (NaN/Inf) in the backward pass",
+                                      quantity="dFc gradient")
         self._grad_norm = float(np.sqrt(gn))
 
     def optimize_control(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
@@ -328,9 +331,9 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         return self._grad_norm
 
     def bytes_per_particle_substep(self) -> int:
-        """Stored per particle per substep: x, v (3 each), C, F (9 each) and the forward's polar
-        rotation (a quaternion, 4) and pair sum (1): 29 floats."""
-        return 29 * np.dtype(self.np_dtype).itemsize
+        """Stored per particle per substep (physmorph.mpm.memory: x, v, C, F, the rotation's
+        quaternion and pair sum)."""
+        return bytes_per_particle_substep(self.cfg)
 
     def _require_loaded(self) -> None:
         if not self.current.loaded:
@@ -364,7 +367,7 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
                 name, p = hit
                 raise MPMDivergenceError(
                     f"{name} became non-finite (NaN/Inf or |{name}| > {_BLOWUP:g}) at substep "
-                    f"{t - 1} (particle {p})")
+                    f"{t - 1} (particle {p})", quantity=name, substep=t - 1, particle=p)
 
 
 # Every solver solver_for built, with its config's kernel settings and size. Taichi does not free a

@@ -60,34 +60,14 @@ def _cofactor_diff(F, dF):
     return ti.Matrix.cols([c0, c1, c2])
 
 
-def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_corotated"):
-    """Fixed-corotated P(Fe) (with the volume term of volume_law), its polar factors and the
-    differential dP(Fe)[dFe], for one float type. Returns a namespace of Taichi functions:
-    stress(Fe), polar(Fe) -> (R, S, gap), stress_from_polar(Fe, R), stress_and_diff(Fe, dFe),
-    stress_and_diff_polar(Fe, R, S, gap, dFe)."""
-    if volume_law not in VOLUME_LAWS:
-        raise ValueError(f"volume_law must be one of {VOLUME_LAWS}, got {volume_law!r}")
+def make_rotation_funcs(dtype):
+    """The polar decomposition Fe = R S as Taichi functions for one float type: polar(Fe) (SVD,
+    Newton-polished in float64), polar_from(Fe, R0) (Newton steps warm-started at R0, falling back
+    to polar) and the pieces the stress's differential shares: skew_solve, axial, hat."""
     newton_steps = 2 if dtype == ti.f64 else 0
     # polar_from: at most this many steps, converged when the step's angle is below warm_tol
     warm_steps = 6 if dtype == ti.f64 else 4
     warm_tol = 1e-7 if dtype == ti.f64 else 1e-4
-    # Python float constants would enter kernels as f32; typed constants keep float64 exact
-    two_mu = 2.0 * mu
-    jl = BARRIER_J_LINEAR
-
-    @ti.func
-    def volume_term(J):
-        """(g(J), g'(J)) of the module docstring's volume law."""
-        g = dtype(lam) * (J - 1.0)
-        dg = dtype(lam)
-        if ti.static(volume_law == "barrier"):
-            if J >= dtype(jl):
-                g = dtype(lam) * (1.0 - 1.0 / J)
-                dg = dtype(lam) / (J * J)
-            else:
-                dg = dtype(lam / (jl * jl))
-                g = dtype(lam * (1.0 - 1.0 / jl)) + dg * (J - dtype(jl))
-        return g, dg
 
     @ti.func
     def skew_solve(S, gap, rhs):
@@ -108,6 +88,21 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
         return ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype)
 
     @ti.func
+    def newton_step(R, S0, S, gap):
+        """R <- R exp(omega^) with (tr S - S) omega = axial(S0 - S0^T), S0 = R^T Fe, S = sym(S0)
+        (Rodrigues' formula, its series below a small angle); returns the new R and |omega|."""
+        om = skew_solve(S, gap, axial(S0))
+        th2 = om.dot(om)
+        th = ti.sqrt(th2)
+        a = 1.0 - th2 / 6.0
+        b = 0.5 - th2 / 24.0
+        if th > 1e-4:
+            a = ti.sin(th) / th
+            b = (1.0 - ti.cos(th)) / th2
+        K = hat(om)
+        return R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K)), th
+
+    @ti.func
     def polar(Fe):
         """Fe = R S with det R = +1 (inversion-aware): ti.svd gives R = U V^T; in float64 two
         Newton steps on the symmetry of R^T Fe polish it (ti.svd is only ~1e-6 accurate), each
@@ -117,16 +112,7 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
         gap = sig[1, 1] + sig[2, 2]  # ti.svd sorts s0 >= s1 >= |s2|: smallest pair sum
         for _ in ti.static(range(newton_steps)):
             S0 = R.transpose() @ Fe
-            om = skew_solve(0.5 * (S0 + S0.transpose()), gap, axial(S0))
-            th2 = om.dot(om)
-            th = ti.sqrt(th2)
-            a = 1.0 - th2 / 6.0
-            b = 0.5 - th2 / 24.0
-            if th > 1e-4:
-                a = ti.sin(th) / th
-                b = (1.0 - ti.cos(th)) / th2
-            K = hat(om)
-            R = R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K))
+            R, _th = newton_step(R, S0, 0.5 * (S0 + S0.transpose()), gap)
         S = R.transpose() @ Fe
         return R, 0.5 * (S + S.transpose()), gap
 
@@ -164,16 +150,7 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
                 gap = S.trace() - largest_eigenvalue(S)
                 if gap < dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum()):
                     break
-                om = skew_solve(S, gap, axial(S0))
-                th2 = om.dot(om)
-                th = ti.sqrt(th2)
-                a = 1.0 - th2 / 6.0
-                b = 0.5 - th2 / 24.0
-                if th > 1e-4:
-                    a = ti.sin(th) / th
-                    b = (1.0 - ti.cos(th)) / th2
-                K = hat(om)
-                R = R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K))
+                R, th = newton_step(R, S0, S, gap)
                 if th < dtype(warm_tol):  # the step's error is ~th^2: below the float's precision
                     converged = True
                     break
@@ -185,6 +162,36 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
         if not converged:
             R, S, gap = polar(Fe)
         return R, S, gap
+
+    return SimpleNamespace(polar=polar, polar_from=polar_from, skew_solve=skew_solve, axial=axial, hat=hat)
+
+
+def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_corotated"):
+    """Fixed-corotated P(Fe) (with the volume term of volume_law), its polar factors and the
+    differential dP(Fe)[dFe], for one float type. Returns a namespace of Taichi functions:
+    stress(Fe), polar(Fe) -> (R, S, gap), stress_from_polar(Fe, R), stress_and_diff(Fe, dFe),
+    stress_and_diff_polar(Fe, R, S, gap, dFe)."""
+    if volume_law not in VOLUME_LAWS:
+        raise ValueError(f"volume_law must be one of {VOLUME_LAWS}, got {volume_law!r}")
+    rotation = make_rotation_funcs(dtype)
+    polar, skew_solve, axial, hat = rotation.polar, rotation.skew_solve, rotation.axial, rotation.hat
+    # Python float constants would enter kernels as f32; typed constants keep float64 exact
+    two_mu = 2.0 * mu
+    jl = BARRIER_J_LINEAR
+
+    @ti.func
+    def volume_term(J):
+        """(g(J), g'(J)) of the module docstring's volume law."""
+        g = dtype(lam) * (J - 1.0)
+        dg = dtype(lam)
+        if ti.static(volume_law == "barrier"):
+            if J >= dtype(jl):
+                g = dtype(lam) * (1.0 - 1.0 / J)
+                dg = dtype(lam) / (J * J)
+            else:
+                dg = dtype(lam / (jl * jl))
+                g = dtype(lam * (1.0 - 1.0 / jl)) + dg * (J - dtype(jl))
+        return g, dg
 
     @ti.func
     def stress_from_polar(Fe, R):
@@ -220,8 +227,9 @@ def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_cor
         R, S, gap = polar(Fe)
         return stress_and_diff_polar(Fe, R, S, gap, dFe)
 
-    return SimpleNamespace(stress=stress, polar=polar, polar_from=polar_from, stress_from_polar=stress_from_polar,
-                           stress_and_diff=stress_and_diff, stress_and_diff_polar=stress_and_diff_polar)
+    return SimpleNamespace(stress=stress, polar=polar, polar_from=rotation.polar_from,
+                           stress_from_polar=stress_from_polar, stress_and_diff=stress_and_diff,
+                           stress_and_diff_polar=stress_and_diff_polar)
 
 
 _stress_kernels: dict = {}

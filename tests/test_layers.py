@@ -1,0 +1,86 @@
+"""The package's architecture holds: its layers (pyproject.toml [tool.importlinter]: reports >
+studies > stages > core > foundations) are kept, checked by import-linter, and no physmorph module
+imports itself around a circle. Both read every import statement, function-local ones included."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import grimp
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _import_graph() -> grimp.ImportGraph:
+    return grimp.build_graph("physmorph", cache_dir=None)
+
+
+def _circles(graph: grimp.ImportGraph) -> list[list[str]]:
+    """The modules that import each other around a circle: each strongly connected component of
+    more than one module (Tarjan's algorithm), plus any module that imports itself."""
+    order: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(module: str) -> None:
+        order[module] = low[module] = len(order)
+        stack.append(module)
+        on_stack.add(module)
+        for imported in graph.find_modules_directly_imported_by(module):
+            if imported not in order:
+                visit(imported)
+                low[module] = min(low[module], low[imported])
+            elif imported in on_stack:
+                low[module] = min(low[module], order[imported])
+        if low[module] == order[module]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == module:
+                    break
+            if len(component) > 1 or module in graph.find_modules_directly_imported_by(module):
+                found.append(sorted(component))
+
+    for module in sorted(graph.modules):
+        if module not in order:
+            visit(module)
+    return found
+
+
+def test_the_layers_contract_is_kept():
+    lint = Path(sys.executable).with_name("lint-imports")
+    out = subprocess.run([str(lint), "--config", str(ROOT / "pyproject.toml"), "--no-cache"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    report = out.stdout + out.stderr
+    assert out.returncode == 0, report[-4000:]
+    assert "Contracts: 1 kept, 0 broken." in report, report[-4000:]
+
+
+def test_every_module_has_one_layer_and_every_ignored_import_exists():
+    """The contract names every module of the package (exhaustive) once, and each import it lets
+    through is one the code still makes (a fixed one must leave the list)."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    (contract,) = config["contracts"]
+    assert contract["type"] == "layers" and contract["exhaustive"] is True
+    named = [m.strip() for layer in contract["layers"] for m in layer.split(":")]
+    assert len(named) == len(set(named)), "a module is in two layers"
+    graph = _import_graph()
+    for entry in contract["ignore_imports"]:
+        importer, imported = (m.strip() for m in entry.split("->"))
+        assert graph.direct_import_exists(importer=importer, imported=imported), f"{entry}: no such import"
+
+
+def test_no_physmorph_module_imports_itself_around_a_circle():
+    graph = _import_graph()
+    # function-local imports are in the graph (physmorph.stages imports the morph inside morph_stage)
+    assert graph.direct_import_exists(importer="physmorph.stages", imported="physmorph.morph")
+    circles = _circles(graph)
+    assert not circles, "modules importing each other around a circle:\n" + "\n".join(
+        " -> ".join(c) for c in circles)
