@@ -30,6 +30,7 @@ from physmorph.config import load_settings  # noqa: E402
 from physmorph.morph import morph_config, read_metrics, run_morph  # noqa: E402
 from physmorph.provenance import git_state  # noqa: E402
 from physmorph.runfile import partial_dir  # noqa: E402
+from physmorph.stages import set_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -60,6 +61,7 @@ def main() -> None:
     ap.add_argument("--mesh-dir", default=os.environ.get("PHYSMORPH_MESH_DIR", str(REPO.parent / "shared" / "meshes")))
     args = ap.parse_args()
     cfg = load_settings(REPO / "config/config.yaml", overrides={"threads": 1})
+    set_threads(1)  # torch's too, as the morph job sets them (physmorph.stages.morph_stage)
     wd = Path(args.workdir) / cfg.sampling.tag
     wd.mkdir(parents=True, exist_ok=True)
     commit, dirty = git_state(REPO)

@@ -363,3 +363,34 @@ def test_export_writes_every_file_of_each_full_run(test_run):
     assert "iso_bunny_full" in html and "../videos/iso_bunny_full.mp4" in html
     assert planned_jobs(_run(wd, "-n", "export", *TEST, "--config", f"mesh_dir={mesh_dir}", "export={fps: 12}")) == \
         {"export_video": 1, "export_viewer": 1, "export": 1}
+
+
+def _stored_params(wd: Path) -> dict[str, tuple[str, list]]:
+    """output -> (rule, params) of every job Snakemake recorded in ``wd`` (.snakemake/metadata:
+    one JSON file per output, its name the output path in base64)."""
+    import base64
+    import json
+
+    out = {}
+    for f in (wd / ".snakemake" / "metadata").iterdir():
+        path = base64.b64decode(f.name.replace("_", "/") + "==").decode()
+        record = json.loads(f.read_text())
+        out[path] = (record["rule"], record["params"])
+    return out
+
+
+def test_data_and_morph_jobs_keep_the_params_recorded_before_the_core_was_restructured(test_run):
+    """An unchanged config reruns no data or morph job: the params Snakemake compares are those a
+    run of the test profile stored with the code before the core's restructuring
+    (tests/data/test_profile_params.json), byte for byte."""
+    import json
+
+    wd, _ = test_run
+    recorded = json.loads((REPO / "tests/data/test_profile_params.json").read_text())["jobs"]
+    stored = _stored_params(wd)
+    compared = {path for path in recorded if path.startswith("results/test/")}
+    rules = {recorded[p]["rule"] for p in compared}
+    assert {"prepare_mesh", "sample_particles", "rasterize_target", "morph"} <= rules
+    assert compared <= set(stored), sorted(compared - set(stored))
+    for path in sorted(compared):
+        assert stored[path] == (recorded[path]["rule"], recorded[path]["params"]), path
