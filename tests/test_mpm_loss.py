@@ -127,12 +127,7 @@ def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
 
     cfg = cfg64(substeps=2, mass_loss="log", mass_loss_blur=1.2, mass_loss_blur_weight=2.0)
     s = make(cfg, state)
-    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
-    L = s.forward()
-    end = s.state_at(cfg.substeps)
-    m = splat_mass(end.x, end.mass, s.grid)
-    t = s.target_m.to_numpy()
-    eps = cfg.log_mass_eps * state.mass.mean()
+    L, m, t, eps, _ = _loss_at_zero_control(s, cfg, state)
     r = int(np.ceil(3 * 1.2))
     k = np.exp(-np.arange(-r, r + 1) ** 2 / (2 * 1.2 ** 2))
     kernel = np.einsum("i,j,k->ijk", k, k, k) / k.sum() ** 3
@@ -197,12 +192,7 @@ def test_overfill_term_matches_its_formula_reference_and_fd(state):
     cfg = cfg64(substeps=2, mass_loss="log", overfill_weight=3.0, overfill_ratio=0.4)
     s = make(cfg, state)
     assert s.overfill_weight == 3.0
-    s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
-    L = s.forward()
-    end = s.state_at(cfg.substeps)
-    m = splat_mass(end.x, end.mass, s.grid)
-    t = s.target_m.to_numpy()
-    eps = cfg.log_mass_eps * state.mass.mean()
+    L, m, t, eps, _ = _loss_at_zero_control(s, cfg, state)
     cap = np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t)
     over = np.maximum(np.log(m + eps) - np.log(cap + eps), 0.0)
     assert (over > 0).sum() > 5 and ((m > 0) & (over == 0)).sum() > 5
