@@ -72,7 +72,7 @@ def main() -> None:
                  for k, a in enumerate(alpha)]
     now = pd.DataFrame(rows)
     if args.mode == "record":
-        now.to_csv(args.csv, index=False, float_format="%.9e")
+        now.to_csv(args.csv, index=False, float_format="%.17g")  # exact: a float64 round-trips
         print(f"wrote {len(now)} frames to {args.csv}")
         return
     before = pd.read_csv(args.csv)

@@ -60,14 +60,9 @@ def _cofactor_diff(F, dF):
     return ti.Matrix.cols([c0, c1, c2])
 
 
-def make_rotation_funcs(dtype):
-    """The polar decomposition Fe = R S as Taichi functions for one float type: polar(Fe) (SVD,
-    Newton-polished in float64), polar_from(Fe, R0) (Newton steps warm-started at R0, falling back
-    to polar) and the pieces the stress's differential shares: skew_solve, axial, hat."""
-    newton_steps = 2 if dtype == ti.f64 else 0
-    # polar_from: at most this many steps, converged when the step's angle is below warm_tol
-    warm_steps = 6 if dtype == ti.f64 else 4
-    warm_tol = 1e-7 if dtype == ti.f64 else 1e-4
+def make_newton_funcs(dtype):
+    """The pieces of a Newton step on the rotation of Fe, for one float type: skew_solve, axial,
+    hat, and newton_step (R <- R exp(omega^)); the stress's differential shares the first three."""
 
     @ti.func
     def skew_solve(S, gap, rhs):
@@ -101,6 +96,20 @@ def make_rotation_funcs(dtype):
             b = (1.0 - ti.cos(th)) / th2
         K = hat(om)
         return R @ (ti.Matrix.identity(dtype, 3) + a * K + b * (K @ K)), th
+
+    return SimpleNamespace(skew_solve=skew_solve, axial=axial, hat=hat, newton_step=newton_step)
+
+
+def make_rotation_funcs(dtype):
+    """The polar decomposition Fe = R S as Taichi functions for one float type: polar(Fe) (SVD,
+    Newton-polished in float64), polar_from(Fe, R0) (Newton steps warm-started at R0, falling back
+    to polar) and the Newton step's pieces (make_newton_funcs)."""
+    newton = make_newton_funcs(dtype)
+    newton_step = newton.newton_step
+    newton_steps = 2 if dtype == ti.f64 else 0
+    # polar_from: at most this many steps, converged when the step's angle is below warm_tol
+    warm_steps = 6 if dtype == ti.f64 else 4
+    warm_tol = 1e-7 if dtype == ti.f64 else 1e-4
 
     @ti.func
     def polar(Fe):
@@ -163,7 +172,8 @@ def make_rotation_funcs(dtype):
             R, S, gap = polar(Fe)
         return R, S, gap
 
-    return SimpleNamespace(polar=polar, polar_from=polar_from, skew_solve=skew_solve, axial=axial, hat=hat)
+    return SimpleNamespace(polar=polar, polar_from=polar_from, skew_solve=newton.skew_solve, axial=newton.axial,
+                           hat=newton.hat)
 
 
 def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_corotated"):
