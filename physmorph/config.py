@@ -2,17 +2,19 @@
 
 ``load_settings(paths)`` merges the YAML files left to right (later keys override, nested mappings
 merge), exactly as Snakemake merges ``--configfile`` onto the Snakefile's ``configfile``, then
-``Settings.from_mapping`` turns the dict into frozen dataclasses. That conversion is the one
-validator: unknown keys, wrong types and values outside a field's allowed set are refused with
-the dotted key and the allowed values; numbers are accepted as int, float or numeric strings
-(``--config 'mpm={smoothing: 0.5}'`` hands Snakemake a string); every experiment is resolved to
-its full :class:`~physmorph.morph_config.MorphConfig` and a memory estimate per stage is checked against
-the machine's memory, so a bad config fails before any job runs.
+``Settings.from_mapping`` turns the dict into frozen pydantic dataclasses. Every config class is
+declared once (physmorph.settings_base): each field with its default, its range and its meaning,
+and from those declarations come the validation (unknown keys, wrong types and values out of range
+refused with the dotted key and the allowed values; numbers accepted as int, float or numeric
+string, since ``--config 'mpm={smoothing: 0.5}'`` hands Snakemake a string), the JSON schema the
+Snakefile validates with (``json_schema``), config/README.md (physmorph.userdocs) and the check
+that config/config.yaml restates the defaults. Every experiment is resolved to its full
+:class:`~physmorph.morph_config.MorphConfig` and a memory estimate per stage is checked against the
+machine's memory, so a bad config fails before any job runs.
 
-Every default lives in a dataclass: the sections ``mpm``, ``render``, ``plasticity``, ``surface``
-and ``morph`` are the library's own config classes, the rest is defined here. ``config/config.yaml``
-restates the defaults it documents (a test checks they agree). The workflow's JSON schema
-(``workflow/schemas/config.schema.yaml``) is generated from these classes (``json_schema``).
+The sections ``mpm``, ``render``, ``plasticity``, ``surface``, ``morph`` and ``export`` are the
+library's own config classes; the workflow's own are in physmorph.config_sections. What rule
+params carry is physmorph.config_params.
 """
 
 from __future__ import annotations
@@ -23,26 +25,29 @@ import math
 import os
 import re
 import types
-from dataclasses import MISSING as dataclasses_MISSING
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+from typing import Annotated, Any, Literal, get_args, get_type_hints
 
+import pydantic
 import yaml
 
 from physmorph.config_error import ConfigError
+# the params and the workflow's sections are imported from here by the rules, stages and tests too
+from physmorph.config_params import canonical_json, morph_params, params_json, to_plain, without_defaults  # noqa: F401
+from physmorph.config_sections import (EXPERIMENT_OVERRIDES, RES_PATTERN, Experiment, RawMesh,  # noqa: F401
+                                       SamplingConfig, ShapeSettings, Tables, TargetConfig, Tradeoff)
+from physmorph.export.settings import ExportConfig
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO
 from physmorph.morph_config import MorphConfig
 from physmorph.mpm.config import MPMConfig
 from physmorph.mpm.memory import bytes_per_particle_substep
 from physmorph.plasticity import PlasticityConfig
 from physmorph.render.config import RenderConfig
-from physmorph.export.settings import ExportConfig
+from physmorph.settings_base import (Float, Int, Refused, field_default, json_schema_of, setting,
+                                     settings_dataclass, validate_plain_dataclass, with_prefix)
 from physmorph.surface import SurfaceMaskConfig
 from physmorph.tradeoff_points import TradeoffPoint, tradeoff_points
-
-RES_PATTERN = r"(\d+)x(\d+)x(\d+)"
-
 
 def deep_merge(base: dict, override: dict) -> dict:
     out = copy.deepcopy(base)
@@ -54,100 +59,13 @@ def deep_merge(base: dict, override: dict) -> dict:
     return out
 
 
-# --------------------------------------------------------------------------------------------
-# Typed conversion (the one validator) and its JSON-schema twin
-# --------------------------------------------------------------------------------------------
-
-def _join(where: str, key: str) -> str:
-    return f"{where}.{key}" if where else key
-
-
 def _fail(key: str, msg: str):
     raise ConfigError.for_key(key or "<root>", msg)
 
 
-def _number(value, key: str, what: str = "a number") -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        _fail(key, f"expected {what}, got {value!r}")
-    try:
-        out = float(value.strip()) if isinstance(value, str) else float(value)
-    except ValueError:
-        _fail(key, f"expected {what}, got {value!r}")
-    if not math.isfinite(out):
-        _fail(key, f"expected a finite number, got {value!r}")
-    return out
-
-
-def coerce(value: Any, tp: Any, key: str) -> Any:
-    """``value`` as type ``tp`` (int, float, bool, str, Literal, Optional, tuple, dict, dataclass)."""
-    origin = get_origin(tp)
-    if tp is Any:
-        return value
-    if origin is Literal:
-        choices = get_args(tp)
-        if isinstance(value, str) and value in choices:
-            return value
-        _fail(key, f"{value!r} is not allowed (allowed: {', '.join(map(str, choices))})")
-    if origin in (Union, types.UnionType):
-        args = [a for a in get_args(tp) if a is not type(None)]
-        if value is None:
-            if len(args) < len(get_args(tp)):
-                return None
-            _fail(key, "must be set (got null)")
-        first = None
-        for a in args:
-            try:
-                return coerce(value, a, key)
-            except ConfigError as exc:
-                first = first or exc
-        raise first
-    if value is None:
-        _fail(key, "must be set (got null)")
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
-            return value.strip().lower() == "true"
-        _fail(key, f"expected true or false, got {value!r}")
-    if tp is int:
-        num = _number(value, key, "an integer")
-        if not num.is_integer():
-            _fail(key, f"expected an integer, got {value!r}")
-        return int(num)
-    if tp is float:
-        return _number(value, key)
-    if tp is str:
-        if not isinstance(value, str):
-            _fail(key, f"expected a string, got {value!r}")
-        return value
-    if origin is tuple:
-        args = get_args(tp)
-        if not isinstance(value, (list, tuple)):
-            _fail(key, f"expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            _fail(key, f"expected {len(args)} values, got {len(value)}")
-        return tuple(coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-    if origin is dict:
-        _, vt = get_args(tp)
-        if not isinstance(value, dict):
-            _fail(key, f"expected a mapping, got {value!r}")
-        return {str(k): coerce(v, vt, _join(key, str(k))) for k, v in value.items()}
-    if is_dataclass(tp):
-        return build(tp, value, key)
-    raise TypeError(f"{key}: unsupported field type {tp!r}")
-
-
-def _failing_key(cls, exc: Exception, where: str) -> str:
-    """The field a dataclass's own check complains about: its messages start with the field name."""
-    m = re.match(r"\s*(?:[A-Za-z_]+\.)?([A-Za-z_]+)", str(exc))
-    names = {f.name for f in fields(cls)}
-    return _join(where, m[1]) if m and m[1] in names else where
-
-
 def build(cls, data: Any, where: str = "", derived: dict[str, tuple[str, Any]] | None = None):
-    """``cls(**data)`` with every value coerced to its field's type; errors name ``where.key``.
+    """``cls`` from the mapping ``data`` (validated by its declaration); errors name ``where.key``.
+    ``cls`` is a config class (physmorph.settings_base) or a plain dataclass (validated by pydantic too).
 
     derived: fields not settable here, name -> (where it is set, value)."""
     derived = derived or {}
@@ -155,92 +73,25 @@ def build(cls, data: Any, where: str = "", derived: dict[str, tuple[str, Any]] |
         data = {}
     if not isinstance(data, dict):
         _fail(where, f"expected a mapping, got {data!r}")
-    hints = get_type_hints(cls)
-    names = [f.name for f in fields(cls) if f.init and f.name not in derived]
+    settable = sorted(f.name for f in fields(cls) if f.init and f.name not in derived)
     for k in data:
         if k in derived:
-            _fail(_join(where, k), f"not settable here: it is set by {derived[k][0]}")
-        if k not in names:
-            _fail(_join(where, str(k)), f"unknown key (allowed: {', '.join(sorted(names))})")
-    kwargs = {k: coerce(v, hints[k], _join(where, k)) for k, v in data.items()}
-    kwargs.update({k: v for k, (_, v) in derived.items()})
+            _fail(with_prefix(where, str(k)), f"not settable here: it is set by {derived[k][0]}")
+        if k not in settable:  # before the values: a misspelt key is the likelier mistake
+            _fail(with_prefix(where, str(k)), f"unknown key (allowed: {', '.join(settable)})")
+    kwargs = {**data, **{k: v for k, (_, v) in derived.items()}}
+    if hasattr(cls, "__pydantic_validator__"):
+        try:
+            return cls(**{str(k): v for k, v in kwargs.items()})
+        except ValueError as exc:
+            if not hasattr(exc, "reason"):
+                raise
+            key = exc.key if exc.key != "<root>" else ""
+            raise ConfigError.for_key(with_prefix(where, key or ""), exc.reason) from None
     try:
-        return cls(**kwargs)
-    except ConfigError:
-        raise
-    except (ValueError, TypeError) as exc:
-        raise ConfigError.for_key(_failing_key(cls, exc, where) or "<root>", exc) from exc
-
-
-def to_plain(obj: Any) -> Any:
-    """Dataclasses, tuples and mappings as JSON-ready dicts and lists."""
-    if is_dataclass(obj):
-        obj = asdict(obj)
-    if isinstance(obj, dict):
-        return {str(k): to_plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_plain(v) for v in obj]
-    return obj
-
-
-def canonical_json(obj: Any) -> str:
-    """One string per value (sorted keys, no spaces): the full record a stage writes into its file."""
-    return json.dumps(to_plain(obj), sort_keys=True, separators=(",", ":"))
-
-
-# --------------------------------------------------------------------------------------------
-# What rule params carry: every setting that differs from its default
-# --------------------------------------------------------------------------------------------
-# Snakemake reruns a job when its params string changes. If params held every field, adding a
-# field to a config class (a new option whose default changes nothing) would change the params
-# of every job that holds that class and rerun whole result trees for identical numbers. So a
-# field at its default is left out, and the job rebuilds its config from what is left (a left-out
-# field takes its default). The one case this would get wrong is a *changed* default: runs made
-# with the old one would keep their params and not rerun. A record of first defaults (the
-# workflow's workflow/schemas/first_defaults.json, which ``python -m physmorph.config --defaults``
-# extends) holds each field's first default (append-only); a field whose default has changed since
-# must be named in its class's ALWAYS_IN_PARAMS (a ClassVar), which puts it in every params string,
-# so the runs that omitted it rerun once (tests/test_config.py checks both).
-
-
-def _field_default(f) -> Any:
-    if f.default is not dataclasses_MISSING:
-        return f.default
-    if f.default_factory is not dataclasses_MISSING:
-        return f.default_factory()
-    return dataclasses_MISSING
-
-
-def without_defaults(obj: Any) -> Any:
-    """``to_plain(obj)`` with every dataclass field at its default left out, recursively (mappings
-    and lists of dataclasses too); a nested dataclass left with nothing is left out."""
-    if is_dataclass(obj) and not isinstance(obj, type):
-        keep = getattr(type(obj), "ALWAYS_IN_PARAMS", frozenset())
-        out = {}
-        for f in fields(obj):
-            value = getattr(obj, f.name)
-            plain = without_defaults(value)
-            if f.name not in keep:
-                default = _field_default(f)
-                if is_dataclass(value) and not isinstance(value, type):
-                    # Left out only when empty against its own class's defaults and the field's
-                    # default is that class's default instance (so rebuilding gives it back).
-                    if plain == {} and to_plain(default) == to_plain(type(value)()):
-                        continue
-                elif default is not dataclasses_MISSING and to_plain(value) == to_plain(default):
-                    continue
-            out[f.name] = plain
-        return out
-    if isinstance(obj, dict):
-        return {str(k): without_defaults(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [without_defaults(v) for v in obj]
-    return obj
-
-
-def params_json(obj: Any) -> str:
-    """What a rule's params hold: canonical JSON of ``obj`` without its fields at their defaults."""
-    return json.dumps(without_defaults(obj), sort_keys=True, separators=(",", ":"))
+        return validate_plain_dataclass(cls, kwargs)
+    except ConfigError as exc:
+        raise ConfigError.for_key(with_prefix(where, exc.key if exc.key != "<root>" else ""), exc.reason) from None
 
 
 def settings_classes() -> list[type]:
@@ -267,8 +118,8 @@ def current_defaults() -> dict[str, Any]:
     out = {}
     for cls in settings_classes():
         for f in fields(cls):
-            default = _field_default(f)
-            if default is not dataclasses_MISSING and not is_dataclass(default):
+            default = field_default(f)
+            if default is not MISSING and not is_dataclass(default):
                 out[f"{cls.__name__}.{f.name}"] = to_plain(default)
     return out
 
@@ -302,224 +153,55 @@ def defaults_changed(path: str | Path) -> list[str]:
     return problems
 
 
-def schema_of(tp: Any, derived: dict | None = None) -> dict:
-    origin = get_origin(tp)
-    if tp is Any:
-        return {}
-    if origin is Literal:
-        return {"enum": list(get_args(tp))}
-    if origin in (Union, types.UnionType):
-        opts = [schema_of(a) for a in get_args(tp) if a is not type(None)]
-        opts += [{"type": "null"}] if type(None) in get_args(tp) else []
-        return opts[0] if len(opts) == 1 else {"anyOf": opts}
-    simple = {bool: "boolean", int: "integer", float: "number", str: "string"}
-    if tp in simple:
-        # numbers may come as strings from --config; the settings accept both
-        return {"type": [simple[tp], "string"]} if tp in (int, float) else {"type": simple[tp]}
-    if origin is tuple:
-        args = get_args(tp)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return {"type": "array", "items": schema_of(args[0])}
-        return {"type": "array", "prefixItems": [schema_of(a) for a in args], "minItems": len(args),
-                "maxItems": len(args)}
-    if origin is dict:
-        return {"type": "object", "additionalProperties": schema_of(get_args(tp)[1])}
-    if is_dataclass(tp):
-        hints = get_type_hints(tp)
-        derived = derived or {}
-        props, required = {}, []
-        for f in fields(tp):
-            if not f.init or f.name in derived:
-                continue
-            sub = schema_of(hints[f.name])
-            if f.default is not dataclasses_MISSING and not is_dataclass(f.default):
-                sub["default"] = to_plain(f.default)
-            elif f.default is dataclasses_MISSING and f.default_factory is dataclasses_MISSING:
-                required.append(f.name)
-            props[f.name] = sub
-        out = {"type": "object", "additionalProperties": False, "properties": props}
-        if tp.__doc__ and not tp.__doc__.startswith(tp.__name__ + "("):
-            out["description"] = tp.__doc__.strip().splitlines()[0]
-        if required:
-            out["required"] = required
-        return out
-    raise TypeError(f"unsupported field type {tp!r}")
-
-
 # --------------------------------------------------------------------------------------------
-# The sections defined here (the solver, renderer, plasticity, mask and morph sections are the
-# library's own dataclasses)
+# The settings (the library's sections are their own classes; the workflow's, physmorph.config_sections)
 # --------------------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class RawMesh:
-    """A raw mesh downloaded from a pinned URL and checked against its SHA-256."""
-
-    url: str
-    sha256: str
-
-    def __post_init__(self) -> None:
-        if not re.fullmatch(r"[0-9a-f]{64}", self.sha256):
-            raise ValueError(f"sha256 must be 64 lowercase hex digits, got {self.sha256!r}")
+# sections built after the memory check, each with the fields other keys set (_section_derived)
+LIBRARY_SECTIONS = ("mpm", "render", "plasticity", "surface", "morph")
+PROFILE_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
 
 
-@dataclass(frozen=True)
-class ShapeSettings:
-    """One shape: a raw mesh (``file``: a raw_meshes entry; ``path``: a mesh on disk), an
-    isosphere or an extruded letter, normalised to ``size`` domain units."""
-
-    kind: Literal["file", "isosphere", "letter"]
-    file: str | None = None
-    path: str | None = None
-    glyph: str | None = None
-    size: float = 16.0
-    depth: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.kind == "file" and (self.file is None) == (self.path is None):
-            raise ValueError("file or path: kind 'file' takes exactly one of 'file' (a raw_meshes entry) or "
-                             "'path' (a mesh file on disk)")
-        if self.kind != "file" and (self.file or self.path):
-            raise ValueError(f"file or path: only kind 'file' takes them (kind is {self.kind!r})")
-        if self.kind == "letter" and (not self.glyph or len(self.glyph) != 1):
-            raise ValueError(f"glyph: kind 'letter' needs a single character, got {self.glyph!r}")
-        if not self.size > 0:
-            raise ValueError(f"size must be > 0, got {self.size}")
-        if self.depth is not None and not self.depth > 0:
-            raise ValueError(f"depth must be > 0, got {self.depth}")
-
-
-@dataclass(frozen=True)
-class SamplingConfig:
-    """Particle sampling on the simulation grid (file tag {grid_res}x{ppc_surface}x{ppc_interior})."""
-
-    grid_res: int = 32
-    ppc_surface: int = 2
-    ppc_interior: int = 1
-    density: float = 75.0
-    sigma_scale: float = 0.7
-
-    def __post_init__(self) -> None:
-        if self.grid_res < 8:
-            raise ValueError(f"grid_res must be >= 8, got {self.grid_res}")
-        for k in ("ppc_surface", "ppc_interior"):
-            if getattr(self, k) < 1:
-                raise ValueError(f"{k} must be >= 1, got {getattr(self, k)}")
-        for k in ("density", "sigma_scale"):
-            if not getattr(self, k) > 0:
-                raise ValueError(f"{k} must be > 0, got {getattr(self, k)}")
-
-    @property
-    def tag(self) -> str:
-        """The resolution tag used in file names: {grid_res}x{ppc_surface}x{ppc_interior}."""
-        return f"{self.grid_res}x{self.ppc_surface}x{self.ppc_interior}"
-
-    def with_tag(self, tag: str) -> "SamplingConfig":
-        m = re.fullmatch(RES_PATTERN, tag)
-        if not m:
-            raise ConfigError(f"resolution tag '{tag}' must look like 32x2x1 (grid x ppc_surface x ppc_interior)")
-        return replace(self, grid_res=int(m[1]), ppc_surface=int(m[2]), ppc_interior=int(m[3]))
-
-
-@dataclass(frozen=True)
-class TargetConfig:
-    """Target rasterization: ring cameras, the target's grid mass and surface points."""
-
-    cameras: int = 8
-    elevation_deg: float = 21.0
-    fov_y_deg: float = 40.0
-    distance: float = 36.0
-    width: int = 160
-    height: int = 90
-    supersample: int = 3  # rays per pixel per axis for the exact coverage alpha
-    surface_points: int = 20000  # target surface samples for Chamfer
-
-    def __post_init__(self) -> None:
-        checks = [("cameras", self.cameras >= 1, ">= 1"), ("elevation_deg", -89 <= self.elevation_deg <= 89, "in [-89, 89]"),
-                  ("fov_y_deg", 0 < self.fov_y_deg < 180, "in (0, 180)"), ("distance", self.distance > 0, "> 0"),
-                  ("width", self.width >= 4, ">= 4"), ("height", self.height >= 4, ">= 4"),
-                  ("supersample", 1 <= self.supersample <= 8, "in [1, 8]"),
-                  ("surface_points", self.surface_points >= 100, ">= 100")]
-        for name, ok, rule in checks:
-            if not ok:
-                raise ValueError(f"{name} must be {rule}, got {getattr(self, name)}")
-
-
-@dataclass(frozen=True)
-class Experiment:
-    """One morph run; unset fields take the global sections' values."""
-
-    source: str
-    target: str
-    method: Literal["physics_only", "f_inject", "full", "position_inject"]
-    drag: float | None = None  # mpm.drag
-    frames: int | None = None  # morph.frames
-    cameras: int | None = None  # morph.cameras (render-loss views)
-    gamma: float | None = None  # morph.gamma
-    gamma_x: float | None = None  # morph.gamma_x
-    grad_iters: int | None = None  # mpm.grad_iters
-    plasticity_start: int | None = None  # plasticity.start_frame
-    release_frames: int | None = None  # morph.release_frames
-
-
-# experiment key -> (section, field) it overrides
-EXPERIMENT_OVERRIDES = {"drag": ("mpm", "drag"), "grad_iters": ("mpm", "grad_iters"),
-                        "plasticity_start": ("plasticity", "start_frame"), "frames": ("morph", "frames"),
-                        "cameras": ("morph", "cameras"), "gamma": ("morph", "gamma"), "gamma_x": ("morph", "gamma_x"),
-                        "release_frames": ("morph", "release_frames")}
-
-
-@dataclass(frozen=True)
-class Tradeoff:
-    """The speed/accuracy study: the base experiment with one knob changed at a time (physmorph.tradeoff)."""
-
-    experiment: str
-    frames: int
-    knobs: dict[str, tuple[Any, ...]] = field(default_factory=dict)
-    # The base point's threads: the study's own, so the workflow's `threads` (which changes no
-    # result) neither adds nor removes a point nor changes what the points' times measure.
-    threads: int = 2
-
-    def __post_init__(self) -> None:
-        if self.frames < 1:
-            raise ValueError(f"frames must be >= 1, got {self.frames}")
-        if self.threads < 1:
-            raise ValueError(f"threads must be >= 1, got {self.threads}")
-
-
-@dataclass(frozen=True)
-class Tables:
-    """What ``snakemake tables`` builds: the shapes' data and the experiments' runs."""
-
-    shapes: tuple[str, ...] = ()
-    experiments: tuple[str, ...] = ()
-
-
-@dataclass(frozen=True)
+@settings_dataclass
 class Settings:
     """Everything the workflow needs, typed and frozen. Build with :meth:`from_mapping`."""
 
-    profile: str = "default"
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    threads: int = 2
-    mesh_dir: str | None = None
-    seed: int = 0
-    domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI)
-    max_memory_mb: int | None = None  # refuse stages estimated above this; null: this machine's memory
-    morph_gpus: int = 0  # GPUs a morph job asks a cluster scheduler for (resources.gpu)
-    raw_meshes: dict[str, RawMesh] = field(default_factory=dict)
-    shapes: dict[str, ShapeSettings] = field(default_factory=dict)
+    profile: Annotated[str, setting("name of the results tree: outputs go to results/{profile}/", "",
+                                    "a plain name (letters, digits, _ . -): it names results/{profile}/",
+                                    pattern=PROFILE_PATTERN)] = "default"
+    device: Annotated[Literal["auto", "cpu", "cuda"], setting(
+        "where Taichi and torch run; auto picks CUDA when present")] = "auto"
+    threads: Annotated[Int, setting("threads per job (Taichi and torch); changing it reruns nothing", ge=1)] = 2
+    mesh_dir: Annotated[str | None, setting(
+        "a local folder holding the raw meshes (read instead of downloading); null downloads into "
+        "resources/meshes/", "path")] = None
+    seed: Annotated[Int, setting("random seed of the particle sampling and the target surface points", ge=0)] = 0
+    domain: Annotated[tuple[Float, Float], setting("the simulation cube [lo, hi]^3", "domain units",
+                                                   "lo < hi")] = (DOMAIN_LO, DOMAIN_HI)
+    max_memory_mb: Annotated[Int | None, setting(
+        "refuse a config whose estimated stage memory exceeds this; null: this machine's memory", "MB",
+        ge=1)] = None
+    morph_gpus: Annotated[Int, setting("GPUs a morph job asks a cluster scheduler for (resources.gpu)", ge=0)] = 0
+    raw_meshes: Annotated[dict[str, RawMesh], setting("raw mesh files by file name")] = field(default_factory=dict)
+    shapes: Annotated[dict[str, ShapeSettings], setting("the shapes, by name")] = field(default_factory=dict)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     target: TargetConfig = field(default_factory=TargetConfig)
     mpm: MPMConfig = field(default_factory=MPMConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     plasticity: PlasticityConfig = field(default_factory=PlasticityConfig)
     surface: SurfaceMaskConfig = field(default_factory=SurfaceMaskConfig)
-    morph: Any = None  # physmorph.morph_config.MorphConfig (its mpm/render/plasticity/surface are the sections above)
-    experiments: dict[str, Experiment] = field(default_factory=dict)
+    # its mpm, render, plasticity and surface are the sections above; None until from_mapping builds it
+    morph: MorphConfig | None = None
+    experiments: Annotated[dict[str, Experiment], setting(
+        "the experiments, by name (run one: results/{profile}/runs/{name}.h5)")] = field(default_factory=dict)
     tradeoff: Tradeoff | None = None
     tables: Tables = field(default_factory=Tables)
     export: ExportConfig = field(default_factory=ExportConfig)
+
+    def __post_init__(self) -> None:
+        """The domain's two ends in order."""
+        if not self.domain[1] > self.domain[0]:
+            raise Refused("domain", f"needs [lo, hi] with hi > lo, got {list(self.domain)}")
 
     # ---- construction -------------------------------------------------------------------
     @classmethod
@@ -527,42 +209,10 @@ class Settings:
         """Typed settings from the merged config dict; raises ConfigError naming the key."""
         if not isinstance(cfg, dict):
             _fail("", f"the config must be a mapping, got {cfg!r}")
-        hints = get_type_hints(cls)
-        allowed = {f.name for f in fields(cls)}
-        for k in cfg:
-            if k not in allowed:
-                _fail(str(k), f"unknown key (allowed: {', '.join(sorted(allowed))})")
-        plain = {k: coerce(cfg[k], hints[k], k) for k in ("profile", "device", "threads", "mesh_dir", "seed", "domain",
-                                                           "max_memory_mb", "morph_gpus") if k in cfg}
-        s = cls(**plain)
-        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", s.profile):
-            _fail("profile", f"must be a plain name (letters, digits, _ . -): it names results/{{profile}}/, got {s.profile!r}")
-        if s.threads < 1:
-            _fail("threads", f"must be >= 1, got {s.threads}")
-        if s.seed < 0:
-            _fail("seed", f"must be >= 0, got {s.seed}")
-        if not s.domain[1] > s.domain[0]:
-            _fail("domain", f"needs [lo, hi] with hi > lo, got {list(s.domain)}")
-        if s.morph_gpus < 0:
-            _fail("morph_gpus", f"must be >= 0, got {s.morph_gpus}")
-        if s.max_memory_mb is not None and s.max_memory_mb < 1:
-            _fail("max_memory_mb", f"must be >= 1 (or null), got {s.max_memory_mb}")
-        s = replace(
-            s, sampling=build(SamplingConfig, cfg.get("sampling"), "sampling"),
-            raw_meshes=coerce(cfg.get("raw_meshes") or {}, hints["raw_meshes"], "raw_meshes"),
-            shapes=coerce(cfg.get("shapes") or {}, hints["shapes"], "shapes"),
-            target=build(TargetConfig, cfg.get("target"), "target"),
-            experiments=coerce(cfg.get("experiments") or {}, hints["experiments"], "experiments"),
-            tradeoff=coerce(cfg.get("tradeoff"), hints["tradeoff"], "tradeoff"),
-            tables=build(Tables, cfg.get("tables"), "tables"),
-            export=build(ExportConfig, cfg.get("export"), "export"))
+        s = build(cls, {k: v for k, v in cfg.items() if k not in LIBRARY_SECTIONS})
         s._check_references()
         # Memory first: a grid too big for the machine says so before the solver's own checks.
-        raw_mpm = cfg.get("mpm") if isinstance(cfg.get("mpm"), dict) else {}
-        mpm_hints = get_type_hints(MPMConfig)
-        s.check_memory(types.SimpleNamespace(**{
-            k: coerce(raw_mpm[k], mpm_hints[k], f"mpm.{k}") if k in raw_mpm else getattr(MPMConfig, k)
-            for k in ("substeps", "precision", "control", "optimizer")}))
+        s.check_memory(_memory_knobs(cfg.get("mpm")))
         mpm = build(MPMConfig, cfg.get("mpm"), "mpm", derived=_section_derived("mpm", s.sampling, s.device, s.domain))
         render = build(RenderConfig, cfg.get("render"), "render", derived=_section_derived("render", s.sampling, s.device, s.domain))
         plasticity = build(PlasticityConfig, cfg.get("plasticity"), "plasticity")
@@ -709,6 +359,25 @@ class Settings:
                 "bigger machine", key="max_memory_mb")
 
 
+def _memory_knobs(raw_mpm: Any) -> types.SimpleNamespace:
+    """The mpm keys the memory estimate reads (substeps, precision, control, optimizer), validated
+    on their own: the estimate runs before the whole mpm section is built."""
+    raw_mpm = raw_mpm if isinstance(raw_mpm, dict) else {}
+    knobs = {}
+    for name in ("substeps", "precision", "control", "optimizer"):
+        if name not in raw_mpm:
+            knobs[name] = getattr(MPMConfig, name)
+            continue
+        info = MPMConfig.__pydantic_fields__[name]
+        declared = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
+        try:
+            knobs[name] = pydantic.TypeAdapter(declared).validate_python(raw_mpm[name])
+        except pydantic.ValidationError:
+            build(MPMConfig, {name: raw_mpm[name]}, "mpm")  # refuses it as the whole section would, naming the key
+            raise
+    return types.SimpleNamespace(**knobs)
+
+
 def _section_derived(section: str, sampling: SamplingConfig, device: str, domain) -> dict:
     if section == "mpm":
         return {"grid_res": ("sampling.grid_res", sampling.grid_res), "density": ("sampling.density", sampling.density),
@@ -721,10 +390,10 @@ def _replace(obj, section: str, keys: dict, **changes):
     """dataclasses.replace with the key of a refused value named (an experiment's, if it set it)."""
     try:
         return replace(obj, **changes)
-    except (ValueError, TypeError) as exc:
-        bad = _failing_key(type(obj), exc, section)
-        fname = bad.split(".")[-1] if "." in bad else ""
-        raise ConfigError.for_key(keys.get((section, fname), bad), exc) from exc
+    except ValueError as exc:
+        if not hasattr(exc, "reason"):
+            raise
+        raise ConfigError.for_key(keys.get((section, exc.key), with_prefix(section, exc.key or "")), exc.reason) from None
 
 
 def load_settings(*paths: str | Path, overrides: dict | None = None) -> Settings:
@@ -751,16 +420,21 @@ def load_mapping(*paths: str | Path, overrides: dict | None = None) -> dict:
 
 
 def json_schema() -> dict:
-    """The config's JSON schema, generated from :class:`Settings` (documentation and editors;
-    validation itself is :meth:`Settings.from_mapping`)."""
-    out = schema_of(Settings)
-    sections = {"mpm": (MPMConfig, _section_derived("mpm", SamplingConfig(), "auto", (0, 1))),
-                "render": (RenderConfig, {"device": None}), "plasticity": (PlasticityConfig, {}),
-                "surface": (SurfaceMaskConfig, {}),
-                "morph": (MorphConfig, {k: None for k in ("method", "mpm", "render", "plasticity", "surface")})}
-    for name, (cls, derived) in sections.items():
-        out["properties"][name] = schema_of(cls, derived)
-    out["properties"]["profile"]["pattern"] = "^[A-Za-z0-9][A-Za-z0-9_.-]*$"
+    """The config's JSON schema, generated from the declarations of :class:`Settings` and its
+    sections; the Snakefile validates the merged config with it before Settings builds it. It accepts
+    what the settings accept (numbers and booleans as strings too) and leaves out the fields other
+    keys set (mpm.grid_res: sampling.grid_res, ...)."""
+    out = json_schema_of(Settings)
+    props = out["properties"]
+    props["morph"] = json_schema_of(MorphConfig)
+    derived = {"mpm": _section_derived("mpm", SamplingConfig(), "auto", (0, 1)), "render": {"device": None},
+               "morph": dict.fromkeys(("method", "mpm", "render", "plasticity", "surface"))}
+    for name, names in derived.items():
+        for k in names:
+            props[name]["properties"].pop(k)
+        props[name]["required"] = [k for k in props[name].get("required", []) if k not in names]
+        if not props[name]["required"]:
+            del props[name]["required"]
     return {"$schema": "https://json-schema.org/draft/2020-12/schema",
             "title": "physmorph config (generated from physmorph.config.Settings; do not edit)", **out}
 
@@ -840,42 +514,8 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
                                      f"{64 * scale} B + {target.cameras} x {target.width}x{target.height} images x 64 B")
 
 
-# --------------------------------------------------------------------------------------------
-# What a run's results depend on (the morph rules' params)
-# --------------------------------------------------------------------------------------------
-
-def morph_params(cfg) -> str:
-    """Canonical JSON of what a morph run's results depend on (cfg: physmorph.morph_config.MorphConfig).
-
-    Settings at their defaults are left out (see ``without_defaults``: a new option reruns
-    nothing), and so are settings the run's method never reads, so changing them reruns nothing:
-    plasticity and the stray pull outside ``full``, the injection gains and their calibration (and the
-    settle phase, unless it judges the physics loss) for ``physics_only``,
-    ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
-    it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
-    string (what is left out takes its default)."""
-    d = without_defaults(cfg)
-    d.pop("progress", None)
-    d.get("mpm", {}).pop("threads", None)
-    if cfg.method != "full":
-        d.pop("plasticity", None)
-        d.pop("stray_pull", None)
-        d.pop("stray_pull_onset", None)
-    if cfg.method == "physics_only":
-        for k in ("gamma", "gamma_x", "injection_calibration"):
-            d.pop(k, None)
-        if cfg.settle_objective != "physics":  # the settle phase judges the images, which it never reads
-            for k in ("settle", "settle_objective", "settle_backoff"):
-                d.pop(k, None)
-        if cfg.metric_all_particles:
-            d.pop("surface", None)
-    else:
-        d.pop("gamma_x" if cfg.method != "position_inject" else "gamma", None)
-    return json.dumps(d, sort_keys=True, separators=(",", ":"))
-
-
 SCHEMA_HEADER = ("# GENERATED from physmorph.config.Settings by `python -m physmorph.config --schema`; do not edit.\n"
-                 "# Documentation and editor support: the workflow validates with physmorph.config.Settings itself.\n")
+                 "# The Snakefile validates the merged config with it; physmorph.config.Settings then builds the settings.\n")
 
 
 def schema_text() -> str:

@@ -2,8 +2,8 @@
 
 * ``results_markdown`` / ``write_results_doc``: a profile's numbers (docs/results.md for the default
   profile) from ``results/{profile}/tables/`` and its figures.
-* ``config_reference``: config/README.md, every key of the config schema with its meaning, unit and
-  range (physmorph.config_docs), type and default (physmorph.config.json_schema).
+* ``config_reference``: config/README.md, every key of the config schema with its meaning, unit,
+  range, type and default, all from the settings' declarations (read by physmorph.config_docs).
 * ``write_tradeoff_doc``: docs/tradeoff.md, the speed/accuracy study of each profile that has one
   (``results/{profile}/tradeoff/tradeoff.csv``) and one Pareto figure with every scale.
 * ``output_captions`` / ``write_captions``: the HTML report's caption of each table and figure, taken
@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from physmorph.config_docs import schema_keys
 from physmorph.figures import figure_runs
 from physmorph.markdown import markdown_table
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
@@ -352,27 +353,6 @@ def _relpath(path: Path, start: Path) -> str:
 # config/README.md
 # --------------------------------------------------------------------------------------------
 
-def schema_keys() -> list[tuple[str, dict]]:
-    """(dotted key, its schema) of every key of the config schema, mapping entries as ``<name>``."""
-    from physmorph.config import json_schema
-
-    out: list[tuple[str, dict]] = []
-
-    def walk(node: dict, prefix: str) -> None:
-        for k, v in (node.get("properties") or {}).items():
-            key = f"{prefix}.{k}" if prefix else k
-            out.append((key, v))
-            walk(v, key)
-        extra = node.get("additionalProperties")
-        if isinstance(extra, dict):
-            walk(extra, f"{prefix}.<name>")
-        for option in node.get("anyOf", []):
-            walk(option, prefix)
-
-    walk(json_schema(), "")
-    return out
-
-
 def _type_text(sub: dict) -> str:
     if "enum" in sub:
         return " \\| ".join(f"`{e}`" for e in sub["enum"])
@@ -403,16 +383,18 @@ def _default_text(sub: dict) -> str:
 
 def config_reference() -> str:
     """config/README.md: every schema key with meaning, unit, range, type and default."""
-    from physmorph.config_docs import FIELD_DOCS, SECTIONS
+    from physmorph.config_docs import SECTIONS, field_docs
 
     keys = schema_keys()
-    missing = [k for k, sub in keys if k not in FIELD_DOCS and k not in SECTIONS]
+    docs = field_docs()
+    missing = [k for k, sub in keys if not docs.get(k, ("",))[0] and k not in SECTIONS]
     if missing:
-        raise KeyError(f"config keys without a description in physmorph.config_docs.FIELD_DOCS: {missing}")
+        raise KeyError(f"config keys declared without a description (setting(...) in their class): {missing}")
     out = ["# Configuration reference\n",
-           "Generated from the typed settings (`physmorph.config.Settings`, whose schema is "
-           "`workflow/schemas/config.schema.yaml`) and their descriptions (`physmorph/config_docs.py`) by "
-           "`python -m physmorph.userdocs config`; do not edit by hand.\n",
+           "Generated from the declarations of the typed settings (`physmorph.config.Settings` and its sections: "
+           "each field's default, range, unit and meaning, also in `workflow/schemas/config.schema.yaml`) and the "
+           "section texts of `physmorph/config_docs.py` by `python -m physmorph.userdocs config`; do not edit by "
+           "hand.\n",
            "A profile is a YAML file merged onto `config/config.yaml` key by key (`--configfile`); single keys "
            "can be set with `--config 'plasticity={eta: 0.1}'`. Every key is checked before any job runs: an unknown "
            "key, a wrong type or a value out of range stops Snakemake with the dotted key. The defaults below "
@@ -432,7 +414,7 @@ def config_reference() -> str:
         out.append(SECTIONS[section] + "\n")
         rows = []
         for key, sub in groups[section]:
-            meaning, unit, rng = FIELD_DOCS[key]
+            meaning, unit, rng = docs[key]
             cells = [f"`{key}`", meaning, unit, rng, _type_text(sub), _default_text(sub)]
             # a literal | in a description would split its cell: escaped, as the type column's are
             rows.append("| " + " | ".join(re.sub(r"(?<!\\)\|", r"\\|", c) for c in cells) + " |")

@@ -4,43 +4,41 @@ surface keys, so editing one reruns just those jobs."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
+
+from physmorph.settings_base import Float, Int, Refused, setting, settings_dataclass
 
 VIDEO_KEYS = ("width", "height", "fps", "orbit_deg", "max_particles", "crf")
 MESH_KEYS = ("refine", "smooth_iterations", "frame")
 
 
-@dataclass(frozen=True)
+@settings_dataclass
 class ExportConfig:
     """Videos, surface meshes and Gaussian-splat files of the full-method runs (snakemake export)."""
 
-    width: int = 384  # each video panel's width in pixels (the body's, then the target's)
-    height: int = 288
-    fps: int = 10
-    orbit_deg: float = 120.0  # how far the video's camera turns over the whole run
-    max_particles: int = 120_000  # above this the video shows the body by an even subsample
-    crf: int = 23  # H.264 quality (lower: better and larger)
-    refine: float = 2.0  # surface grid cells per MPM cell
-    smooth_iterations: int = 10  # Taubin smoothing passes of the surface
-    frame: Literal["domain", "target"] = "domain"  # coordinates of meshes and splats: the simulation's or the target mesh's
+    width: Annotated[Int, setting("width of each video panel (the body's, then the target's)", "pixels",
+                                  "even, >= 16", ge=16)] = 384
+    height: Annotated[Int, setting("height of the video", "pixels", "even, >= 16", ge=16)] = 288
+    fps: Annotated[Int, setting("video frames per second (one per morph frame)", "1/s", ge=1, le=120)] = 10
+    orbit_deg: Annotated[Float, setting("how far the video's camera turns around the body over the whole run",
+                                        "degrees")] = 120.0
+    max_particles: Annotated[Int, setting(
+        "above this many particles the video shows the body by an even subsample, each Gaussian widened to keep "
+        "it closed", ge=1000)] = 120_000
+    crf: Annotated[Int, setting("H.264 constant rate factor (lower: better and larger)", ge=0, le=51)] = 23
+    refine: Annotated[Float, setting("surface grid cells per MPM cell (the exported meshes' resolution)",
+                                     gt=0)] = 2.0
+    smooth_iterations: Annotated[Int, setting("Taubin smoothing passes of the exported surface (0: none)",
+                                              ge=0)] = 10
+    frame: Annotated[Literal["domain", "target"], setting(
+        "coordinates of the exported meshes and splats: domain (the simulation's) or target (the target's input "
+        "mesh frame and units, to overlay it)")] = "domain"
 
     def __post_init__(self) -> None:
+        """The video encoder takes even sizes only."""
         for name in ("width", "height"):
-            if getattr(self, name) < 16 or getattr(self, name) % 2:
-                raise ValueError(f"{name} must be an even number of pixels >= 16, got {getattr(self, name)}")
-        if not 1 <= self.fps <= 120:
-            raise ValueError(f"fps must be in [1, 120], got {self.fps}")
-        if self.max_particles < 1000:
-            raise ValueError(f"max_particles must be >= 1000, got {self.max_particles}")
-        if not 0 <= self.crf <= 51:
-            raise ValueError(f"crf must be in [0, 51], got {self.crf}")
-        if not self.refine > 0:
-            raise ValueError(f"refine must be > 0, got {self.refine}")
-        if self.smooth_iterations < 0:
-            raise ValueError(f"smooth_iterations must be >= 0, got {self.smooth_iterations}")
-        if self.frame not in ("domain", "target"):
-            raise ValueError(f"frame must be 'domain' or 'target', got {self.frame!r}")
+            if getattr(self, name) % 2:
+                raise Refused(name, f"{name} must be an even number of pixels >= 16, got {getattr(self, name)}")
 
     def video(self) -> dict:
         return {k: getattr(self, k) for k in VIDEO_KEYS}

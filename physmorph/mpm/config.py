@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, fields
-from typing import ClassVar, Literal
+from dataclasses import fields
+from typing import Annotated, ClassVar, Literal
 
 from ..grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
+from ..settings_base import Bool, Float, Int, Refused, setting, settings_dataclass
 
 
 class MPMError(RuntimeError):
@@ -60,7 +61,7 @@ DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", 
                            "log_mass_eps", "warm_start", "cfl", "cfl_warn_fraction"})
 
 
-@dataclass(frozen=True)
+@settings_dataclass(error=MPMConfigError)
 class MPMConfig:
     """Solver configuration.
 
@@ -208,137 +209,125 @@ class MPMConfig:
     """
 
     # Fields whose default changed after runs were made with the old one: always in a run's params
-    # (physmorph.config.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
+    # (physmorph.config_params.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
                                                              "step_scales_with_dx", "step_per_volume",
                                                              "step_volume", "step_volume_share",
                                                              "overfill_weight", "overfill_ratio", "mass_loss_blur"})
 
-    grid_res: int = 64
-    domain_lo: float = DOMAIN_LO
-    domain_hi: float = DOMAIN_HI
-    dt: float = 1.0 / 240.0
-    substeps: int = 20
-    youngs_modulus: float = 1.4e5
-    poisson_ratio: float = 0.2
-    density: float = 75.0
-    drag: float = 0.9
-    smoothing: float = 0.955
-    smoothing_mode: Literal["full", "isochoric"] = "isochoric"
-    control: Literal["per_substep", "per_frame"] = "per_substep"
-    control_in_F: bool = False
-    learning_rate: float = 0.004  # history: docs/study/CHANGELOG.md
-    step_scales_with_dx: bool = True
-    optimizer: Literal["adam", "normalized_gd"] = "normalized_gd"
-    line_search_iters: int = 10
-    sufficient_decrease: float = 0.0
-    step_clip: float = 3.0
-    step_per_volume: bool = True  # history: docs/study/CHANGELOG.md
-    step_volume_power: float = 1.0
-    step_rms: Literal["particles", "volume"] = "particles"
-    step_smoothing: Literal["none", "grid"] = "none"
-    step_volume: Literal["full", "particle", "body"] = "particle"  # history: docs/study/CHANGELOG.md
-    step_volume_share: float = 0.75
-    grad_iters: int = 1
-    adam_beta1: float = 0.9
-    adam_beta2: float = 0.999
-    adam_eps: float = 1e-8
-    mass_loss: Literal["squared", "log", "sqrt", "log_bounded", "log_convex"] = "log"
-    log_mass_eps: float = 0.1
-    mass_loss_levels: int = 1
-    mass_loss_blur: float = 2.0  # history: docs/study/CHANGELOG.md
-    mass_loss_blur_weight: float = 1.0
-    overfill_weight: float = 1.0  # history: docs/study/CHANGELOG.md
-    volume_law: Literal["fixed_corotated", "barrier"] = "fixed_corotated"
-    overfill_ratio: float = 0.001
-    warm_start: bool = True
-    volume_stiffness: float = 0.0
-    volume_onset: float = 2.0
-    min_volume_ratio: float = 0.25
-    control_clip: float = 0.0
-    cfl: float = 0.5
-    cfl_warn_fraction: float = 0.8
-    device: Literal["auto", "cpu", "cuda"] = "cpu"
-    precision: Literal["float32", "float64"] = "float32"
-    threads: int | None = None
+    grid_res: Annotated[Int, setting("MPM grid cells per axis (set by sampling.grid_res)", "cells",
+                                     ge=2 * BOUNDARY_CELLS + 2)] = 64
+    domain_lo: Annotated[Float, setting("lower corner of the simulation cube (set by domain)", "domain units")] = DOMAIN_LO
+    domain_hi: Annotated[Float, setting("upper corner of the simulation cube (set by domain)", "domain units",
+                                        "> domain_lo")] = DOMAIN_HI
+    dt: Annotated[Float, setting("MPM time step of one substep (a frame is substeps x dt); refused above the stable "
+                                 "step cfl dx / c", "s", "> 0, <= cfl dx / c", gt=0)] = 1.0 / 240.0
+    substeps: Annotated[Int, setting("MPM substeps per frame (T)", ge=1)] = 20
+    youngs_modulus: Annotated[Float, setting("Young's modulus E", "Pa", gt=0)] = 1.4e5
+    poisson_ratio: Annotated[Float, setting("Poisson's ratio nu", gt=-1, lt=0.5)] = 0.2
+    density: Annotated[Float, setting("material density rho (set by sampling.density)", "mass / domain unit^3",
+                                      gt=0)] = 75.0
+    drag: Annotated[Float, setting("velocity drag d; experiments set it with `drag`", "1/s",
+                                   "0 <= drag dt <= 1")] = 0.9
+    smoothing: Annotated[Float, setting("F smoothing s: the share of F kept from before each substep",
+                                        ge=0, lt=1)] = 0.955
+    smoothing_mode: Annotated[Literal["full", "isochoric"], setting(
+        "full: the paper's blend (also smooths the volume); isochoric: the blend rescaled so det F follows the "
+        "motion")] = "isochoric"
+    control: Annotated[Literal["per_substep", "per_frame"], setting(
+        "per_substep: one control dFc per particle per substep (the paper's code); per_frame: one per "
+        "frame")] = "per_substep"
+    control_in_F: Annotated[Bool, setting(
+        "carry dFc in F as the authors' code does (otherwise it enters the stress only)")] = False
+    learning_rate: Annotated[Float, setting(
+        "step size: per-entry RMS of each normalised step (normalized_gd) or Adam's lr, at a one-unit cell with "
+        "step_scales_with_dx", gt=0)] = 0.004  # history: docs/study/CHANGELOG.md
+    step_scales_with_dx: Annotated[Bool, setting(
+        "the step is learning_rate x dx (domain units): the same distance per frame at every grid "
+        "resolution")] = True
+    optimizer: Annotated[Literal["adam", "normalized_gd"], setting(
+        "normalized_gd: the authors' normalised descent with line search; adam: the paper's text")] = "normalized_gd"
+    line_search_iters: Annotated[Int, setting(
+        "normalized_gd: halvings of the step tried before a step is undone", ge=1)] = 10
+    sufficient_decrease: Annotated[Float, setting(
+        "normalized_gd: Armijo constant c of the line search (a step must lower the objective by c alpha <g, d>; "
+        "0: any decrease)", ge=0, lt=1)] = 0.0
+    step_clip: Annotated[Float, setting(
+        "normalized_gd: clamp of each entry of the normalised step, in multiples of its RMS; 0 = off", ge=0)] = 3.0
+    step_per_volume: Annotated[Bool, setting(
+        "normalized_gd: the step direction is the gradient per unit of particle volume (a shell-biased "
+        "sampling's surface particles are driven as hard as its interior ones)")] = True  # history: docs/study/CHANGELOG.md
+    step_volume_power: Annotated[Float, setting(
+        "with step_per_volume: the exponent of the per-volume weight, g_p (V_max / V_p)^power (1: per unit volume; "
+        "0: the plain step)", ge=0, le=1)] = 1.0
+    step_rms: Annotated[Literal["particles", "volume"], setting(
+        "what the normalised step's RMS is taken over: every particle once (particles) or each by its volume "
+        "(volume: the same for every sampling of a body)")] = "particles"
+    step_smoothing: Annotated[Literal["none", "grid"], setting(
+        "grid: the weighted gradient replaced by its share on the MPM grid (P2G, then G2P) before the step is "
+        "normalised; none: each particle's own")] = "none"
+    step_volume: Annotated[Literal["full", "particle", "body"], setting(
+        "what the step may do to the volume the stress sees: particle (each particle's step loses its change of "
+        "volume), body (only the body's total change is removed), full (the authors' step)")] = "particle"  # history: docs/study/CHANGELOG.md
+    step_volume_share: Annotated[Float, setting(
+        "with step_volume particle: the share of each particle's change of volume removed from its step (1: all, "
+        "0: the full step)", ge=0, le=1)] = 0.75
+    grad_iters: Annotated[Int, setting(
+        "optimiser iterations per frame (J); experiments set it with `grad_iters`", ge=1)] = 1
+    adam_beta1: Annotated[Float, setting("Adam's first-moment decay", ge=0, lt=1)] = 0.9
+    adam_beta2: Annotated[Float, setting("Adam's second-moment decay", ge=0, lt=1)] = 0.999
+    adam_eps: Annotated[Float, setting("Adam's epsilon", gt=0)] = 1e-8
+    mass_loss: Annotated[Literal["squared", "log", "sqrt", "log_bounded", "log_convex"], setting(
+        "form of the grid-mass loss: squared difference, log difference, sqrt (Hellinger), log below the target "
+        "and sqrt above, or log continued linearly where it turns concave (log_convex)")] = "log"
+    log_mass_eps: Annotated[Float, setting("eps of the log and sqrt losses, in mean particle masses",
+                                           "particle masses", gt=0)] = 0.1
+    mass_loss_levels: Annotated[Int, setting(
+        "levels of a grid-mass pyramid the loss is summed over; 1 = the grid alone", "",
+        ">= 1, 2^(levels-1) divides grid_res", ge=1)] = 1
+    mass_loss_blur: Annotated[Float, setting(
+        "sigma of a Gaussian-blurred level of the mass loss, reaching material several cells from the target; "
+        "0 = off", "cells", ge=0, le=16)] = 2.0  # history: docs/study/CHANGELOG.md
+    mass_loss_blur_weight: Annotated[Float, setting("weight of the blurred level (the grid's own is 1)", ge=0)] = 1.0
+    overfill_weight: Annotated[Float, setting(
+        "weight of a packing term on nodes holding more than the target (or than overfill_ratio x density, where "
+        "that is more); 1 with ratio 0.001: overfill weighed twice; 0 = off", ge=0)] = 1.0  # history: docs/study/CHANGELOG.md
+    volume_law: Annotated[Literal["fixed_corotated", "barrier"], setting(
+        "volume term of the elastic energy: fixed_corotated (the paper's) or barrier (grows without bound as "
+        "det F -> 0)")] = "fixed_corotated"
+    overfill_ratio: Annotated[Float, setting(
+        "density ratio of the packing term's cap (0.001: the target's own node mass)", gt=0)] = 0.001
+    warm_start: Annotated[Bool, setting("keep the control (and Adam's moments) from frame to frame")] = True
+    volume_stiffness: Annotated[Float, setting(
+        "K of a pressure against packing measured from the particles' density; 0 = off", "Pa", ge=0)] = 0.0
+    volume_onset: Annotated[Float, setting("density ratio above which volume_stiffness acts", gt=0)] = 2.0
+    min_volume_ratio: Annotated[Float, setting(
+        "floor on det F under isochoric smoothing; 0 = off (the paper)", ge=0, lt=1)] = 0.25
+    control_clip: Annotated[Float, setting("clamp of every dFc entry after each step; 0 = off", ge=0)] = 0.0
+    cfl: Annotated[Float, setting("CFL number: dt above cfl dx / c (c the P-wave speed) is refused",
+                                  gt=0, le=1)] = 0.5
+    cfl_warn_fraction: Annotated[Float, setting("warn when dt is above this share of the stable step",
+                                                gt=0, le=1)] = 0.8
+    device: Annotated[Literal["auto", "cpu", "cuda"], setting(
+        "where the solver runs (set by device)")] = "cpu"
+    precision: Annotated[Literal["float32", "float64"], setting("floating-point type of the solver")] = "float32"
+    threads: Annotated[Int | None, setting(
+        "the solver's CPU threads (set by the rule's threads); None: Taichi's default")] = None
 
     def __post_init__(self) -> None:
-        def need(ok: bool, msg: str) -> None:
-            if not ok:
-                raise MPMConfigError(msg)
-
-        need(isinstance(self.grid_res, int) and self.grid_res >= 2 * BOUNDARY_CELLS + 2,
-             f"grid_res must be an int >= {2 * BOUNDARY_CELLS + 2}, got {self.grid_res!r}")
-        need(math.isfinite(self.domain_lo) and math.isfinite(self.domain_hi)
-             and self.domain_hi > self.domain_lo,
-             f"domain needs finite domain_hi > domain_lo, got {self.domain_lo}, {self.domain_hi}")
-        need(math.isfinite(self.dt) and self.dt > 0, f"dt must be finite and > 0, got {self.dt}")
-        need(isinstance(self.substeps, int) and self.substeps >= 1,
-             f"substeps (T) must be an int >= 1, got {self.substeps!r}")
-        need(math.isfinite(self.youngs_modulus) and self.youngs_modulus > 0,
-             f"youngs_modulus must be > 0, got {self.youngs_modulus}")
-        need(-1.0 < self.poisson_ratio < 0.5,
-             f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
-        need(math.isfinite(self.density) and self.density > 0,
-             f"density must be > 0, got {self.density}")
-        need(math.isfinite(self.drag) and 0.0 <= self.drag * self.dt <= 1.0,
-             f"drag must satisfy 0 <= drag * dt <= 1 (momentum factor 1 - dt*d in [0, 1]), "
-             f"got drag={self.drag}, dt={self.dt}")
-        need(0.0 <= self.smoothing < 1.0, f"smoothing s must be in [0, 1), got {self.smoothing}")
-        need(self.smoothing_mode in SMOOTHING_MODES,
-             f"smoothing_mode must be one of {SMOOTHING_MODES}, got {self.smoothing_mode!r}")
-        need(self.control in CONTROL_MODES, f"control must be one of {CONTROL_MODES}, got {self.control!r}")
-        need(self.mass_loss in MASS_LOSSES, f"mass_loss must be one of {MASS_LOSSES}, got {self.mass_loss!r}")
-        need(math.isfinite(self.learning_rate) and self.learning_rate > 0,
-             f"learning_rate must be > 0, got {self.learning_rate}")
-        need(isinstance(self.grad_iters, int) and self.grad_iters >= 1,
-             f"grad_iters (J) must be an int >= 1, got {self.grad_iters!r}")
-        need(0 <= self.adam_beta1 < 1 and 0 <= self.adam_beta2 < 1 and self.adam_eps > 0,
-             f"Adam needs 0 <= beta1, beta2 < 1 and eps > 0, got {self.adam_beta1}, "
-             f"{self.adam_beta2}, {self.adam_eps}")
-        need(self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
-        need(self.step_clip >= 0, f"step_clip must be >= 0 (0 = off), got {self.step_clip!r}")
-        need(self.step_smoothing in ("none", "grid"), f"step_smoothing must be none or grid, got {self.step_smoothing!r}")
-        need(0.0 <= self.step_volume_share <= 1.0, f"step_volume_share must be in [0, 1], got {self.step_volume_share}")
-        need(self.step_volume in STEP_VOLUME_MODES,
-             f"step_volume must be one of {', '.join(STEP_VOLUME_MODES)}, got {self.step_volume!r}")
-        need(self.step_rms in ("particles", "volume"), f"step_rms must be particles or volume, got {self.step_rms!r}")
-        need(0 <= self.step_volume_power <= 1, f"step_volume_power must be in [0, 1], got {self.step_volume_power!r}")
-        need(math.isfinite(self.sufficient_decrease) and 0.0 <= self.sufficient_decrease < 1.0,
-             f"sufficient_decrease must be in [0, 1), got {self.sufficient_decrease}")
-        need(isinstance(self.line_search_iters, int) and self.line_search_iters >= 1,
-             f"line_search_iters must be an int >= 1, got {self.line_search_iters!r}")
-        need(self.volume_law in VOLUME_LAWS, f"volume_law must be one of {VOLUME_LAWS}, got {self.volume_law!r}")
-        need(math.isfinite(self.overfill_weight) and self.overfill_weight >= 0,
-             f"overfill_weight must be finite and >= 0 (0 = off), got {self.overfill_weight}")
-        need(math.isfinite(self.overfill_ratio) and self.overfill_ratio > 0,
-             f"overfill_ratio must be > 0, got {self.overfill_ratio}")
-        need(self.log_mass_eps > 0, f"log_mass_eps must be > 0, got {self.log_mass_eps}")
-        need(math.isfinite(self.mass_loss_blur) and 0 <= self.mass_loss_blur <= 16,
-             f"mass_loss_blur must be in [0, 16] cells (0 = off), got {self.mass_loss_blur}")
-        need(math.isfinite(self.mass_loss_blur_weight) and self.mass_loss_blur_weight >= 0,
-             f"mass_loss_blur_weight must be finite and >= 0, got {self.mass_loss_blur_weight}")
-        need(isinstance(self.mass_loss_levels, int) and self.mass_loss_levels >= 1
-             and self.grid_res % (1 << (self.mass_loss_levels - 1)) == 0,
-             f"mass_loss_levels must be an int >= 1 whose blocks 2^(levels-1) divide grid_res "
-             f"{self.grid_res}, got {self.mass_loss_levels!r}")
-        need(math.isfinite(self.volume_stiffness) and self.volume_stiffness >= 0,
-             f"volume_stiffness must be finite and >= 0 (0 = off), got {self.volume_stiffness}")
-        need(math.isfinite(self.volume_onset) and self.volume_onset > 0,
-             f"volume_onset must be > 0, got {self.volume_onset}")
-        need(math.isfinite(self.min_volume_ratio) and 0 <= self.min_volume_ratio < 1,
-             f"min_volume_ratio must be in [0, 1) (0 = off), got {self.min_volume_ratio}")
-        need(self.control_clip >= 0, f"control_clip must be >= 0, got {self.control_clip}")
-        need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl}")
-        need(0 < self.cfl_warn_fraction <= 1.0,
-             f"cfl_warn_fraction must be in (0, 1], got {self.cfl_warn_fraction}")
-        need(self.device in ("cpu", "cuda", "auto"), f"device must be cpu, cuda or auto, got {self.device!r}")
-        need(self.precision in ("float32", "float64"),
-             f"precision must be float32 or float64, got {self.precision!r}")
+        """The checks across fields (each field's own range is its declaration's)."""
+        if not self.domain_hi > self.domain_lo:
+            raise Refused("domain_hi", f"domain needs domain_hi > domain_lo, got {self.domain_lo}, {self.domain_hi}")
+        if not 0.0 <= self.drag * self.dt <= 1.0:
+            raise Refused("drag", f"drag must satisfy 0 <= drag * dt <= 1 (momentum factor 1 - dt*d in [0, 1]), "
+                                  f"got drag={self.drag}, dt={self.dt}")
+        if self.grid_res % (1 << (self.mass_loss_levels - 1)):
+            raise Refused("mass_loss_levels", f"mass_loss_levels must be an int >= 1 whose blocks 2^(levels-1) "
+                                              f"divide grid_res {self.grid_res}, got {self.mass_loss_levels!r}")
         dt_max = self.stable_dt
         if self.dt > dt_max:
-            raise MPMConfigError(
+            raise Refused("dt",
                 f"dt={self.dt:.6g} exceeds the stable step {dt_max:.6g} = cfl*dx/c for "
                 f"E={self.youngs_modulus:g}, rho={self.density:g}, nu={self.poisson_ratio:g}, "
                 f"dx={self.dx:g} (P-wave speed c={self.wave_speed:.4g}); lower dt or E, or refine less")

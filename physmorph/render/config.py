@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
+from physmorph.settings_base import Float, Int, Refused, setting, settings_dataclass
 
-@dataclass(frozen=True)
+
+@settings_dataclass
 class RenderConfig:
     """Settings of the differentiable splatting renderer and its losses.
 
@@ -41,43 +43,35 @@ class RenderConfig:
     device: "auto" | "cpu" | "cuda" (torch tensors and Taichi kernels).
     """
 
-    opacity: float = 0.9
-    low_pass: float = 0.3
-    tile_size: int = 16
-    cutoff_sigma: float = 3.0
-    alpha_min: float = 1.0 / 255.0
-    alpha_max: float = 0.99
-    transmittance_min: float = 1e-4
-    iou_fraction: float = 0.5
-    depth_fraction: float = 0.25
-    depth_min_alpha: float = 0.1
-    dtype: Literal["float32", "float64"] = "float32"
-    kernel: Literal["auto", "tile", "pixel"] = "auto"
-    device: Literal["auto", "cpu", "cuda"] = "cpu"
+    opacity: Annotated[Float, setting("peak opacity of every Gaussian (particles carry no learned opacity)",
+                                      gt=0, le=1)] = 0.9
+    low_pass: Annotated[Float, setting("added to the diagonal of every 2D covariance (EWA low-pass)", "pixels^2",
+                                       ge=0)] = 0.3
+    tile_size: Annotated[Int, setting("side of the screen tiles Gaussians are binned into", "pixels", ge=1)] = 16
+    cutoff_sigma: Annotated[Float, setting("a Gaussian is evaluated within this 2D Mahalanobis distance", "sigma",
+                                           gt=0)] = 3.0
+    alpha_min: Annotated[Float, setting("per-Gaussian alpha below this is skipped", "", "[0, alpha_max)",
+                                        ge=0)] = 1.0 / 255.0
+    alpha_max: Annotated[Float, setting("per-Gaussian alpha is clamped to this", gt=0, lt=1)] = 0.99
+    transmittance_min: Annotated[Float, setting("compositing stops below this transmittance; 0 composites all",
+                                                ge=0, lt=1)] = 1e-4
+    iou_fraction: Annotated[Float, setting(
+        "soft-IoU gradient scaled to this share of the distance-transform gradient's norm", ge=0)] = 0.5
+    depth_fraction: Annotated[Float, setting(
+        "depth gradient scaled to this share of the distance-transform gradient's norm", ge=0)] = 0.25
+    depth_min_alpha: Annotated[Float, setting("the depth loss uses pixels whose rendered alpha exceeds this",
+                                              ge=0, le=1)] = 0.1
+    dtype: Annotated[Literal["float32", "float64"], setting(
+        "floating-point type of the renderer (float64 for gradient checks)")] = "float32"
+    kernel: Annotated[Literal["auto", "tile", "pixel"], setting(
+        "rasterizer loop order: tile (faster on CPU), pixel (CUDA), auto by device")] = "auto"
+    device: Annotated[Literal["auto", "cpu", "cuda"], setting(
+        "where torch and Taichi run (set by device)")] = "cpu"
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.opacity <= 1.0:
-            raise ValueError(f"opacity must be in (0, 1], got {self.opacity}")
-        if self.low_pass < 0.0:
-            raise ValueError(f"low_pass must be >= 0, got {self.low_pass}")
-        if self.tile_size < 1:
-            raise ValueError(f"tile_size must be >= 1, got {self.tile_size}")
-        if self.cutoff_sigma <= 0.0:
-            raise ValueError(f"cutoff_sigma must be > 0, got {self.cutoff_sigma}")
-        if not 0.0 < self.alpha_max < 1.0:
-            raise ValueError(f"alpha_max must be in (0, 1), got {self.alpha_max}")
-        if not 0.0 <= self.alpha_min < self.alpha_max:
-            raise ValueError(f"alpha_min must be in [0, alpha_max), got {self.alpha_min}")
-        if not 0.0 <= self.transmittance_min < 1.0:
-            raise ValueError(f"transmittance_min must be in [0, 1), got {self.transmittance_min}")
-        if self.iou_fraction < 0.0 or self.depth_fraction < 0.0:
-            raise ValueError("iou_fraction and depth_fraction must be >= 0")
-        if self.dtype not in ("float32", "float64"):
-            raise ValueError(f"dtype must be float32 or float64, got {self.dtype!r}")
-        if self.kernel not in ("auto", "tile", "pixel"):
-            raise ValueError(f"kernel must be auto, tile or pixel, got {self.kernel!r}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        """The check across fields (each field's own range is its declaration's)."""
+        if not self.alpha_min < self.alpha_max:
+            raise Refused("alpha_min", f"alpha_min must be in [0, alpha_max), got {self.alpha_min}")
 
 
 @dataclass

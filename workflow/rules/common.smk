@@ -10,9 +10,19 @@ from physmorph.config import Settings, morph_params, params_json, particle_estim
 from physmorph.config import morph_memory, sampling_memory, target_memory
 from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.layout import load_layout
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
 from physmorph.particles import stored_particle_count
 from physmorph.tradeoff import tradeoff_points
 
+# The merged config is checked against the schema generated from the settings' declarations
+# (python -m physmorph.config --schema); where it refuses, the settings say why in their own words,
+# naming the key and the allowed values.
+try:
+    validate(config, "../schemas/config.schema.yaml", set_default=False)
+except WorkflowError:
+    Settings.from_mapping(config)
+    raise
 S = Settings.from_mapping(config)
 POINTS = tradeoff_points(S) if S.tradeoff is not None else {}
 RESULTS = ResultTree(S, POINTS)
