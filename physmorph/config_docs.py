@@ -7,6 +7,8 @@ config/README.md.
 
 from __future__ import annotations
 
+from physmorph.settings_base import interval_text
+
 # Sections, in the order of config/config.yaml, with one line each.
 SECTIONS = {
     "": "Run-wide settings.",
@@ -50,10 +52,6 @@ def schema_keys() -> list[tuple[str, dict]]:
     return out
 
 
-def _bound_text(x) -> str:
-    return f"{x:g}" if isinstance(x, float) else str(x)
-
-
 def range_of(sub: dict) -> str:
     """A key's range in words: its declared range note, else its bounds (">= 1", "[0, 1)")."""
     if sub.get("range"):
@@ -61,15 +59,7 @@ def range_of(sub: dict) -> str:
     for option in sub.get("anyOf", []):  # an optional number: the number's bounds
         if range_of(option):
             return range_of(option)
-    lo = ("[", sub["minimum"]) if "minimum" in sub else ("(", sub["exclusiveMinimum"]) if "exclusiveMinimum" in sub else None
-    hi = ("]", sub["maximum"]) if "maximum" in sub else (")", sub["exclusiveMaximum"]) if "exclusiveMaximum" in sub else None
-    if lo and hi:
-        return f"{lo[0]}{_bound_text(lo[1])}, {_bound_text(hi[1])}{hi[0]}"
-    if lo:
-        return f"{'>=' if lo[0] == '[' else '>'} {_bound_text(lo[1])}"
-    if hi:
-        return f"{'<=' if hi[0] == ']' else '<'} {_bound_text(hi[1])}"
-    return ""
+    return interval_text(sub.get("minimum"), sub.get("exclusiveMinimum"), sub.get("maximum"), sub.get("exclusiveMaximum"))
 
 
 def field_docs() -> dict[str, tuple[str, str, str]]:

@@ -141,8 +141,13 @@ def range_text(info, with_note: bool = True) -> str:
     if note and with_note:
         return note
     b = bounds(info)
-    lo = ("[", b["ge"]) if "ge" in b else ("(", b["gt"]) if "gt" in b else None
-    hi = ("]", b["le"]) if "le" in b else (")", b["lt"]) if "lt" in b else None
+    return interval_text(b.get("ge"), b.get("gt"), b.get("le"), b.get("lt"))
+
+
+def interval_text(ge=None, gt=None, le=None, lt=None) -> str:
+    """Bounds in words: ">= 1", "> 0", "[0, 1)", "(0, 1]" ("" without any)."""
+    lo = ("[", ge) if ge is not None else ("(", gt) if gt is not None else None
+    hi = ("]", le) if le is not None else (")", lt) if lt is not None else None
     if lo and hi:
         return f"{lo[0]}{_number_text(lo[1])}, {_number_text(hi[1])}{hi[0]}"
     if lo:
