@@ -84,3 +84,19 @@ def test_no_physmorph_module_imports_itself_around_a_circle():
     circles = _circles(graph)
     assert not circles, "modules importing each other around a circle:\n" + "\n".join(
         " -> ".join(c) for c in circles)
+
+
+def test_no_module_over_600_lines_and_no_function_over_80():
+    """The package's rooms stay a size a reader takes in: no file over 600 lines, no function over
+    80 (a def's end_lineno - lineno + 1, nested defs counted in their outer function too)."""
+    import ast
+
+    long_files, long_functions = [], []
+    for path in sorted((ROOT / "physmorph").rglob("*.py")):
+        text = path.read_text()
+        if text.count("\n") > 600:
+            long_files.append(f"{path.relative_to(ROOT)}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 80:
+                long_functions.append(f"{path.relative_to(ROOT)}: {node.name} {node.end_lineno - node.lineno + 1} lines")
+    assert not long_files and not long_functions, "\n".join(long_files + long_functions)
