@@ -9,7 +9,7 @@ refused with the dotted key and the allowed values; numbers accepted as int, flo
 string, since ``--config 'mpm={smoothing: 0.5}'`` hands Snakemake a string), the JSON schema the
 Snakefile validates with (``json_schema``), config/README.md (physmorph.userdocs) and the check
 that config/config.yaml restates the defaults. Every experiment is resolved to its full
-:class:`~physmorph.morph_config.MorphConfig` and a memory estimate per stage is checked against the
+:class:`~physmorph.settings.morph.MorphConfig` and a memory estimate per stage is checked against the
 machine's memory, so a bad config fails before any job runs.
 
 The sections ``mpm``, ``render``, ``plasticity``, ``surface``, ``morph`` and ``export`` are the
@@ -37,16 +37,16 @@ from physmorph.config_error import ConfigError
 from physmorph.config_params import canonical_json, morph_params, params_json, to_plain, without_defaults  # noqa: F401
 from physmorph.config_sections import (EXPERIMENT_OVERRIDES, RES_PATTERN, Experiment, RawMesh,  # noqa: F401
                                        SamplingConfig, ShapeSettings, Tables, TargetConfig, Tradeoff)
-from physmorph.export.settings import ExportConfig
+from physmorph.settings.export import ExportConfig
 from physmorph.grid import DOMAIN_HI, DOMAIN_LO
-from physmorph.morph_config import MorphConfig
-from physmorph.mpm.config import MPMConfig
-from physmorph.mpm.memory import bytes_per_particle_substep
-from physmorph.plasticity import PlasticityConfig
-from physmorph.render.config import RenderConfig
+from physmorph.settings.morph import MorphConfig
+from physmorph.settings.mpm import MPMConfig
+from physmorph.settings.solver_memory import bytes_per_particle_substep
+from physmorph.settings.plasticity import PlasticityConfig
+from physmorph.settings.render import RenderConfig
 from physmorph.settings_base import (Float, Int, Refused, field_default, json_schema_of, setting,
                                      settings_dataclass, validate_plain_dataclass, with_prefix)
-from physmorph.surface import SurfaceMaskConfig
+from physmorph.settings.surface import SurfaceMaskConfig
 from physmorph.tradeoff_points import TradeoffPoint, tradeoff_points
 
 def deep_merge(base: dict, override: dict) -> dict:
@@ -502,7 +502,7 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
     n = particle_estimate(source, sampling, domain) if n_particles is None else int(n_particles)
     scale = 2 if mpm.precision == "float64" else 1
     slots = mpm.substeps if mpm.control == "per_substep" else 1
-    # stored per substep: what the solver keeps for its backward (physmorph.mpm.memory); per
+    # stored per substep: what the solver keeps for its backward (physmorph.settings.solver_memory); per
     # control slot dFc and its gradient (72 B in float32), and Adam's two moments when Adam runs (72 B)
     moments = 72 if mpm.optimizer == "adam" else 0
     per_particle = (mpm.substeps * bytes_per_particle_substep(mpm) + slots * (72 + moments) * scale

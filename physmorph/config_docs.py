@@ -22,12 +22,12 @@ SECTIONS = {
     "plasticity": "Chamfer-guided plasticity: each particle's rest state pulled toward its destination "
                   "(physmorph.plasticity.PlasticityConfig).",
     "surface": "The surface mask: which particles the render loss sees (physmorph.surface.SurfaceMaskConfig).",
-    "morph": "The frame loop of one run (physmorph.morph_config.MorphConfig).",
+    "morph": "The frame loop of one run (physmorph.settings.morph.MorphConfig).",
     "experiments": "The experiments: one morph run each; unset keys take the sections' values.",
     "tradeoff": "The speed/accuracy study: the base experiment rerun with one knob changed at a time.",
     "tables": "What `snakemake tables` (and `figures`) builds.",
     "export": "Videos, surface meshes and Gaussian-splat files of the full-method runs (`snakemake export`; "
-              "physmorph.export.settings.ExportConfig).",
+              "physmorph.settings.export.ExportConfig).",
 }
 
 

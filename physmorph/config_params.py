@@ -76,7 +76,7 @@ def params_json(obj: Any) -> str:
 
 
 def morph_params(cfg) -> str:
-    """Canonical JSON of what a morph run's results depend on (cfg: physmorph.morph_config.MorphConfig).
+    """Canonical JSON of what a morph run's results depend on (cfg: physmorph.settings.morph.MorphConfig).
 
     Settings at their defaults are left out (see ``without_defaults``: a new option reruns
     nothing), and so are settings the run's method never reads, so changing them reruns nothing:

@@ -28,7 +28,7 @@ import numpy as np
 import taichi as ti
 
 from physmorph.grid import Grid
-from physmorph.mpm.config import MPMConfig
+from physmorph.settings.mpm import MPMConfig
 from physmorph.mpm.state import volume_energy_density
 from physmorph.taichi_runtime import ensure_taichi
 

@@ -45,7 +45,7 @@ from physmorph.injection import calibrate_injection
 from physmorph.linalg3 import det3
 from physmorph.memory import release_free_memory
 from physmorph.meshes.fit import volume_mismatch
-from physmorph.morph_config import MorphConfig
+from physmorph.settings.morph import MorphConfig
 from physmorph.mpm import MPMError, MPMSolver, ParticleState, solver_for, kinetic_energy, total_volume
 from physmorph.particles import load_particles
 from physmorph.quality import gap_closed, silhouette_iou, volume_metrics

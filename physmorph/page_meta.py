@@ -30,7 +30,7 @@ BLOCK_RE = re.compile(r"<!-- physmorph-page (\{.*\}) -->")
 def shipped_method_settings() -> dict[str, Any]:
     """The method settings this code ships (MorphConfig's defaults, which config/config.yaml states):
     what a page's method is compared with."""
-    from physmorph.morph_config import MorphConfig
+    from physmorph.settings.morph import MorphConfig
 
     return method_settings(json.loads(json.dumps(asdict(MorphConfig(method="full")), default=str)))
 

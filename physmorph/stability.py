@@ -50,7 +50,7 @@ def anisotropy(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N]
 
 def check_state(st: ParticleState, frame: int, cfg) -> None:
     """Raise MorphDivergenceError naming frame, quantity and particle when x, F or Fp is non-finite
-    or beyond its bound (cfg: physmorph.morph_config.MorphConfig, its max_F_norm and max_Fp_norm)."""
+    or beyond its bound (cfg: physmorph.settings.morph.MorphConfig, its max_F_norm and max_Fp_norm)."""
     for name, arr, bound in (("x", st.x, 1e6), ("F", st.F, cfg.max_F_norm), ("Fp", st.Fp, cfg.max_Fp_norm)):
         if not np.isfinite(arr).all():
             p = int(np.argwhere(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0, 0])

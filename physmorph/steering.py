@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from physmorph.morph_config import MorphConfig
+from physmorph.settings.morph import MorphConfig
 from physmorph.mpm import ParticleState
 
 

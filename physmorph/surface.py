@@ -14,26 +14,11 @@ from typing import TYPE_CHECKING, Annotated
 import numpy as np
 
 from physmorph.grid import scatter_add
-from physmorph.settings_base import Bool, Float, Int, setting, settings_dataclass
+from physmorph.settings.surface import SurfaceMaskConfig  # noqa: F401 (declared with the settings)
 
 if TYPE_CHECKING:  # scipy and scikit-image are imported where they are used (the workflow reads
     # the config classes at every start)
     from scipy.spatial import cKDTree
-
-
-@settings_dataclass
-class SurfaceMaskConfig:
-    """The surface mask: which particles the render loss sees."""
-
-    voxels: Annotated[Int, setting("voxels per axis of the density grid the mask is built on", ge=8)] = 64
-    blur_sigma: Annotated[Float, setting("Gaussian blur of the density grid", "voxels", ge=0)] = 1.0
-    level: Annotated[Float, setting("iso level, as a share of the 95th-percentile blurred density",
-                                    gt=0, lt=1)] = 0.5
-    band: Annotated[Float, setting("particles within this distance of the reconstructed surface are rendered",
-                                   "voxels", gt=0)] = 1.5
-    target_band: Annotated[Float, setting("and those within this distance of the target surface", "domain units",
-                                          ge=0)] = 0.75
-    enabled: Annotated[Bool, setting("false renders every particle")] = True
 
 
 def density_grid(x: np.ndarray, weights: np.ndarray, voxels: int, lo: float, hi: float) -> np.ndarray:

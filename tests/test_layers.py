@@ -63,18 +63,16 @@ def test_the_layers_contract_is_kept():
     assert "Contracts: 1 kept, 0 broken." in report, report[-4000:]
 
 
-def test_every_module_has_one_layer_and_every_ignored_import_exists():
-    """The contract names every module of the package (exhaustive) once, and each import it lets
-    through is one the code still makes (a fixed one must leave the list)."""
+def test_every_module_has_one_layer_and_no_import_is_let_through():
+    """The contract names every module of the package (exhaustive) once, and lets no import
+    through (no ignore_imports)."""
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
     (contract,) = config["contracts"]
     assert contract["type"] == "layers" and contract["exhaustive"] is True
     named = [m.strip() for layer in contract["layers"] for m in layer.split(":")]
     assert len(named) == len(set(named)), "a module is in two layers"
-    graph = _import_graph()
-    for entry in contract["ignore_imports"]:
-        importer, imported = (m.strip() for m in entry.split("->"))
-        assert graph.direct_import_exists(importer=importer, imported=imported), f"{entry}: no such import"
+    # no import is let through: the layers hold without exceptions
+    assert not contract.get("ignore_imports"), contract.get("ignore_imports")
 
 
 def test_no_physmorph_module_imports_itself_around_a_circle():

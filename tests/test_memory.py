@@ -1,5 +1,5 @@
 """Freed heap memory goes back to the system before a frame's render and its commit (physmorph.memory),
-and the morph's memory estimate asks the solver what it stores (physmorph.mpm.memory)."""
+and the morph's memory estimate asks the solver what it stores (physmorph.settings.solver_memory)."""
 
 import os
 import platform
@@ -33,17 +33,17 @@ def test_freed_heap_blocks_leave_the_resident_set():
 @pytest.mark.parametrize("precision", ["float32", "float64"])
 def test_the_solver_stores_what_the_memory_module_says(precision):
     from physmorph.mpm import MPMConfig, MPMSolver
-    from physmorph.mpm.memory import bytes_per_particle_substep
+    from physmorph.settings.solver_memory import bytes_per_particle_substep
 
     cfg = MPMConfig(grid_res=16, precision=precision, device="cpu")
     assert MPMSolver(cfg, 8).bytes_per_particle_substep() == bytes_per_particle_substep(cfg)
 
 
 def test_the_morph_estimate_asks_the_solvers_storage(monkeypatch):
-    """physmorph.config.morph_memory takes its bytes per particle-substep from physmorph.mpm.memory:
+    """physmorph.config.morph_memory takes its bytes per particle-substep from physmorph.settings.solver_memory:
     what that says more, the estimate holds more, for every particle and substep."""
     from physmorph import config
-    from physmorph.mpm.memory import bytes_per_particle_substep
+    from physmorph.settings.solver_memory import bytes_per_particle_substep
 
     s = config.load_settings("config/config.yaml")
     n, extra = 10_000, 1000

@@ -229,7 +229,7 @@ def test_reused_solver_computes_what_a_new_one_does(state):
                   step_scales_with_dx=False, sufficient_decrease=0.1, step_per_volume=True, step_volume_power=0.5,
                   step_rms="volume", step_smoothing="grid", step_volume="body",
                   step_volume_share=0.5)
-    from physmorph.mpm.config import DRIVER_FIELDS
+    from physmorph.settings.mpm import DRIVER_FIELDS
     assert set(driver) == DRIVER_FIELDS
     other = cfg64(substeps=2, mass_loss="log", **driver)
     swapped = solver_for(other, state.n)
@@ -251,7 +251,7 @@ def test_no_kernel_reads_a_driver_field():
 
     import importlib
 
-    from physmorph.mpm.config import DRIVER_FIELDS
+    from physmorph.settings.mpm import DRIVER_FIELDS
 
     def compiled_or_init(fn: ast.FunctionDef) -> bool:
         names = {ast.unparse(d) for d in fn.decorator_list}

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from physmorph.export.runs import frame_state, saved_frames
-from physmorph.export.settings import ExportConfig
+from physmorph.settings.export import ExportConfig
 from physmorph.h5io import StageInputError
 from physmorph.meshes.errors import exit_on_refusal
 from physmorph.runfile import RunFileError

@@ -18,7 +18,7 @@ import numpy as np
 from physmorph.cameras import Cameras, look_at
 from physmorph.quality import gap_closed
 from physmorph.export.runs import saved_frames
-from physmorph.export.settings import ExportConfig
+from physmorph.settings.export import ExportConfig
 from physmorph.runfile import frame_motion
 
 

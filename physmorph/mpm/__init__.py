@@ -17,7 +17,7 @@ Design decisions (documented here and in the docstrings they refer to):
   log(m*_I + e))^2, e = log_mass_eps * mean particle mass. Delta E % = 100 (L_0 - L_J) / L_0.
 * Backward: hand-written reverse kernels per substep (no Taichi tape); stored per substep:
   x, v, C, F and the rotation of Fe as a quaternion with its pair sum (29 floats per particle:
-  116 B in float32, 232 B in float64; physmorph.mpm.memory), and the P2G grid (4 floats per node).
+  116 B in float32, 232 B in float64; physmorph.settings.solver_memory), and the P2G grid (4 floats per node).
   The rotation derivative floors s_i + s_j at 1e-6 max|s| (singular/inverted guard).
 * Boundary: on the 3-cell layer of each face the outward grid velocity component is zeroed;
   particle positions are additionally clamped to [lo + dx, lo + (res - 2) dx] so the stencil
@@ -36,7 +36,7 @@ Design decisions (documented here and in the docstrings they refer to):
   MPMDivergenceError naming the quantity, substep and particle.
 """
 
-from .config import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMError,
+from physmorph.settings.mpm import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMError,
                      MPMStateError)
 from .state import ParticleState, elastic_energy, kinetic_energy, fixed_corotated_energy_density, total_volume
 

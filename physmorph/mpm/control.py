@@ -6,7 +6,7 @@ accepted frame's kept copy, without [Tc, N, 3, 3] NumPy copies. A mixin of MPMSo
 import numpy as np
 import taichi as ti
 
-from .config import MPMStateError
+from physmorph.settings.mpm import MPMStateError
 
 
 class ControlField:

@@ -10,7 +10,7 @@ frames. Both end with a forward of the updated dFc, so the solver's rollout() re
 
 import numpy as np
 
-from .config import STEP_VOLUME_MODES, MPMDivergenceError
+from physmorph.settings.mpm import STEP_VOLUME_MODES, MPMDivergenceError
 
 
 def frame_summary(loss_initial: float, loss_final: float, losses: list, grad_norm: float, iters: int,

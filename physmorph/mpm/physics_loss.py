@@ -10,7 +10,7 @@ the stray pull's position anchors w_p |x_T,p - a_p|^2. A mixin of MPMSolver.
 import numpy as np
 import taichi as ti
 
-from .config import MPMConfigError, MPMStateError
+from physmorph.settings.mpm import MPMConfigError, MPMStateError
 
 
 class PhysicsLoss:

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..grid import BOUNDARY_CELLS, blur_weights
-from .config import BARRIER_J_LINEAR, MPMConfig
+from physmorph.settings.mpm import BARRIER_J_LINEAR, MPMConfig
 
 _OFFSETS = torch.tensor([[i, j, k] for i in range(3) for j in range(3) for k in range(3)],
                         dtype=torch.int64)  # [27, 3]

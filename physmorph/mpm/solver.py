@@ -32,11 +32,11 @@ import taichi as ti
 
 from ..grid import BOUNDARY_CELLS, Grid
 from ..taichi_runtime import init_taichi
-from .config import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
+from physmorph.settings.mpm import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
 from .control import ControlField
 from .currency import Currency
 from .fields import SolverFields
-from .memory import bytes_per_particle_substep
+from physmorph.settings.solver_memory import bytes_per_particle_substep
 from .optimiser import Adam, NormalizedGD
 from .physics_loss import PhysicsLoss
 from .state import ParticleState
@@ -331,7 +331,7 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         return self._grad_norm
 
     def bytes_per_particle_substep(self) -> int:
-        """Stored per particle per substep (physmorph.mpm.memory: x, v, C, F, the rotation's
+        """Stored per particle per substep (physmorph.settings.solver_memory: x, v, C, F, the rotation's
         quaternion and pair sum)."""
         return bytes_per_particle_substep(self.cfg)
 

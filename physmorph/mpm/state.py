@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from .config import BARRIER_J_LINEAR, MPMConfig, MPMStateError
+from physmorph.settings.mpm import BARRIER_J_LINEAR, MPMConfig, MPMStateError
 from physmorph.linalg3 import det3, signed_singular_values
 
 _SHAPES = {"x": (3,), "v": (3,), "F": (3, 3), "C": (3, 3), "Fp": (3, 3), "mass": (), "volume": ()}

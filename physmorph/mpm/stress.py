@@ -24,7 +24,7 @@ import numpy as np
 import taichi as ti
 
 from ..taichi_runtime import init_taichi
-from .config import BARRIER_J_LINEAR, VOLUME_LAWS
+from physmorph.settings.mpm import BARRIER_J_LINEAR, VOLUME_LAWS
 
 # Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
 # dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).

@@ -11,8 +11,8 @@ import warnings
 from dataclasses import fields
 from typing import Annotated, ClassVar, Literal
 
-from ..grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
-from ..settings_base import Bool, Float, Int, Refused, setting, settings_dataclass
+from physmorph.grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
+from physmorph.settings_base import Bool, Float, Int, Refused, setting, settings_dataclass
 
 
 class MPMError(RuntimeError):

@@ -9,7 +9,7 @@ the solver does, so the two cannot disagree.
 
 from __future__ import annotations
 
-from .config import MPMConfig
+from physmorph.settings.mpm import MPMConfig
 
 FLOATS_PER_PARTICLE_SUBSTEP = 3 + 3 + 9 + 9 + 4 + 1  # x, v, C, F, the rotation's quaternion, the pair sum
 

@@ -9,11 +9,11 @@ from __future__ import annotations
 from dataclasses import asdict, field
 from typing import Annotated, ClassVar, Literal
 
-from physmorph.mpm.config import MPMConfig
-from physmorph.plasticity import PlasticityConfig
-from physmorph.render.config import RenderConfig
+from physmorph.settings.mpm import MPMConfig
+from physmorph.settings.plasticity import PlasticityConfig
+from physmorph.settings.render import RenderConfig
 from physmorph.settings_base import Bool, Float, Int, setting, settings_dataclass
-from physmorph.surface import SurfaceMaskConfig
+from physmorph.settings.surface import SurfaceMaskConfig
 
 METHODS = ("physics_only", "f_inject", "full", "position_inject")
 

@@ -1,0 +1,86 @@
+"""The Chamfer-guided plasticity's settings (physmorph.plasticity, paper section 3.4)."""
+
+from __future__ import annotations
+
+from typing import Annotated, ClassVar, Literal
+
+from physmorph.settings_base import Bool, Float, Int, Refused, setting, settings_dataclass
+
+
+@settings_dataclass
+class PlasticityConfig:
+    """Chamfer-guided plasticity: each particle's rest state pulled toward its destination."""
+
+    # defaults changed since runs were first made (physmorph.config_params.without_defaults): always in a
+    # run's params, so runs made with the old default rerun
+    ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
+                                                             "eta", "correspondence", "start_frame"})
+    # base rate per frame (the paper: 0.2; config/paper_method.yaml uses it; 0.02 until 2026-11-24,
+    # with the nearest-point correspondence, then 0.1; see config/config.yaml)
+    eta: Annotated[Float, setting("plasticity rate (the paper: 0.2)", ge=0)] = 0.05
+    k_neighbors: Annotated[Int, setting("neighbours of the displacement smoothing", ge=1)] = 64
+    # the particles a neighbourhood is drawn from: at most neighbour_ppc per cell per axis (one per
+    # sub-cell of dx / neighbour_ppc, the one nearest its centre at rest; neighbour_pool), so the k
+    # neighbours span the same cells at every sampling density: k = 64 from the default sampling
+    # (PPC 2/1, which it keeps whole) is about 8 cells. 0: every particle (until 2026-11-26; at
+    # the paper's PPC 5 a neighbourhood was half a cell)
+    neighbour_ppc: Annotated[Int, setting(
+        "the neighbours are drawn from at most this many particles per cell per axis, so k_neighbors spans the "
+        "same cells at every sampling density (0 = every particle)", ge=0)] = 2
+    smooth_iters: Annotated[Int, setting("passes of neighbour averaging of the displacements", ge=0)] = 3
+    damping: Annotated[Float, setting("damping d_p of the Fp update", ge=0, le=1)] = 0.05
+    # k0 (the paper: 20 of 90 frames; 10, then 5, until 2026-11-24): transport destinations need
+    # no warm-up, and starting early halves the particles torn off thin features (docs/study/log.md findings 104-106)
+    start_frame: Annotated[Int, setting(
+        "k0: first frame with plasticity; experiments set it with `plasticity_start`", "frame", ge=0)] = 2
+    det_bounds: Annotated[tuple[Float, Float], setting("bounds [lo, hi] on det Fp", "",
+                                                       "0 < lo <= 1 <= hi")] = (0.5, 2.0)
+    max_anisotropy: Annotated[Float, setting("bound on the ratio of Fp's largest to smallest stretch", ge=1)] = 4.0
+    jacobian: Annotated[Literal["paper", "least_squares"], setting(
+        "paper: eq. 4 as printed; least_squares: exact for affine displacement fields")] = "paper"
+    update: Annotated[Literal["incremental", "target_rest"], setting(
+        "incremental: eq. 4 as printed; target_rest: relax toward the rest state on the target")] = "incremental"
+    # "transport" the default since 2026-11-24; its plan is computed once per run (physmorph.transport)
+    correspondence: Annotated[Literal["nearest", "transport"], setting(
+        "where each particle is pulled: nearest, the nearest target surface point (the paper); transport, its "
+        "optimal-transport destination in the target's mass")] = "transport"
+    # 1 cell is 1 domain unit at the default grid and 0.5 at mid's and the paper's
+    transport_blur: Annotated[Float, setting(
+        "blur of the transport plan (correspondence: transport), the entropic scale of its last iterations",
+        "grid cells", gt=0)] = 1.0
+    continuous_stress: Annotated[Bool, setting(
+        "re-base the control so an Fp update leaves the elastic Fe unchanged")] = False
+    # the default, the shape at the last update only, commits the final shape to the rest state
+    # without changing the run, so it persists with the control off (docs/study/log.md finding 49)
+    absorb_control: Annotated[Bool, setting(
+        "commit the achieved shape (or control) to the rest state Fp at the updates absorb_start_frame "
+        "picks")] = True
+    absorb_rate: Annotated[Float, setting("share moved into Fp per absorbing update", gt=0, le=1)] = 1.0
+    # "control": a driving stress, which a released body keeps following (the whole update is then
+    # re-based); "shape": only that is re-based, the Chamfer step stays a stress unless
+    # continuous_stress (docs/study/log.md findings 46-47)
+    absorb_target: Annotated[Literal["control", "shape"], setting(
+        "what is committed: shape (the stretch of F, stress-free afterwards) or control (its elastic "
+        "deformation)")] = "shape"
+    # before it the update is the plain one (re-based only with continuous_stress); docs/study/log.md part 9
+    absorb_start_frame: Annotated[Int | None, setting(
+        "updates that commit: -n the last n, n from frame n on, null every update", "frame", "!= 0")] = -1
+
+    def absorbs_at(self, frame: int, frames: int) -> bool:
+        """Whether the update at ``frame`` (1..``frames``) absorbs: absorb_control on and frame past
+        absorb_start_frame (counted from the end when negative)."""
+        if not self.absorb_control:
+            return False
+        if self.absorb_start_frame is None:
+            return True
+        start = self.absorb_start_frame if self.absorb_start_frame >= 0 else frames + 1 + self.absorb_start_frame
+        return frame >= start
+
+    def __post_init__(self) -> None:
+        """The checks across a field's parts and its excluded value (each field's range is its declaration's)."""
+        lo, hi = self.det_bounds
+        if not 0 < lo <= 1 <= hi:
+            raise Refused("det_bounds", f"plasticity.det_bounds must satisfy 0 < lo <= 1 <= hi, got {self.det_bounds}")
+        if self.absorb_start_frame == 0:
+            raise Refused("absorb_start_frame", "plasticity.absorb_start_frame must be a frame >= 1, a count from "
+                                                "the end < 0, or null (every update)")
