@@ -19,16 +19,26 @@ def to_plain(obj: Any) -> Any:
     """Dataclasses, tuples and mappings as JSON-ready dicts and lists."""
     if is_dataclass(obj):
         obj = asdict(obj)
+    return _each_item(obj, to_plain)
+
+
+def _each_item(obj: Any, convert) -> Any:
+    """``convert`` applied to each value of a mapping (keys as strings) or item of a list or tuple
+    (as a list); anything else as it is."""
     if isinstance(obj, dict):
-        return {str(k): to_plain(v) for k, v in obj.items()}
+        return {str(k): convert(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [to_plain(v) for v in obj]
+        return [convert(v) for v in obj]
     return obj
+
+
+def _compact_json(plain: Any) -> str:
+    return json.dumps(plain, sort_keys=True, separators=(",", ":"))
 
 
 def canonical_json(obj: Any) -> str:
     """One string per value (sorted keys, no spaces): the full record a stage writes into its file."""
-    return json.dumps(to_plain(obj), sort_keys=True, separators=(",", ":"))
+    return _compact_json(to_plain(obj))
 
 
 # Snakemake reruns a job when its params string changes. If params held every field, adding a
@@ -63,16 +73,12 @@ def without_defaults(obj: Any) -> Any:
                     continue
             out[f.name] = plain
         return out
-    if isinstance(obj, dict):
-        return {str(k): without_defaults(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [without_defaults(v) for v in obj]
-    return obj
+    return _each_item(obj, without_defaults)
 
 
 def params_json(obj: Any) -> str:
     """What a rule's params hold: canonical JSON of ``obj`` without its fields at their defaults."""
-    return json.dumps(without_defaults(obj), sort_keys=True, separators=(",", ":"))
+    return _compact_json(without_defaults(obj))
 
 
 def morph_params(cfg) -> str:
