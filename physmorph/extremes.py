@@ -101,7 +101,6 @@ def map_cells(base: dict, experiment: str = MAP_EXPERIMENT) -> dict[str, Cell]:
     cfg = settings.experiment_config(experiment)
     mpm, sampling = cfg.mpm, settings.sampling
     source = settings.shape(settings.experiment(experiment).source)
-    exp_key = f"experiments.{experiment}"
     cells: list[Cell] = []
 
     def add(knob: str, value_text: str, label: str, order: float, is_default: bool, overrides: dict,

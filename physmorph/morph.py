@@ -387,7 +387,7 @@ class MorphRun:
 
     def frame(self, k: int) -> bool:
         """Frame k's phases, committed; False where the run stops (a position_inject divergence)."""
-        cfg, solver, fs = self.cfg, self.solver, self.fs
+        solver, fs = self.solver, self.fs
         t0 = time.time()
         physics = self.physics(k)
         if physics is None:

@@ -9,7 +9,7 @@ are added, and the mask of a run only ever grows (union with the previous frame'
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING
 
 import numpy as np
 
