@@ -85,7 +85,7 @@ def random_control(cfg: MPMConfig, n: int, scale: float = 0.05, seed: int = 3) -
 
 
 
-def fd_check(s: MPMSolver, st: ParticleState, gF=None, gx=None, n_checks=6, h=1e-6, seed=0,
+def fd_check(s: MPMSolver, st: ParticleState, gF=None, gx=None, n_checks=6, h=1e-4, seed=0,
               state_names=("x", "v", "F")):
     """Central FD of J = L + <gF, F_T> + <gx, x_T> against the reverse pass, on random entries
     of dFc and of the initial state's state_names (x0, v0, F0)."""
