@@ -2,20 +2,33 @@
 # Each creates .venv from environment.lock when it is missing or the lock changed.
 PYTHON ?= python3
 VENV := .venv
-STAMP := $(VENV)/.installed
 CORES ?= 2
+# DEVICE=cuda (`make venv DEVICE=cuda`, on a machine with an NVIDIA GPU): .venv from
+# environment.cuda.lock instead, torch's CUDA build from PyPI and the CUDA libraries it pins, so
+# that `make gpu-check` runs there. The venv keeps its device (.venv/.device) for later targets;
+# `make venv DEVICE=cpu` goes back.
+ifndef DEVICE
+DEVICE := $(or $(shell cat $(VENV)/.device 2>/dev/null),cpu)
+endif
+ifeq ($(filter cpu cuda,$(DEVICE)),)
+$(error DEVICE must be cpu or cuda, got '$(DEVICE)')
+endif
+LOCK := $(if $(filter cuda,$(DEVICE)),environment.cuda.lock,environment.lock)
+STAMP := $(VENV)/.installed$(if $(filter cuda,$(DEVICE)),-cuda)
 # torch's CPU build (2.13.0+cpu) is not on PyPI: pip takes it from a local wheel directory
 # (WHEEL_DIR, default /opt/wheels) when there is one, else from PyTorch's CPU wheel index.
 WHEEL_DIR ?= /opt/wheels
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
-WHEELS := $(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX))
+WHEELS := $(if $(filter cuda,$(DEVICE)),,$(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX)))
 
 .PHONY: venv conda-env tables figures tradeoff export report test gpu-check slurm-check dag recover clean-venv
 
-$(STAMP): environment.lock pyproject.toml
+$(STAMP): $(LOCK) pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install --quiet --no-deps $(WHEELS) -r environment.lock
+	rm -f $(VENV)/.installed $(VENV)/.installed-cuda
+	$(VENV)/bin/python -m pip install --quiet --no-deps $(WHEELS) -r $(LOCK)
 	$(VENV)/bin/python -m pip install --quiet --no-deps --no-build-isolation -e .
+	echo $(DEVICE) > $(VENV)/.device
 	touch $(STAMP)
 
 # Extra Snakemake arguments for the targets below, e.g.
@@ -47,8 +60,9 @@ report: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
 
-# The solver and renderer on CUDA against the CPU (tests/test_gpu.py); skips, saying why, without
-# a usable CUDA device (and a CUDA build of torch).
+# The solver, the renderer and the plasticity's device work on CUDA against the CPU
+# (tests/test_gpu.py); skips, saying why, without a usable CUDA device (and a CUDA build of torch:
+# make venv DEVICE=cuda).
 gpu-check: $(STAMP)
 	$(VENV)/bin/python -m pytest -m gpu -n 0 -rs tests/test_gpu.py
 

@@ -41,11 +41,11 @@ def lattice_ball(n: int, radius: float = BALL_RADIUS) -> np.ndarray:  # [n, 3]
     return X
 
 
-def run_case(n: int, res: int, T: int, reps: int, precision: str, control: str, smoothing_mode: str) -> dict:
+def run_case(n: int, res: int, T: int, reps: int, precision: str, smoothing_mode: str) -> dict:
     from physmorph.grid import Grid, splat_mass
     from physmorph.mpm import MPMConfig, MPMSolver, ParticleState
 
-    cfg = MPMConfig(grid_res=res, substeps=T, precision=precision, control=control, smoothing_mode=smoothing_mode)
+    cfg = MPMConfig(grid_res=res, substeps=T, precision=precision, smoothing_mode=smoothing_mode)
     x = lattice_ball(n)
     spacing = BALL_RADIUS * (4.0 * np.pi / (3.0 * n)) ** (1.0 / 3.0)
     st = ParticleState.at_rest(x, np.full(n, cfg.density * spacing ** 3), np.full(n, spacing ** 3))
@@ -84,7 +84,6 @@ def main() -> None:
     ap.add_argument("--substeps", type=int, default=20)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--precision", default="float32", choices=["float32", "float64"])
-    ap.add_argument("--control", default="per_substep", choices=["per_substep", "per_frame"])
     ap.add_argument("--smoothing-mode", default="isochoric", choices=["isochoric", "full"])
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -92,7 +91,7 @@ def main() -> None:
     if args.worker:  # one process per thread count: print one JSON line per case
         for res in args.res:
             for n in args.n:
-                print(json.dumps(run_case(n, res, args.substeps, args.reps, args.precision, args.control,
+                print(json.dumps(run_case(n, res, args.substeps, args.reps, args.precision,
                                           args.smoothing_mode)),
                       flush=True)
         return
@@ -102,12 +101,12 @@ def main() -> None:
         env = dict(os.environ, PHYSMORPH_THREADS=str(th))
         cmd = [sys.executable, __file__, "--worker", "--n", *map(str, args.n), "--res", *map(str, args.res),
                "--substeps", str(args.substeps), "--reps", str(args.reps), "--precision", args.precision,
-               "--control", args.control, "--smoothing-mode", args.smoothing_mode]
+               "--smoothing-mode", args.smoothing_mode]
         out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True,
                              cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         rows += [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
 
-    print(f"MPM benchmark: T={args.substeps}, {args.precision}, control={args.control}, "
+    print(f"MPM benchmark: T={args.substeps}, {args.precision}, "
           f"smoothing={args.smoothing_mode}, "
           f"reps={args.reps}, cpu_count={os.cpu_count()}")
     hdr = (f"{'N':>7} {'grid':>5} {'thr':>3} {'PPC':>5} {'fwd p-steps/s':>14} {'fwd+bwd p-steps/s':>18} "

@@ -44,6 +44,7 @@ from physmorph.settings.mpm import MPMConfig
 from physmorph.settings.solver_memory import bytes_per_particle_substep
 from physmorph.settings.plasticity import PlasticityConfig
 from physmorph.settings.render import RenderConfig
+from physmorph.settings.retired import RETIRED_METHOD_SETTINGS
 from physmorph.settings_base import (Float, Int, Refused, field_default, json_schema_of, setting,
                                      settings_dataclass, validate_plain_dataclass, with_prefix)
 from physmorph.settings.surface import SurfaceMaskConfig
@@ -78,7 +79,7 @@ def build(cls, data: Any, where: str = "", derived: dict[str, tuple[str, Any]] |
         if k in derived:
             _fail(with_prefix(where, str(k)), f"not settable here: it is set by {derived[k][0]}")
         if k not in settable:  # before the values: a misspelt key is the likelier mistake
-            _fail(with_prefix(where, str(k)), f"unknown key (allowed: {', '.join(settable)})")
+            _fail(with_prefix(where, str(k)), _unknown_key_reason(with_prefix(where, str(k)), settable))
     kwargs = {**data, **{k: v for k, (_, v) in derived.items()}}
     if hasattr(cls, "__pydantic_validator__"):
         try:
@@ -341,8 +342,7 @@ class Settings:
                 sampling = replace(self.sampling, grid_res=p.grid_res, ppc_surface=p.ppc_surface,
                                    ppc_interior=p.ppc_interior)
                 target = replace(self.target, width=p.width, height=p.height)
-                point_mpm = types.SimpleNamespace(substeps=mpm.substeps, precision=p.precision, control=mpm.control,
-                                                  optimizer=mpm.optimizer)
+                point_mpm = types.SimpleNamespace(substeps=mpm.substeps, precision=p.precision, optimizer=mpm.optimizer)
                 out.append(morph_memory(src, sampling, target, point_mpm, self.domain, f"tradeoff point {pname}"))
         return out
 
@@ -359,12 +359,22 @@ class Settings:
                 "bigger machine", key="max_memory_mb")
 
 
+def _unknown_key_reason(key: str, settable: list[str]) -> str:
+    """Why ``key`` is refused: a setting the code no longer has (physmorph.settings.retired) is
+    named as such, with the value the method always ran with; any other, with the keys allowed."""
+    method_key = key.removeprefix("morph.")
+    if method_key in RETIRED_METHOD_SETTINGS:
+        return (f"no longer a setting: the method runs as it did with {RETIRED_METHOD_SETTINGS[method_key]!r} "
+                "(docs/study/log.md holds what the other values did)")
+    return f"unknown key (allowed: {', '.join(settable)})"
+
+
 def _memory_knobs(raw_mpm: Any) -> types.SimpleNamespace:
-    """The mpm keys the memory estimate reads (substeps, precision, control, optimizer), validated
+    """The mpm keys the memory estimate reads (substeps, precision, optimizer), validated
     on their own: the estimate runs before the whole mpm section is built."""
     raw_mpm = raw_mpm if isinstance(raw_mpm, dict) else {}
     knobs = {}
-    for name in ("substeps", "precision", "control", "optimizer"):
+    for name in ("substeps", "precision", "optimizer"):
         if name not in raw_mpm:
             knobs[name] = getattr(MPMConfig, name)
             continue
@@ -501,7 +511,7 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
     scheduler's request then follows the real run), else estimated from the shape's size."""
     n = particle_estimate(source, sampling, domain) if n_particles is None else int(n_particles)
     scale = 2 if mpm.precision == "float64" else 1
-    slots = mpm.substeps if mpm.control == "per_substep" else 1
+    slots = mpm.substeps  # one control slot per substep
     # stored per substep: what the solver keeps for its backward (physmorph.settings.solver_memory); per
     # control slot dFc and its gradient (72 B in float32), and Adam's two moments when Adam runs (72 B)
     moments = 72 if mpm.optimizer == "adam" else 0

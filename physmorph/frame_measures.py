@@ -121,7 +121,7 @@ class DeformationMeasures:
     def elastic_energy(self, volume: np.ndarray,  # [N] rest volumes V0_p
                        cfg: MPMConfig) -> float:
         """sum_p V0_p Psi(Fe_p), Psi = mu ||Fe - R||^2 + Psi_vol(J) (physmorph.mpm.elastic_energy)."""
-        psi = cfg.mu * self.shear + volume_energy_density(self.det_elastic, cfg.lam, cfg.volume_law)
+        psi = cfg.mu * self.shear + volume_energy_density(self.det_elastic, cfg.lam)
         return float((np.asarray(volume) * psi).sum())
 
 
@@ -150,7 +150,7 @@ def frame_strain(F_start: np.ndarray,  # [N, 3, 3] F at the frame's start
                  quantile: float = FRAME_STRAIN_QUANTILE) -> float:
     """The ``quantile`` over particles of |F_end F_start^-1 - I|_F: the deformation the body went
     through in one frame (0 for a rigid translation, ~|dt| x the velocity gradient for a small
-    one). MorphConfig.strain_rate_cap steers the step by it."""
+    one). Each frame records it (the frame_strain metric)."""
     F_start = np.asarray(F_start, dtype=np.float64).reshape(-1, 3, 3)
     F_end = np.asarray(F_end, dtype=np.float64).reshape(-1, 3, 3)
     if F_start.shape != F_end.shape:

@@ -39,10 +39,8 @@ from scipy.spatial import cKDTree
 
 from physmorph.frame_measures import DeformationMeasures, deformation_measures, frame_strain, grid_mass
 from physmorph.frame_state import FrameState, asdict_state
-from physmorph.grid import grid_average
 from physmorph.h5io import stored_checksum
 from physmorph.injection import calibrate_injection
-from physmorph.linalg3 import det3
 from physmorph.memory import release_free_memory
 from physmorph.meshes.fit import volume_mismatch
 from physmorph.settings.morph import MorphConfig
@@ -56,6 +54,7 @@ from physmorph.settle import AcceptedFrame, settle_gate
 from physmorph.runfile import RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (read_metrics re-exported)
 from physmorph.steering import ControlDecay, MomentumRestart, OverfillOnset, StepSchedule, StrayPull, stray_pull_anchors  # noqa: F401
 from physmorph.surface import update_surface_mask
+from physmorph.taichi_runtime import resolve_device
 from physmorph.targets import load_target
 from physmorph.transport import destinations_in_grid_mass
 
@@ -103,6 +102,16 @@ class MorphRun:
         self.tree = cKDTree(target.surface_points, balanced_tree=False, compact_nodes=False)
         self.N = N = len(parts.x)
         self.solver = solver_for(cfg.mpm, N)  # a reset solver, reused from the previous run of this config and size
+        # the device of the solver's Taichi runtime, and the torch device of the transport plan; on
+        # "cuda" also of the nearest-target and the mask's distance searches (physmorph.nearest), the
+        # target points held there; on the CPU those are KD-tree queries (search_device None)
+        self.device = resolve_device(cfg.mpm.device)
+        self.search_device = None if self.device == "cpu" else self.device
+        self.target_on_device = None
+        if self.search_device is not None:
+            from physmorph.nearest import DevicePoints
+
+            self.target_on_device = DevicePoints(target.surface_points, self.search_device)
         # MPM conserves mass, so a target of another total mass cannot be matched: the squared loss
         # would then be lowered by smearing the excess thinly. The target's mass distribution is
         # rescaled to the source's total mass (its shape is what is matched).
@@ -148,8 +157,8 @@ class MorphRun:
         rise_on = self.restart.rise_on
         self.restart.previous = run.frame_metric(start - 1, rise_on)
         self.restart.before_previous = run.frame_metric(start - 2, rise_on) if start >= 2 else float("nan")
-        # the adaptive step (MorphConfig.step_backoff): this frame's step, and the mass loss it is judged against
-        self.schedule = StepSchedule(cfg, self.fs.next_step, run.frame_metric(start - 1, "physics_loss"))
+        # the step the next frame takes (backed off by MorphConfig.settle_backoff after an undone frame)
+        self.schedule = StepSchedule(self.fs.next_step)
         self.onset.begin(solver, self.fs.overfill_weight)
         if checkpoint is not None:
             self.gate.restore(checkpoint.data)
@@ -165,8 +174,8 @@ class MorphRun:
         st = ParticleState(x=parts.x.copy(), v=np.zeros((N, 3)), F=np.tile(np.eye(3), (N, 1, 1)),
                            C=np.zeros((N, 3, 3)), Fp=np.tile(np.eye(3), (N, 1, 1)),
                            mass=parts.mass.copy(), volume=parts.volume.copy())
-        mask = (update_surface_mask(st.x, st.volume, self.tree, cfg.surface, cfg.mpm.domain_lo, cfg.mpm.domain_hi)
-                if self.need_mask else np.zeros(N, bool))
+        mask = (update_surface_mask(st.x, st.volume, self.tree, cfg.surface, cfg.mpm.domain_lo, cfg.mpm.domain_hi,
+                                    search_device=self.search_device) if self.need_mask else np.zeros(N, bool))
         fs = FrameState.at_start(st, mask, cfg.mpm.step_size, self.onset.initial_weight())
         self.run.set_meta({"experiment": self.name, "method": cfg.method, "target_mass_ratio": self.mass_ratio,
                            "target_volume_ratio": float(target.volume) / self.source_volume, "n_particles": N,
@@ -200,7 +209,7 @@ class MorphRun:
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
         iou = silhouette_iou(alpha, target.alpha)
         dm = deformation_measures(st.F, st.Fp)
-        d = self.tree.query(st.x, k=1, workers=-1)[0] if target_distance is None else target_distance
+        d = self.nearest_target(st.x)[0] if target_distance is None else target_distance
         return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()),
                 "fp_det_min": float(dm.det_plastic.min()), "fp_det_max": float(dm.det_plastic.max()),
                 "fp_anisotropy_max": float(dm.anisotropy_plastic.max()),
@@ -211,10 +220,19 @@ class MorphRun:
                 "chamfer": float(d.mean()),
                 **volume_metrics(st.x, self.parts.mass, target.grid_mass, target.grid, splat=grid_mass)}, per_view, dm
 
+    def nearest_target(self, x: np.ndarray,  # [N, 3]
+                       ) -> tuple[np.ndarray, np.ndarray]:  # [N] distances, [N] indices
+        """Each x's nearest target surface point: the KD tree on the CPU, the exhaustive search of
+        physmorph.nearest on the device."""
+        if self.target_on_device is None:
+            return self.tree.query(x, k=1, workers=-1)
+        return self.target_on_device.query(x)
+
     def transport_destinations(self) -> np.ndarray:  # [N, 3]
         if self.destination is None:
             self.destination = destinations_in_grid_mass(self.parts.x, self.parts.mass, self.target.grid_mass,
-                                                         self.target.grid, self.cfg.plasticity.transport_blur)
+                                                         self.target.grid, self.cfg.plasticity.transport_blur,
+                                                         device=self.device)
         return self.destination
 
     def physics(self, k: int) -> tuple[dict, ParticleState, float] | None:
@@ -225,14 +243,13 @@ class MorphRun:
         solver.load_state(fs.state)
         if self.stray.on:
             if self.nearest_d is None:
-                self.nearest_d, self.nearest_i = self.tree.query(fs.state.x, k=1, workers=-1)
-            destination = self.transport_destinations() if self.stray.needs_destination else self.destination
-            self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.target, destination)
-        self.decay.apply(solver, self.schedule.step)
+                self.nearest_d, self.nearest_i = self.nearest_target(fs.state.x)
+            self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.target)
+        self.decay.apply(solver)
         try:
             calibration = self.calibrate(k)
             c = 0.0 if np.isnan(fs.injection_scale) else fs.injection_scale
-            frame_step = self.schedule.frame_step(k)
+            frame_step = self.schedule.step
             # the calibration's rollout is current and its two gradients sum to the first
             # iteration's: the optimiser skips that forward and backward (a third of a frame)
             if calibration is not None:
@@ -272,25 +289,21 @@ class MorphRun:
         return calibration
 
     def advance(self, new: ParticleState) -> float:
-        """The frame's end state becomes the loop's (Fp, m, V0 carried), with the grid's volume
-        averaging; returns the frame's strain."""
-        cfg, st = self.cfg, self.fs.state
+        """The frame's end state becomes the loop's (Fp, m, V0 carried); returns the frame's strain."""
+        st = self.fs.state
         strain = frame_strain(st.F, new.F)
-        st = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
-        if cfg.volume_averaging > 0:
-            st = dataclasses.replace(st, F=averaged_volume(st.F, grid_average(st.x, st.mass, det3(st.F), self.target.grid),
-                                                           cfg.volume_averaging))
-        self.fs.state = st
+        self.fs.state = ParticleState(x=new.x, v=new.v, F=new.F, C=new.C, Fp=st.Fp, mass=st.mass, volume=st.volume)
         return strain
 
     def mask(self) -> None:
         """Each particle's nearest target surface point, shared by the mask, the plasticity's
         nearest-point map and the Chamfer metric (plasticity changes only Fp), and the surface mask."""
         cfg, fs = self.cfg, self.fs
-        self.nearest_d, self.nearest_i = self.tree.query(fs.state.x, k=1, workers=-1)
+        self.nearest_d, self.nearest_i = self.nearest_target(fs.state.x)
         if self.need_mask:
             fs.mask = update_surface_mask(fs.state.x, fs.state.volume, self.tree, cfg.surface, cfg.mpm.domain_lo,
-                                          cfg.mpm.domain_hi, previous=fs.mask, target_distance=self.nearest_d)
+                                          cfg.mpm.domain_hi, previous=fs.mask, target_distance=self.nearest_d,
+                                          search_device=self.search_device)
         # the physics' and the mask's temporaries go back to the system before the render, the
         # frame's largest transient (physmorph.memory)
         release_free_memory()
@@ -321,19 +334,18 @@ class MorphRun:
         if not (cfg.method == "full" and k >= cfg.plasticity.start_frame):
             return
         st, N = fs.state, self.N
-        # The deformation the stress sees is F + dFc (the control enters the stress, see
-        # physmorph.mpm.solver): target_rest relaxes Fp toward it, averaged over substeps.
+        # the control averaged over the substeps: what an absorbing update commits to Fp
         control_mean = solver.control_mean()  # [N, 3, 3]
-        F_stress = st.F + control_mean if cfg.plasticity.update == "target_rest" else None
         absorbing = cfg.plasticity.absorbs_at(k, cfg.frames)
         Fp_from = absorbed_rest(st.F, control_mean, st.Fp, cfg.plasticity) if absorbing else st.Fp
         destination = self.transport_destinations() if cfg.plasticity.correspondence == "transport" else self.destination
         if self.pool is None:
             pool = neighbour_pool(self.parts.x, self.target.grid.lo, self.target.grid.dx, cfg.plasticity.neighbour_ppc)
             self.pool = np.arange(N) if pool is None else pool
-        pl = chamfer_plasticity_step(st.x, Fp_from, self.target.surface_points, cfg.plasticity, self.tree, F=F_stress,
+        pl = chamfer_plasticity_step(st.x, Fp_from, self.target.surface_points, cfg.plasticity, self.tree,
                                      destination=destination, nearest_index=self.nearest_i,
-                                     pool=None if len(self.pool) == N else self.pool)
+                                     pool=None if len(self.pool) == N else self.pool,
+                                     search_device=self.search_device)
         Fp_old = st.Fp
         fs.state = st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
         try:  # before the re-base: a bad Fp is named as such, not as a bad control
@@ -344,10 +356,10 @@ class MorphRun:
         if rebase_to is not None:
             solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
 
-    def steer(self, k: int, scal: dict, per_view: np.ndarray, m: dict, strain: float, frame_step: float):
+    def steer(self, k: int, scal: dict, per_view: np.ndarray, m: dict, frame_step: float):
         """The frame judged: the settle gate may undo it (the body holds still at the last accepted
-        frame), the momentum restart, the packing term's onset and the step schedule act on what
-        the next frame starts from. Returns (scal, per_view, m, undone) to commit."""
+        frame, and the step backs off), the momentum restart and the packing term's onset act on
+        what the next frame starts from. Returns (scal, per_view, m, undone) to commit."""
         cfg, solver, gate, fs = self.cfg, self.solver, self.gate, self.fs
         rejected = gate.rejects(k, scal.get(gate.objective_key, np.nan))
         if rejected:  # the frame is undone: the body holds still at the last accepted frame
@@ -381,7 +393,6 @@ class MorphRun:
                                           float(scal.get(gate.objective_key, np.nan)))
         if self.onset.after_frame(solver, objective_rose):
             self.log(f"[{self.name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")
-        self.schedule.after_frame(scal["physics_loss"], strain)
         fs.next_step, fs.overfill_weight = self.schedule.step, solver.overfill_weight
         return scal, per_view, m, rejected
 
@@ -412,7 +423,7 @@ class MorphRun:
                                        masked_alpha=res.alpha if every_view else None, target_distance=self.nearest_d)
         m["gap_closed"] = gap_closed(self.a0, m["alpha_mse"], self.ceiling) if np.isfinite(self.ceiling) else np.nan
         scal.update(m)
-        scal, per_view, m, rejected = self.steer(k, scal, per_view, m, strain, frame_step)
+        scal, per_view, m, rejected = self.steer(k, scal, per_view, m, frame_step)
         new_warnings = [] if rejected else self.monitor.update(k, fs.state.Fp, m["alpha_mse"], det=dm.det_plastic,
                                                                fp_anisotropy=dm.anisotropy_plastic)
         # the render's images and gradient and the metrics' arrays are done with: the frame's freed
@@ -507,20 +518,6 @@ def _absorb_at_rest(st: ParticleState, solver: MPMSolver, cfg: MorphConfig) -> P
     if rebase_to is not None:
         solver.rebase_control(st.F, np.linalg.solve(st.Fp, rebase_to))
     return dataclasses.replace(st, Fp=Fp)
-
-
-def averaged_volume(F: np.ndarray,  # [N, 3, 3]
-                    J_average: np.ndarray,  # [N] the grid's average of det F at each particle
-                    share: float) -> np.ndarray:  # [N, 3, 3]
-    """F <- (J' / J)^(1/3) F with J' = (1 - share) J + share J_average (MorphConfig.volume_averaging):
-    the volume ratio moves toward the grid's average, the shape (F / J^(1/3)) stays. A particle whose
-    J or J' is not positive (an inverted F) keeps its F."""
-    J = det3(np.asarray(F, dtype=np.float64))
-    J_new = (1.0 - share) * J + share * np.asarray(J_average, dtype=np.float64)
-    ok = (J > 0) & (J_new > 0)
-    r = np.ones_like(J)
-    r[ok] = np.cbrt(J_new[ok] / J[ok])
-    return (F * r[:, None, None]).astype(np.asarray(F).dtype)
 
 
 def morph_config(settings, experiment_name: str) -> MorphConfig:

@@ -8,8 +8,7 @@ query, the particle itself included with r2 = 0):
   rows alone, the others keeping their d (what plasticity.knn_smooth_sparse computes).
 - :func:`displacement_jacobian_pairs`: J_i = sum_j w_ij (d_j - d_i)(x_j - x_i)^T / n_i with
   w_ij = 1 / r2_ij (0 for the particle itself or a coincident neighbour) and n_i the count of
-  nonzero weights (at least 1); ``mode="least_squares"`` right-multiplies by M_i^-1, M_i the same
-  sum with x in place of d, regularised by 1e-9 tr(M_i) + 1e-12 on its diagonal.
+  nonzero weights (at least 1).
 
 At the paper's scale (471K particles, k = 64) the sparse-matrix forms took ~1.4 s of a frame. The
 pair sums here are summed directly (no expansion of the products, so no cancellation); the
@@ -55,14 +54,12 @@ def _jacobian(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
               neighbors: ti.types.ndarray(ndim=2),  # [N, k] int
               r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, k], or unused (given_r2 False)
               out: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
-              least_squares: ti.template(),
               given_r2: ti.template()):  # False: r2_ij = |x_j - x_i|^2 here (k_nearest's own value)
     k = neighbors.shape[1]
     for i in range(x.shape[0]):
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
         di = ti.Vector([d[i, 0], d[i, 1], d[i, 2]])
         J = ti.Matrix.zero(ti.f64, 3, 3)
-        M = ti.Matrix.zero(ti.f64, 3, 3)
         count = 0
         for a in range(k):
             j = neighbors[i, a]
@@ -73,15 +70,9 @@ def _jacobian(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
             if rr > 0.0:
                 w = 1.0 / rr
                 J += w * (ti.Vector([d[j, 0], d[j, 1], d[j, 2]]) - di).outer_product(e)
-                if ti.static(least_squares):
-                    M += w * e.outer_product(e)
                 count += 1
         n = ti.cast(ti.max(count, 1), ti.f64)
         J /= n
-        if ti.static(least_squares):
-            M /= n
-            M += (1e-9 * M.trace() + 1e-12) * ti.Matrix.identity(ti.f64, 3)
-            J = J @ M.inverse()
         for a, b in ti.static(ti.ndrange(3, 3)):
             out[i, a, b] = J[a, b]
 
@@ -115,11 +106,9 @@ def displacement_jacobian_pairs(x: np.ndarray,  # [N, 3]
                                 d: np.ndarray,  # [N, 3]
                                 neighbors: np.ndarray,  # [N, k] indices
                                 r2: np.ndarray | None,  # [N, k] squared neighbour distances (0: the particle itself)
-                                mode: str = "paper") -> np.ndarray:  # -> [N, 3, 3]
+                                ) -> np.ndarray:  # -> [N, 3, 3]
     """The displacement Jacobian of eq. 4 from the pair sums (module docstring). ``r2`` None: each
     pair's |x_j - x_i|^2 computed here, as k_nearest computes it (0 for the particle itself)."""
-    if mode not in ("paper", "least_squares"):
-        raise ValueError(f"jacobian mode must be paper or least_squares, got {mode!r}")
     ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64)
     d = np.ascontiguousarray(d, dtype=np.float64)
@@ -130,7 +119,7 @@ def displacement_jacobian_pairs(x: np.ndarray,  # [N, 3]
         raise ValueError(f"x {x.shape}, d {d.shape}, neighbors {nb.shape} and r2 {r2.shape} must agree")
     out = np.empty((len(x), 3, 3))
     if len(x):
-        _jacobian(x, d, nb, r2, out, mode == "least_squares", given)
+        _jacobian(x, d, nb, r2, out, given)
     return out
 
 

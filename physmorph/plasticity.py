@@ -8,31 +8,21 @@ Per frame k >= k0:
 2. smooth d by iterative KNN averaging (k neighbours, ``smooth_iters`` passes);
 3. displacement Jacobian J_i from the particle's k neighbours and its symmetric part
    dFp_i = (J_i + J_i^T) / 2;
-4. ``update="incremental"`` (eq. 4 as printed): Fp_i <- (I + eta_i dFp_i) Fp_i, with
+4. eq. 4 as printed: Fp_i <- (I + eta_i dFp_i) Fp_i, with
    eta_i = eta * |d_i| / (|d_i| + median_j |d_j|) (particles already on the target barely change,
    far ones move at up to eta);
-   ``update="target_rest"``: Fp_i <- (1 - eta) Fp_i + eta (I + dFp_i) F_i, a relaxation (at the
-   uniform rate eta) toward the rest state that would place the particle's neighbourhood on the
-   target; see below;
 5. damping toward identity Fp <- (1 - d_p) Fp + d_p I;
 6. isochoric projection: singular values of Fp clamped so that det(Fp) stays in ``det_bounds``
    (uniform rescale, which leaves anisotropy unchanged) and max/min <= ``max_anisotropy``.
 
 Jacobian estimator. Eq. 4 as printed, J_i = mean_j (d_j - d_i)(x_j - x_i)^T / |x_j - x_i|^2,
 returns A M_i for an affine field d = A x + b, where M_i = mean_j e_j e_j^T / |e_j|^2 (M = I/3 for
-an isotropic neighbourhood): it is a scaled, neighbourhood-biased estimate. ``jacobian="least_squares"``
-right-multiplies by M_i^{-1} so an affine field is recovered exactly;
-``jacobian="paper"`` (default) keeps the printed form.
+an isotropic neighbourhood): it is a scaled, neighbourhood-biased estimate.
 
 Update rule. The printed update integrates the Chamfer field: while the physics has not yet
 closed a gap, every frame adds eta dFp again, so Fp keeps growing after the shape has arrived and
 the stress from Fe = F Fp^-1 then pushes it past the target (an integrator's wind-up; with
 eta = 0.2 the default profile overshoots and pins det Fp at its bound, docs/study/log.md).
-``target_rest`` has a fixed point set by the current state instead of by the history: with the
-particle on the target (dFp = 0) Fp relaxes to F, so Fe -> I and the arrived shape is the rest
-shape (no restoring force, no rebound); away from it Fe -> (I + dFp)^-1, an elastic pull toward
-the target. Nothing accumulates, so eta only sets how fast Fp follows (a time constant of 1/eta
-frames).
 """
 
 from __future__ import annotations
@@ -49,7 +39,6 @@ if TYPE_CHECKING:  # scipy.spatial is imported where it is used: the workflow re
     from scipy.spatial import cKDTree
 
 
-UPDATES = ("incremental", "target_rest")
 # rows of the [N, k] neighbour arrays worked on at a time (their temporaries: ~17 MB at k = 64)
 ROW_CHUNK = 32768
 
@@ -67,23 +56,18 @@ def knn_smooth(d: np.ndarray, neighbors: np.ndarray, iters: int) -> np.ndarray:
     return d
 
 
-def displacement_jacobian(x: np.ndarray, d: np.ndarray, neighbors: np.ndarray, mode: str = "least_squares") -> np.ndarray:
-    """Per-particle displacement Jacobian J_i [N, 3, 3] (eq. 4; see the module docstring).
-
-    x, d: [N, 3]; neighbors: [N, k] indices (the particle itself may be included; it adds nothing).
-    """
+def displacement_jacobian(x: np.ndarray,  # [N, 3]
+                          d: np.ndarray,  # [N, 3]
+                          neighbors: np.ndarray) -> np.ndarray:  # [N, k] indices -> [N, 3, 3]
+    """Per-particle displacement Jacobian J_i of eq. 4 (see the module docstring): the reference of
+    neighbourhood.displacement_jacobian_pairs. The particle itself may be among its neighbors; it
+    adds nothing."""
     e = x[neighbors] - x[:, None, :]  # [N, k, 3]
     dd = d[neighbors] - d[:, None, :]  # [N, k, 3]
     r2 = np.einsum("nki,nki->nk", e, e)
     w = np.where(r2 > 0, 1.0 / np.where(r2 > 0, r2, 1.0), 0.0)  # self / coincident neighbours carry no information
     count = np.maximum((r2 > 0).sum(axis=1), 1)[:, None, None]
-    J = np.einsum("nk,nki,nkj->nij", w, dd, e) / count
-    if mode == "paper":
-        return J
-    M = np.einsum("nk,nki,nkj->nij", w, e, e) / count
-    # Regularise rank-deficient neighbourhoods (e.g. coplanar) so the inverse stays bounded.
-    M = M + 1e-9 * np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3)
-    return np.linalg.solve(M.transpose(0, 2, 1), J.transpose(0, 2, 1)).transpose(0, 2, 1)  # J M^{-1}
+    return np.einsum("nk,nki,nkj->nij", w, dd, e) / count
 
 
 def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:
@@ -150,34 +134,32 @@ def absorb_control(
     F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
     control_mean: np.ndarray,  # [N, 3, 3] mean_t dFc_t over the control slots
     Fp: np.ndarray,  # [N, 3, 3]
-    rate: float = 1.0,
 ) -> np.ndarray:  # [N, 3, 3]
     """Fp' = Fp (F + mean_t dFc_t)^-1 F: the rest state in which F alone gives the elastic
-    deformation the control produced, F Fp'^-1 = (F + mean dFc) Fp^-1. With rate r < 1 only that
-    share moves: Fp' = (1 - r) Fp + r Fp (F + mean dFc)^-1 F.
+    deformation the control produced, F Fp'^-1 = (F + mean dFc) Fp^-1.
 
     Why: the persistent control enters the stress and so holds the achieved shape by itself; the
     rest state never learns it, and with the control switched off the body springs back
     (docs/study/log.md, the release probe). Moving the control into Fp (then re-basing the
     control with rebase_control, which leaves it with zero mean) turns the achieved deformation
     into the material's rest state, the role section 3.4 gives plasticity. Particles whose
-    F + mean dFc is near-singular keep their Fp.
+    F + mean dFc is near-singular keep their Fp. The 0 Fp added changes no value, only the sign
+    of an exact zero, which it sets as in the results on record (absorb_shape too).
     """
     A = F + control_mean  # [N, 3, 3]
     ok = det3(A) > 1e-3
     out = Fp.copy()
-    out[ok] = (1.0 - rate) * Fp[ok] + rate * (Fp[ok] @ np.linalg.solve(A[ok], F[ok]))
+    out[ok] = 0.0 * Fp[ok] + Fp[ok] @ np.linalg.solve(A[ok], F[ok])
     return out
 
 
 def absorb_shape(
     F: np.ndarray,  # [N, 3, 3] deformation gradient at the update
     Fp: np.ndarray,  # [N, 3, 3]
-    rate: float = 1.0,
 ) -> np.ndarray:  # [N, 3, 3]
-    """Fp' = (1 - r) Fp + r S with S = V diag(sigma) V^T the right stretch of F = U diag(sigma) V^T
-    (for det F > 0, F S^-1 = U V^T is a rotation): at r = 1, Fe = F Fp'^-1 = U V^T, a rotation, so the fixed-
-    corotated stress vanishes and the achieved shape is the rest shape (plastic flow to it).
+    """Fp' = S, S = V diag(sigma) V^T the right stretch of F = U diag(sigma) V^T (for det F > 0,
+    F S^-1 = U V^T is a rotation): Fe = F Fp'^-1 = U V^T, a rotation, so the fixed-corotated
+    stress vanishes and the achieved shape is the rest shape (plastic flow to it).
 
     Why: absorb_control keeps the elastic deformation the *control* produced, which is the stress
     that drives the body; released, the body goes on along it, past the target (docs/study/log.md
@@ -189,7 +171,7 @@ def absorb_shape(
     S = np.einsum("nji,nj,njk->nik", Vt, sig, Vt)  # V diag(sigma) V^T, symmetric positive
     ok = det3(F) > 1e-3
     out = Fp.copy()
-    out[ok] = (1.0 - rate) * Fp[ok] + rate * S[ok]
+    out[ok] = 0.0 * Fp[ok] + S[ok]  # 0 Fp: see absorb_control
     return out
 
 
@@ -200,10 +182,10 @@ def absorbed_rest(
     cfg: PlasticityConfig,
 ) -> np.ndarray:  # [N, 3, 3]
     """The Fp an absorbing update starts from: the control (absorb_control) or the shape
-    (absorb_shape) moved into it, per cfg.absorb_target, at cfg.absorb_rate."""
+    (absorb_shape) moved into it, per cfg.absorb_target."""
     if cfg.absorb_target == "shape":
-        return absorb_shape(F, Fp, cfg.absorb_rate)
-    return absorb_control(F, control_mean, Fp, cfg.absorb_rate)
+        return absorb_shape(F, Fp)
+    return absorb_control(F, control_mean, Fp)
 
 
 def rebase_reference(
@@ -283,20 +265,28 @@ def chamfer_plasticity_step(
     target_points: np.ndarray,  # [M, 3]
     cfg: PlasticityConfig,
     target_tree: cKDTree | None = None,
-    F: np.ndarray | None = None,  # [N, 3, 3] the deformation the stress sees (F + dFc), for update="target_rest"
     destination: np.ndarray | None = None,  # [N, 3] per-particle destinations (correspondence="transport")
     nearest_index: np.ndarray | None = None,  # [N] index of each x's nearest target point, when the caller has it
     pool: np.ndarray | None = None,  # [P] the particles neighbourhoods are drawn from (neighbour_pool); None: all
+    search_device: str | None = None,  # the torch device of the nearest-target search; None: the KD tree
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring); with
     ``destination`` step 1 is d_i = destination_i - x_i. With ``pool`` every particle's k neighbours
-    are taken from the pool's particles, whose displacements the smoothing passes update as well."""
+    are taken from the pool's particles, whose displacements the smoothing passes update as well.
+    The nearest target points, where neither ``destination`` nor ``nearest_index`` gives them, come
+    from the KD tree, or with ``search_device`` from physmorph.nearest on that torch device; the
+    neighbourhoods, the smoothing and the Jacobian (physmorph.neighbourhood) run on the Taichi
+    runtime's arch, the update itself in NumPy."""
     from scipy.spatial import cKDTree
 
     from physmorph.neighbourhood import displacement_jacobian_pairs, k_nearest, smooth_displacement  # Taichi
 
     if destination is not None:
         d_raw = np.asarray(destination, dtype=np.float64) - x
+    elif nearest_index is None and search_device is not None:
+        from physmorph.nearest import nearest_points
+
+        d_raw = target_points[nearest_points(target_points, x, search_device)[1]] - x
     else:
         tree = target_tree if target_tree is not None else cKDTree(target_points)
         d_raw = (nearest_target_displacement(x, tree, target_points) if nearest_index is None
@@ -304,21 +294,13 @@ def chamfer_plasticity_step(
     source = np.arange(len(x)) if pool is None else np.asarray(pool)
     neighbors, _ = k_nearest(x, source, min(cfg.k_neighbors, len(source)), with_r2=False)
     d = smooth_displacement(d_raw, neighbors, cfg.smooth_iters, sources=source)
-    J = displacement_jacobian_pairs(x, d, neighbors, None, cfg.jacobian)
+    J = displacement_jacobian_pairs(x, d, neighbors, None)
     del neighbors
     dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
     mag = np.linalg.norm(d, axis=1)
     scale = np.median(mag)
-    if cfg.update == "incremental":
-        eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
-        Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ Fp
-    else:
-        if F is None:
-            raise ValueError("plasticity.update='target_rest' needs the deformation gradient F")
-        # Uniform rate: a particle on the target must still relax to F (its dFp is ~0 there).
-        eta = np.full(len(x), cfg.eta)
-        e = eta[:, None, None]
-        Fp_new = (1.0 - e) * Fp + e * ((np.eye(3) + dFp) @ F)
+    eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
+    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ Fp
     Fp_new = (1.0 - cfg.damping) * Fp_new + cfg.damping * np.eye(3)
     Fp_new = project_plastic(Fp_new, cfg.det_bounds, cfg.max_anisotropy)
     return PlasticityResult(Fp_new, d, eta, float(np.linalg.norm(d_raw, axis=1).mean()))

@@ -16,6 +16,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from physmorph.settings.retired import RETIRED_METHOD_SETTINGS
+
 # leaf names that set size, length or hardware, never the algorithm (at any depth of the config)
 RESOLUTION_LEAVES = frozenset({
     "grid_res", "ppc_surface", "ppc_interior", "width", "height", "supersample", "surface_points", "voxels",
@@ -58,15 +60,21 @@ def method_sha(settings: dict[str, Any]) -> str:
 
 def differing_keys(settings: dict[str, Any], reference: dict[str, Any]) -> list[str]:
     """Keys whose value in ``settings`` is not the reference's (a key either lacks counts; a
-    list of values, as a page keeps for keys its runs disagree on, differs unless all equal it)."""
+    list of values, as a page keeps for keys its runs disagree on, differs unless all equal it).
+    A key the code no longer has (physmorph.settings.retired) counts as the reference's where
+    ``settings`` holds the value the shipped method always ran with."""
     out = []
     for key in sorted(set(settings) | set(reference)):
-        if key not in settings or key not in reference:
+        if key not in reference and key in RETIRED_METHOD_SETTINGS:
+            expected = RETIRED_METHOD_SETTINGS[key]
+        elif key not in settings or key not in reference:
             out.append(key)
             continue
+        else:
+            expected = reference[key]
         value = settings[key]
         values = value["values"] if isinstance(value, dict) and "values" in value else [value]
-        if any(json.dumps(v, default=str) != json.dumps(reference[key], default=str) for v in values):
+        if any(json.dumps(v, default=str) != json.dumps(expected, default=str) for v in values):
             out.append(key)
     return out
 

@@ -2,10 +2,9 @@
 
 MomentumRestart: a frame whose objective rose hands the next frame its state at rest (restart_keep
 of v and C) and, optionally, a scaled control (MorphConfig.momentum_restart, restart_reference,
-restart_keep, restart_control_keep). StepSchedule: the optimiser's step per frame, on the run's
-schedule (step_first..step_last), backed off after a rise and regrown after a fall (the bold
-driver: step_backoff, step_growth), capped by the body's strain rate (strain_rate_cap).
-ControlDecay: dFc <- (1 - (1 - decay) share) dFc at each frame's start (control_decay).
+restart_keep, restart_control_keep). StepSchedule: the optimiser's step per frame, mpm's step
+backed off after each frame the settle phase undid (settle_backoff).
+ControlDecay: dFc <- decay dFc at each frame's start (control_decay).
 OverfillOnset: the packing term waits for the objective's first rise (overfill_onset).
 StrayPull: anchors for particles that stray off the target (stray_pull, the full method's).
 """
@@ -46,40 +45,26 @@ class MomentumRestart:
 
 
 class StepSchedule:
-    """The optimiser's step from frame to frame (``step``: the one the next frame starts from)."""
+    """The optimiser's step from frame to frame (``step``: the one the next frame takes): mpm's
+    step, multiplied by settle_backoff after each frame the settle phase undid."""
 
-    def __init__(self, cfg: MorphConfig, step: float, loss_before: float):
-        self.cfg, self.step, self.loss_before = cfg, step, loss_before
-        self.full = cfg.mpm.step_size
-
-    def frame_step(self, frame: int) -> float:
-        """This frame's step: the bold driver's on the run's schedule."""
-        return self.step * self.cfg.step_multiplier(frame)
+    def __init__(self, step: float):
+        self.step = step
 
     def back_off(self, factor: float) -> None:
         self.step *= factor
 
-    def after_frame(self, physics_loss: float, strain: float) -> None:
-        """The bold driver: back off after a rise of the mass loss, regrow after a fall; then the
-        body's strain rate caps the next step."""
-        if np.isfinite(self.loss_before):
-            rose = physics_loss > self.loss_before
-            self.step = self.step * self.cfg.step_backoff if rose else min(self.step * self.cfg.step_growth, self.full)
-        self.loss_before = physics_loss
-        if self.cfg.strain_rate_cap > 0 and strain > 0:
-            self.step = min(self.step * self.cfg.strain_rate_cap / strain, self.full)
-
 
 class ControlDecay:
-    """dFc leaks toward zero at each frame's start, by a share that follows the step or not."""
+    """dFc leaks toward zero at each frame's start (MorphConfig.control_decay)."""
 
     def __init__(self, cfg: MorphConfig):
-        self.decay, self.follows_step, self.full = cfg.control_decay, cfg.control_decay_follows_step, cfg.mpm.step_size
+        self.decay = cfg.control_decay
 
-    def apply(self, solver, step: float) -> None:
+    def apply(self, solver) -> None:
         if self.decay < 1.0:
-            share = step / self.full if self.follows_step else 1.0
-            solver.scale_control(1.0 - (1.0 - self.decay) * share)
+            # 1 - the leak: decay itself from 0.5 up (Sterbenz), and below it rounded as it always was
+            solver.scale_control(1.0 - (1.0 - self.decay))
 
 
 class OverfillOnset:
@@ -113,41 +98,24 @@ class StrayPull:
     def __init__(self, cfg: MorphConfig):
         self.cfg = cfg
         self.on = cfg.stray_pull > 0 and cfg.method == "full"
-        self.needs_destination = cfg.stray_pull_anchor != "nearest"
 
-    def anchor(self, solver, st: ParticleState, nearest_d, nearest_i, target, destination) -> None:
-        solver.set_position_anchors(*stray_pull_anchors(st.x, st.mass, nearest_d, nearest_i, target, self.cfg,
-                                                        destination))
+    def anchor(self, solver, st: ParticleState, nearest_d, nearest_i, target) -> None:
+        solver.set_position_anchors(*stray_pull_anchors(st.x, st.mass, nearest_d, nearest_i, target, self.cfg))
 
 
 def stray_pull_anchors(x: np.ndarray,  # [N, 3]
                        mass: np.ndarray,  # [N]
                        nearest_d: np.ndarray,  # [N] distance to the nearest target surface point
                        nearest_i: np.ndarray,  # [N] its index in target.surface_points
-                       target, cfg: MorphConfig,
-                       destination: np.ndarray | None = None,  # [N, 3] transport destinations
-                       ) -> tuple[np.ndarray, np.ndarray]:  # [N, 3], [N]
+                       target, cfg: MorphConfig) -> tuple[np.ndarray, np.ndarray]:  # [N, 3], [N]
     """The stray pull's anchors and weights (MorphConfig.stray_pull): a particle whose nearest grid
     node holds no target mass and which lies more than stray_pull_onset cells from the target's
-    surface gets the anchor s_p, its nearest surface point (stray_pull_anchor "nearest"), its
-    destination T_p (stray_pull_anchor "transport", ``destination`` required) or x_p + d_p (T_p -
-    x_p) / |T_p - x_p|, d_p the distance to the nearest surface point ("toward_transport"), and the
-    weight stray_pull m_p / (density dx^3) / dx^2 (the solver adds w_p |x_T,p - s_p|^2); every
-    other particle weight 0."""
+    surface gets the anchor s_p, its nearest surface point, and the weight stray_pull m_p /
+    (density dx^3) / dx^2 (the solver adds w_p |x_T,p - s_p|^2); every other particle weight 0."""
     grid = target.grid
     node = np.clip(np.rint((x - np.asarray(grid.lo)) / grid.dx).astype(np.int64), 0, grid.res - 1)
     outside = target.grid_mass[node[:, 0], node[:, 1], node[:, 2]] <= 0.0
     stray = outside & (nearest_d > cfg.stray_pull_onset * grid.dx)
     cell_mass = cfg.mpm.density * grid.dx ** 3
     weight = np.where(stray, cfg.stray_pull * mass / cell_mass / grid.dx ** 2, 0.0)
-    if cfg.stray_pull_anchor != "nearest":
-        if destination is None:
-            raise ValueError(f"stray_pull_anchor {cfg.stray_pull_anchor!r} needs the particles' destinations")
-        destination = np.asarray(destination, dtype=np.float64)
-        if cfg.stray_pull_anchor == "transport":
-            return destination, weight
-        way = destination - x
-        length = np.linalg.norm(way, axis=1)
-        reach = np.divide(nearest_d, length, out=np.zeros_like(length), where=length > 0)
-        return x + way * np.minimum(reach, 1.0)[:, None], weight
     return np.asarray(target.surface_points)[nearest_i], weight

@@ -5,6 +5,11 @@ Gaussian filter, and its iso-surface at ``level`` x (95th-percentile density, i.
 bulk density) is extracted with marching cubes. Particles within ``band`` voxels of that surface
 form the density mask. Particles closer than ``target_band`` (domain units) to the target surface
 are added, and the mask of a run only ever grows (union with the previous frame's mask).
+
+The density splat runs on the Taichi runtime's arch; the blur and the marching cubes on the CPU
+(grid-sized work); the particles' distances to the two surfaces by KD trees, or with
+``search_device`` by physmorph.nearest's exhaustive search on that torch device (the same mask, up
+to particles within ~1e-12 of a band's edge).
 """
 
 from __future__ import annotations
@@ -34,8 +39,10 @@ def density_grid(x: np.ndarray, weights: np.ndarray, voxels: int, lo: float, hi:
     return out
 
 
-def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConfig, lo: float, hi: float) -> np.ndarray:
-    """Particles within ``cfg.band`` voxels of the density iso-surface. x: [N, 3], volume: [N] -> [N] bool."""
+def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConfig, lo: float, hi: float,
+                         search_device: str | None = None) -> np.ndarray:
+    """Particles within ``cfg.band`` voxels of the density iso-surface. x: [N, 3], volume: [N] -> [N] bool.
+    ``search_device``: the torch device of the distances' search; None: the KD tree (module docstring)."""
     from scipy import ndimage
     from scipy.spatial import cKDTree
     from skimage import measure
@@ -52,6 +59,10 @@ def density_surface_mask(x: np.ndarray, volume: np.ndarray, cfg: SurfaceMaskConf
         return np.ones(len(x), bool)
     verts, _, _, _ = measure.marching_cubes(rho, level=level)
     verts = lo + (verts + 0.5) * h  # voxel index -> domain position of the voxel centre
+    if search_device is not None:
+        from physmorph.nearest import nearest_points
+
+        return nearest_points(verts, x, search_device)[0] <= cfg.band * h
     # only "within the band" matters: the bounded query prunes the far particles (inf distance)
     dist, _ = cKDTree(verts).query(x, k=1, distance_upper_bound=cfg.band * h * (1.0 + 1e-9), workers=-1)
     return dist <= cfg.band * h
@@ -66,13 +77,18 @@ def update_surface_mask(
     hi: float,
     previous: np.ndarray | None = None,  # [N] bool
     target_distance: np.ndarray | None = None,  # [N] distance of x to the target surface, when known
+    search_device: str | None = None,  # the torch device of the distances' search; None: the KD trees
 ) -> np.ndarray:
     """Density mask ∪ near-target particles ∪ previous mask (never shrinks). Returns [N] bool."""
     if not cfg.enabled:
         return np.ones(len(x), bool)
-    mask = density_surface_mask(x, volume, cfg, lo, hi)
+    mask = density_surface_mask(x, volume, cfg, lo, hi, search_device)
     dist = target_distance
-    if dist is None:
+    if dist is None and search_device is not None:
+        from physmorph.nearest import nearest_points
+
+        dist, _ = nearest_points(target_tree.data, x, search_device)
+    elif dist is None:
         dist, _ = target_tree.query(x, k=1, distance_upper_bound=cfg.target_band * (1.0 + 1e-9), workers=-1)
     mask |= dist <= cfg.target_band
     if previous is not None:

@@ -60,7 +60,7 @@ def _softmin(P: torch.Tensor,  # [K, 3] the points summed over
     h = log_w + (potential - 0.5 * (P * P).sum(1)) / eps
     Pt = P.T / eps
     rows = max(1, BLOCK_ENTRIES // max(len(P), 1))
-    out = torch.empty(len(Q), dtype=Q.dtype)
+    out = torch.empty(len(Q), dtype=Q.dtype, device=Q.device)
     for k in range(0, len(Q), rows):
         q = Q[k:k + rows]
         shifted, top = _exp_shifted(torch.addmm(h[None, :], q, Pt))
@@ -116,11 +116,13 @@ def _multiscale_potentials(x: np.ndarray,  # [N, 3]
                            blur: float,
                            dtype: torch.dtype,
                            coarse_switch: float,
-                           min_points: int) -> tuple[torch.Tensor, torch.Tensor]:  # f [N], g [M]
+                           min_points: int,
+                           device: str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:  # f [N], g [M]
     """Sinkhorn over ``schedule`` (decreasing eps), each iteration on the coarsest level L whose cell
     2^L blur is at most sqrt(eps) / coarse_switch (levels stop once a cloud has fewer than
     ``min_points`` cells); between levels g is carried by one half-update against the coarser
-    level's f. Returns the finest level's f and g. The points are centred by the caller."""
+    level's f. Returns the finest level's f and g, on ``device``. The points are centred by the
+    caller; the levels' centroids and log masses are formed on the CPU in float64, then cast."""
     origin = np.minimum(x.min(0), y.min(0))
     levels = [(x, a, y, b)]
     while coarse_switch > 0:
@@ -137,8 +139,8 @@ def _multiscale_potentials(x: np.ndarray,  # [N, 3]
 
     def tensors(L: int):
         xl, al, yl, bl = levels[L]
-        return (torch.from_numpy(xl).to(dtype), torch.from_numpy(yl).to(dtype),
-                torch.log(torch.from_numpy(al)).to(dtype), torch.log(torch.from_numpy(bl)).to(dtype))
+        return (torch.from_numpy(xl).to(device, dtype), torch.from_numpy(yl).to(device, dtype),
+                torch.log(torch.from_numpy(al)).to(device, dtype), torch.log(torch.from_numpy(bl)).to(device, dtype))
 
     runs: list[tuple[int, list[float]]] = []  # consecutive iterations on one level
     for i, eps in enumerate(schedule):
@@ -168,13 +170,17 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
                            extra_iters: int = 10,
                            dtype: torch.dtype = torch.float32,
                            coarse_switch: float = COARSE_SWITCH,
-                           min_points: int = COARSE_MIN_POINTS) -> np.ndarray:  # [N, 3]
+                           min_points: int = COARSE_MIN_POINTS,
+                           device: str = "cpu") -> np.ndarray:  # [N, 3]
     """T_i = sum_j P_ij y_j / a_i for the entropic plan of the module docstring, eps going from the
     squared diameter of the two clouds to blur^2 over ``iters`` Sinkhorn steps, then ``extra_iters``
-    more at blur^2. On the CPU in ``dtype`` (float32: the log-domain potentials need ~1e-4 of
-    relative precision); the kernel is handled by blocks of rows (BLOCK_ENTRIES). Iterations
-    whose blur is at least ``coarse_switch`` cells run on cell centroids (coarse_switch = 0: every
-    iteration on the clouds themselves, the single-scale reference)."""
+    more at blur^2. The iterations and the projection run on the torch ``device`` ("cpu" or
+    "cuda") in ``dtype`` (float32: the log-domain potentials need ~1e-4 of relative precision;
+    on CUDA in IEEE float32, torch's default, not TF32); the kernel is handled by blocks of rows
+    (BLOCK_ENTRIES). The same operations run on either device, so the two differ only by float32
+    rounding (tests/test_plasticity_device.py). Iterations whose blur is at least
+    ``coarse_switch`` cells run on cell centroids (coarse_switch = 0: every iteration on the clouds
+    themselves, the single-scale reference)."""
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     y = np.asarray(y, dtype=np.float64).reshape(-1, 3)
     a = np.asarray(a, dtype=np.float64).reshape(-1)
@@ -195,18 +201,18 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
     schedule += [eps1] * extra_iters
     centre = 0.5 * (lo + hi)  # centred coordinates: small |p|^2 / eps in _softmin's expansion
     x, y = x - centre, y - centre
-    _, g = _multiscale_potentials(x, a, y, b, schedule, blur, dtype, coarse_switch, min_points)
-    X, Y = torch.from_numpy(x).to(dtype), torch.from_numpy(y).to(dtype)
+    _, g = _multiscale_potentials(x, a, y, b, schedule, blur, dtype, coarse_switch, min_points, device)
+    X, Y = torch.from_numpy(x).to(device, dtype), torch.from_numpy(y).to(device, dtype)
     # T_i = sum_j P_ij y_j / sum_j P_ij with P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps): the factors
     # of i alone cancel, leaving a softmax over j of log b_j + (g_j - |y_j|^2 / 2 + x_i.y_j) / eps
-    h = torch.log(torch.from_numpy(b)).to(dtype) + (g - 0.5 * (Y * Y).sum(1)) / eps1
+    h = torch.log(torch.from_numpy(b)).to(device, dtype) + (g - 0.5 * (Y * Y).sum(1)) / eps1
     Yt = Y.T / eps1
     rows = max(1, BLOCK_ENTRIES // len(Y))
     T = torch.empty_like(X)
     for k in range(0, len(X), rows):
         weights, _ = _exp_shifted(torch.addmm(h[None, :], X[k:k + rows], Yt))
         T[k:k + rows] = weights.div_(weights.sum(1, keepdim=True)) @ Y  # the softmax, then its mean of Y
-    return T.numpy().astype(np.float64) + centre
+    return T.cpu().numpy().astype(np.float64) + centre
 
 
 # The node plan is a function of the two grid masses alone: runs of the same inputs in one process
@@ -219,13 +225,15 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
                               mass: np.ndarray,  # [N]
                               grid_mass: np.ndarray,  # [R, R, R] the target's grid mass
                               grid: Grid,
-                              blur_cells: float = 1.0) -> np.ndarray:  # [N, 3]
+                              blur_cells: float = 1.0,
+                              device: str = "cpu") -> np.ndarray:  # [N, 3]
     """Each particle's destination in the target's grid mass, from the plan between the two grid
     masses (the source's splatted: m_I = sum_p w_Ip m_p): transport_destinations from the source's
     non-empty nodes y_I to the target's, blur = blur_cells grid cells, gives node displacements
     D_I = T_I - y_I, and a particle moves by their B-spline interpolation,
     T_p = x_p + sum_I w_Ip D_I m_I / sum_I w_Ip m_I (its stencil's nodes all hold mass).
-    Node to node, the plan is ~(N / nodes)^2 times cheaper than particle to node."""
+    Node to node, the plan is ~(N / nodes)^2 times cheaper than particle to node. The plan runs on
+    the torch ``device`` (transport_destinations); the splat and the interpolation on the CPU."""
     R = grid.res
     if grid_mass.shape != (R, R, R):
         raise ValueError(f"target grid mass has shape {grid_mass.shape}, expected {(R, R, R)}")
@@ -235,11 +243,12 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
     tgt_idx = np.argwhere(grid_mass > 0)
     y = grid.lo + grid.dx * src_idx
     key = hashlib.sha1(b"".join((np.ascontiguousarray(src).tobytes(), np.ascontiguousarray(grid_mass, np.float64).tobytes(),
-                                 np.array([R, grid.lo, grid.dx, blur_cells], np.float64).tobytes()))).hexdigest()
+                                 np.array([R, grid.lo, grid.dx, blur_cells], np.float64).tobytes(),
+                                 device.encode()))).hexdigest()
     T = _PLANS.get(key)
     if T is None:
         T = transport_destinations(y, src[src > 0], grid.lo + grid.dx * tgt_idx, grid_mass[grid_mass > 0],
-                                   blur=blur_cells * grid.dx)
+                                   blur=blur_cells * grid.dx, device=device)
         if len(_PLANS) >= _PLANS_KEPT:
             _PLANS.pop(next(iter(_PLANS)))
         _PLANS[key] = T

@@ -12,6 +12,7 @@ import jsonschema
 import pytest
 import yaml
 
+from physmorph.config_docs import schema_keys
 from physmorph.config import (ConfigError, SamplingConfig, Settings, build, current_defaults, defaults_changed,
                               load_mapping, load_settings, morph_params, params_json, record_first_defaults,
                               schema_text, settings_classes, without_defaults)
@@ -70,7 +71,7 @@ def test_yaml_restates_the_settings_defaults():
     assert checked > 30
     # values that once disagreed between the YAML and the dataclasses
     assert defaults.target.distance == 36.0 and defaults.mpm.learning_rate == 0.004
-    assert defaults.plasticity.jacobian == "paper" and defaults.mpm.mass_loss == "log"
+    assert defaults.plasticity.correspondence == "transport" and defaults.mpm.mass_loss == "log"
     assert defaults.morph.injection_calibration == "every_frame"
 
 
@@ -117,7 +118,10 @@ EXP = {"source": "iso", "target": "bunny", "method": "full"}
         ({"mpm": {"smoothing": 1}}, "'mpm.smoothing': smoothing must be in [0, 1), got 1"),
         ({"mpm": {"optimizer": "sgd"}}, "'mpm.optimizer': 'sgd' is not allowed (allowed: adam, normalized_gd)"),
         ({"mpm": {"grid_res": 64}}, "'mpm.grid_res': not settable here: it is set by sampling.grid_res"),
-        ({"plasticity": {"jacobian": "exact"}}, "'plasticity.jacobian': 'exact' is not allowed (allowed: paper, least_squares)"),
+        ({"plasticity": {"correspondence": "exact"}}, "'plasticity.correspondence': 'exact' is not allowed (allowed: nearest, transport)"),
+        # a setting the code no longer has: named as such, with the value the method runs at
+        ({"mpm": {"control_in_F": True}}, "'mpm.control_in_F': no longer a setting: the method runs as it did with False"),
+        ({"morph": {"step_backoff": 0.5}}, "'morph.step_backoff': no longer a setting: the method runs as it did with 1.0"),
         ({"morph": {"frames": 0}}, "'morph.frames': frames must be >= 1, got 0"),
         ({"morph": {"method": "full"}}, "'morph.method': not settable here: it is set by experiments.<name>.method"),
         ({"morph": {"cameras": 100}}, "'morph.cameras': 100 render-loss views, but the target has only 8"),
@@ -141,10 +145,10 @@ def test_numbers_as_ints_floats_and_strings():
     """--config 'mpm={smoothing: 0.5}' hands over '0.5'; YAML 1.1 reads 1.4e5 as a string; drag: 0
     and smoothing: 1 are ints. All become the field's type."""
     s = load_settings(BASE, overrides={"mpm": {"smoothing": "0.5", "youngs_modulus": "1.4e5", "drag": 0,
-                                               "substeps": "20", "control_in_F": "false"},
+                                               "substeps": "20", "step_per_volume": "false"},
                                        "plasticity": {"eta": 1}, "target": {"distance": 36}, "morph": {"frames": 40.0}})
     assert s.mpm.smoothing == 0.5 and s.mpm.youngs_modulus == 1.4e5 and s.mpm.substeps == 20
-    assert type(s.mpm.drag) is float and s.mpm.drag == 0.0 and s.mpm.control_in_F is False
+    assert type(s.mpm.drag) is float and s.mpm.drag == 0.0 and s.mpm.step_per_volume is False
     assert type(s.plasticity.eta) is float and type(s.target.distance) is float and s.morph.frames == 40
     with pytest.raises(ConfigError, match="'morph.frames': expected an integer, got 40.5"):
         load_settings(BASE, overrides={"morph": {"frames": 40.5}})
@@ -225,11 +229,11 @@ def test_params_leave_out_defaults_so_a_new_option_reruns_nothing():
     # set to anything else, it is in the params
     assert '"new_option":2' in morph_params(dataclasses.replace(with_option, mpm=dataclasses.replace(mpm_plus, new_option=2)))
     # a setting given explicitly at its default is the same as not giving it
-    s_explicit = load_settings(BASE, overrides={"mpm": {"mass_loss_levels": 1}, "plasticity": {"absorb_rate": 1.0}})
+    s_explicit = load_settings(BASE, overrides={"mpm": {"mass_loss_blur_weight": 1.0}, "plasticity": {"max_anisotropy": 4.0}})
     assert morph_params(s_explicit.experiment_config("iso_bunny_full")) == morph_params(full)
     # fields at their defaults are absent, others present; ALWAYS_IN_PARAMS fields always
     d = json.loads(morph_params(full))
-    assert "mass_loss_levels" not in d["mpm"] and "absorb_rate" not in d.get("plasticity", {})
+    assert "mass_loss_blur_weight" not in d["mpm"] and "max_anisotropy" not in d.get("plasticity", {})
     assert d["method"] == "full" and "drag" not in d["mpm"] and d["release_frames"] == 40  # the YAML sets 40
     assert without_defaults(SamplingConfig()) == {} and without_defaults(SamplingConfig(grid_res=64)) == {"grid_res": 64}
     # a default that changed (mpm.learning_rate, 0.001 -> 0.002 -> 0.004, docs/study/CHANGELOG.md) is always there, so
@@ -351,7 +355,11 @@ def test_every_config_reference_row_has_its_headers_cells():
             for row in itertools.takewhile(lambda r: r.startswith("|"), lines[i + 2:]):
                 assert len(_table_cells(row)) == width, f"config/README.md row with a cell too many or few: {row}"
                 rows += 1
-    assert tables >= 10 and rows > 150
+    keys = [key for key, _ in schema_keys()]
+    leaves = [key for key in keys if not any(k.startswith(key + ".") for k in keys) and key not in
+              ("raw_meshes", "shapes", "experiments", "tables", "export")]  # a section is a table's title
+    text = "\n".join(lines)
+    assert tables >= 10 and rows >= len(leaves) and all(f"| `{key}`" in text for key in leaves)
     row = next(r for r in lines if r.startswith("| `plasticity.correspondence`"))
     assert _table_cells(row)[4].strip() == "`nearest` \\| `transport`"
 
@@ -360,12 +368,12 @@ def test_schema_accepts_what_the_settings_accept_and_refuses_what_they_refuse():
     """The Snakefile validates with the schema before the settings build: numbers and booleans as
     strings (--config) pass both; an unknown key, a value out of range or a key set elsewhere fails both."""
     validator = jsonschema.Draft202012Validator(yaml.safe_load(SCHEMA_PATH.read_text()))
-    good = {"mpm": {"smoothing": "0.5", "youngs_modulus": "1.4e5", "substeps": "20", "control_in_F": "false"},
+    good = {"mpm": {"smoothing": "0.5", "youngs_modulus": "1.4e5", "substeps": "20", "step_per_volume": "false"},
             "morph": {"frames": 40.0}, "threads": "1", "max_memory_mb": None}
     assert not list(validator.iter_errors(good))
     load_settings(BASE, overrides=good)
     for bad in ({"mpm": {"grid_res": 64}}, {"surprise": 1}, {"threads": 0}, {"mpm": {"smoothing": 1.0}},
-                {"mpm": {"optimizer": "sgd"}}, {"mpm": {"control_in_F": "maybe"}}, {"sampling": {"grid_res": "big"}},
+                {"mpm": {"optimizer": "sgd"}}, {"mpm": {"step_per_volume": "maybe"}}, {"sampling": {"grid_res": "big"}},
                 {"profile": "../x"}):
         assert list(validator.iter_errors(bad)), bad
         with pytest.raises(ConfigError):

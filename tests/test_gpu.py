@@ -8,6 +8,10 @@ and follow the CPU run: the same frames, the metrics to 3 digits, the particles 
 domain. Float32 atomics add in another order on a GPU than on CPU threads, so the runs are not
 bit-identical; the tolerances are those of a deterministic solver, far below what any wrong
 kernel gives. Skips, saying why, where no CUDA device is usable.
+
+The plasticity's and the mask's nearest-point searches, the transport plan (torch on CUDA) and the
+neighbourhood kernels (Taichi on arch=cuda) are also compared piece by piece with their CPU
+references, to the tolerances of tests/test_plasticity_device.py.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 PROBE = """
 import taichi as ti, torch
-assert torch.version.cuda, f"torch {torch.__version__} is a CPU build: install its CUDA build for the renderer"
+assert torch.version.cuda, f"torch {torch.__version__} is a CPU build: install its CUDA build (make venv DEVICE=cuda)"
 assert torch.cuda.is_available(), "torch sees no CUDA device"
 ti.init(arch=ti.cuda, log_level=ti.ERROR)
 arch = str(ti.lang.impl.current_cfg().arch)
@@ -51,6 +55,20 @@ cfg = load_settings("config/config.yaml", "config/test.yaml", overrides={"device
 mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False)
 run_morph(f"{d}/p_iso.h5", f"{d}/t_bunny.h5", f"{d}/{device}.h5", mc, name=device)
 print(json.dumps({"taichi": taichi_state()["arch"], "torch": str(torch_device(mc.render))}))
+"""
+
+
+DEVICE_CHECK = """
+import json, sys
+sys.path.insert(0, "tests")
+import taichi as ti
+from physmorph.taichi_runtime import init_taichi
+from test_plasticity_device import check_deviations, device_deviations
+init_taichi("cuda")
+arch = str(ti.lang.impl.current_cfg().arch)
+dev = device_deviations("cuda")
+print(json.dumps({"taichi": arch, **dev}), flush=True)
+check_deviations(dev)
 """
 
 
@@ -109,3 +127,10 @@ def test_solver_and_renderer_on_cuda_follow_the_cpu(pair):
         for k in ("x", "F", "Fp"):
             np.testing.assert_allclose(fb["states"][last][k][()], fa["states"][last][k][()], rtol=1e-3, atol=1e-3,
                                        err_msg=f"{k} at {last}")
+
+
+def test_plasticity_searches_transport_and_neighbourhoods_on_cuda_follow_the_cpu(cuda):
+    out = _python(DEVICE_CHECK)
+    print(out.stdout.strip())
+    assert out.returncode == 0, f"the device comparison failed:\n{out.stderr[-4000:]}"
+    assert json.loads(out.stdout.strip().splitlines()[-1])["taichi"].endswith("cuda")

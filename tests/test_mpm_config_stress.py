@@ -80,71 +80,51 @@ def _stress_inputs():
     return F, rng.normal(size=(12, 3, 3))
 
 
-@pytest.mark.parametrize("law", ["fixed_corotated", "barrier"])
-def test_stress_matches_torch_reference(law):
+def test_stress_matches_torch_reference():
     F, _ = _stress_inputs()
     mu, lam = 5.8e4, 3.9e4
-    P, _ = evaluate_stress(F, np.zeros_like(F), mu, lam, volume_law=law)
-    P_ref = ref.stress_torch(torch.tensor(F), mu, lam, law).numpy()
+    P, _ = evaluate_stress(F, np.zeros_like(F), mu, lam)
+    P_ref = ref.stress_torch(torch.tensor(F), mu, lam).numpy()
     np.testing.assert_allclose(P, P_ref, rtol=1e-8, atol=1e-8 * mu)
 
 
-@pytest.mark.parametrize("law", ["fixed_corotated", "barrier"])
-def test_stress_differential_matches_central_fd(law):
+def test_stress_differential_matches_central_fd():
     F, dF = _stress_inputs()
     mu, lam = 5.8e4, 3.9e4
-    _, dP = evaluate_stress(F, dF, mu, lam, volume_law=law)
+    _, dP = evaluate_stress(F, dF, mu, lam)
     h = 1e-6
-    Pp, _ = evaluate_stress(F + h * dF, dF, mu, lam, volume_law=law)
-    Pm, _ = evaluate_stress(F - h * dF, dF, mu, lam, volume_law=law)
+    Pp, _ = evaluate_stress(F + h * dF, dF, mu, lam)
+    Pm, _ = evaluate_stress(F - h * dF, dF, mu, lam)
     fd = (Pp - Pm) / (2 * h)
     scale = np.abs(dP).max(axis=(1, 2), keepdims=True)
     assert (np.abs(fd - dP) / scale).max() < 1e-6
     # self-adjointness <dP[a], b> = <a, dP[b]> (dP is a Hessian action), used by the reverse pass
     b = np.random.default_rng(8).normal(size=F.shape)
-    _, dPb = evaluate_stress(F, b, mu, lam, volume_law=law)
+    _, dPb = evaluate_stress(F, b, mu, lam)
     np.testing.assert_allclose((dP * b).sum(axis=(1, 2)), (dF * dPb).sum(axis=(1, 2)), rtol=1e-8,
                                atol=1e-10 * np.abs(dP).max())
 
 
-@pytest.mark.parametrize("law", ["fixed_corotated", "barrier"])
-def test_stress_is_the_gradient_of_the_energy_density(law):
+def test_stress_is_the_gradient_of_the_energy_density():
     """P(Fe) = dPsi/dFe by central differences of the energy density the diagnostics use, on
-    generic, compressed (J ~ 0.05, past the barrier's continuation point) and stretched Fe; the
-    barrier's pressure keeps growing under compression where the paper's falls."""
+    generic, compressed (J ~ 0.05) and stretched Fe; the paper's pressure lam (1 - J) J falls
+    under compression past J = 1/2."""
     F, dF = _stress_inputs()
     keep = np.linalg.det(F) > 0
     F, dF = F[keep], dF[keep]
     F = np.concatenate([F, np.diag([0.3, 0.3, 0.3])[None] * np.array([[[1.0]], [[0.9]]])])
     dF = np.concatenate([dF, np.random.default_rng(9).normal(size=(2, 3, 3))])
     mu, lam = 5.8e4, 3.9e4
-    P, _ = evaluate_stress(F, dF, mu, lam, volume_law=law)
+    P, _ = evaluate_stress(F, dF, mu, lam)
     h = 1e-6
-    fd = (fixed_corotated_energy_density(F + h * dF, mu, lam, law)
-          - fixed_corotated_energy_density(F - h * dF, mu, lam, law)) / (2 * h)
+    fd = (fixed_corotated_energy_density(F + h * dF, mu, lam)
+          - fixed_corotated_energy_density(F - h * dF, mu, lam)) / (2 * h)
     np.testing.assert_allclose((P * dF).sum(axis=(1, 2)), fd, rtol=1e-6, atol=1e-9 * lam)
     J = np.array([0.2, 0.4, 0.6])
     Fj = J[:, None, None] ** (1 / 3) * np.eye(3)
-    pressure = -(evaluate_stress(Fj, np.zeros_like(Fj), 0.0, lam, volume_law=law)[0] @ Fj.transpose(0, 2, 1))[:, 0, 0]
-    if law == "barrier":
-        np.testing.assert_allclose(pressure, lam * (1 - J), rtol=1e-10)
-    else:
-        np.testing.assert_allclose(pressure, lam * (1 - J) * J, rtol=1e-10)
-        assert pressure[0] < pressure[1]  # the paper's law: less resistance at J = 0.2 than 0.4
-    with pytest.raises(MPMConfigError, match="volume_law"):
-        cfg64(volume_law="neo")
-
-
-def test_barrier_volume_law_gradients_match_fd_and_autograd(state):
-    """volume_law = "barrier" in the solver: the control and initial-state gradients against
-    central finite differences and torch autograd through the reference rollout."""
-    cfg = cfg64(substeps=2, volume_law="barrier")
-    s = make(cfg, state)
-    ctrl = random_control(cfg, state.n)
-    s.set_control(ctrl)
-    fd_check(s, state, n_checks=6, seed=13)
-    states = autograd_check(s, state, ctrl)
-    np.testing.assert_allclose(s.state_at(cfg.substeps).x, states[-1][0].detach().numpy(), rtol=1e-9, atol=1e-9)
+    pressure = -(evaluate_stress(Fj, np.zeros_like(Fj), 0.0, lam)[0] @ Fj.transpose(0, 2, 1))[:, 0, 0]
+    np.testing.assert_allclose(pressure, lam * (1 - J) * J, rtol=1e-10)
+    assert pressure[0] < pressure[1]  # the paper's law: less resistance at J = 0.2 than 0.4
 
 
 def test_stress_differential_finite_at_degenerate_singular_values():

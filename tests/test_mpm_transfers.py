@@ -1,4 +1,4 @@
-"""Tests of the differentiable MPM solver (physmorph.mpm): the transfers and their adjoints: the forward against a dense torch reference, conservation, float32 against float64, the control gradient against central differences (float64) and torch autograd, at the simple settings and at the shipped defaults; the control carried in F, the packing pressure, isochoric smoothing, the volume floor, the polar decomposition and its quaternion."""
+"""Tests of the differentiable MPM solver (physmorph.mpm): the transfers and their adjoints: the forward against a dense torch reference, conservation, float32 against float64, the control gradient against central differences (float64) and torch autograd, at the simple settings and at the shipped defaults; isochoric smoothing, the volume floor, the polar decomposition and its quaternion."""
 
 from __future__ import annotations
 
@@ -91,14 +91,6 @@ def test_one_substep_gradients_match_fd(state):
     fd_check(s, state, gF=gF, n_checks=6, seed=7)
 
 
-def test_warm_start_false_resets_control_on_load(state):
-    cfg = cfg64(substeps=1, warm_start=False)
-    s = make(cfg, state, reuse=True)  # the solver of the test above
-    s.set_control(random_control(cfg, state.n))
-    s.load_state(state)
-    assert np.abs(s.control()).max() == 0.0
-
-
 def test_three_substep_gradients_match_fd(solver3, state):
     solver3.set_control(random_control(solver3.cfg, state.n))
     fd_check(solver3, state, n_checks=8, seed=1)
@@ -122,156 +114,28 @@ def test_gradients_match_torch_autograd(solver3, state):
 
 
 @pytest.fixture(scope="module")
-def solver3_per_frame_log(state):
-    """As solver3, with one control per frame and the log mass loss."""
-    return make(cfg64(control="per_frame", mass_loss="log"), state)
+def solver3_log(state):
+    """As solver3, with the log mass loss."""
+    return make(cfg64(mass_loss="log"), state)
 
 
-def test_per_frame_control_is_shared_per_substep_control(solver3, solver3_per_frame_log, state):
-    """per_frame with control c == per_substep with c repeated; its gradient is the sum over t."""
-    sf = solver3_per_frame_log
-    cfg_f = sf.cfg
-    sf.load_state(state)
-    c1 = random_control(cfg_f, state.n)
-    sf.set_control(c1)
-    sf.forward()
-    end_f = sf.state_at(3)
-    sf.backward()
-    solver3.load_state(state)
-    solver3.set_control(np.repeat(c1, 3, axis=0))
-    solver3.forward()
-    np.testing.assert_allclose(end_f.x, solver3.state_at(3).x, rtol=0, atol=1e-12)
-    # the log mass loss and the per-frame gradient against finite differences
-    fd_check(sf, state, n_checks=6, seed=5)
+def test_log_loss_gradients_match_fd(solver3_log, state):
+    solver3_log.set_control(random_control(solver3_log.cfg, state.n))
+    fd_check(solver3_log, state, n_checks=6, seed=5)
 
 
-def test_log_loss_value_matches_reference(solver3_per_frame_log, state):
+def test_log_loss_value_matches_reference(solver3_log, state):
     # the documented formula on the reference grid mass
-    s = solver3_per_frame_log
+    s = solver3_log
     cfg = s.cfg
     s.load_state(state)
-    s.set_control(np.zeros((1, state.n, 3, 3)))
+    s.set_control(np.zeros((3, state.n, 3, 3)))
     L = s.forward()
     end = s.state_at(3)
     m = splat_mass(end.x, end.mass, s.grid)
     eps = cfg.log_mass_eps * state.mass.mean()
     want = ((np.log(m + eps) - np.log(s.target_m.to_numpy() + eps)) ** 2).sum()
     assert L == pytest.approx(want, rel=1e-10)
-
-
-def test_mass_loss_pyramid_matches_reference_and_fd(state):
-    """mass_loss_levels = 3 on the 16^3 grid: the loss is the documented sum over the grid and its
-    2^3- and 4^3-node block sums (eps x 8^l), its control gradient matches torch autograd and
-    central FD (float64)."""
-    cfg = cfg64(substeps=2, mass_loss="log", mass_loss_levels=3)
-    s = make(cfg, state, reuse=True)
-    ctrl = random_control(cfg, state.n, scale=0.02)
-    s.set_control(ctrl)
-    L = s.forward()
-    end = s.state_at(cfg.substeps)
-    m, t = splat_mass(end.x, end.mass, s.grid), s.target_m.to_numpy()
-    want = 0.0
-    for level in range(3):
-        b, e = 2 ** level, cfg.log_mass_eps * state.mass.mean() * 8.0 ** level
-        ml, tl = (a.reshape(RES // b, b, RES // b, b, RES // b, b).sum(axis=(1, 3, 5)) for a in (m, t))
-        want += ((np.log(ml + e) - np.log(tl + e)) ** 2).sum()
-    assert L == pytest.approx(want, rel=1e-10)
-    flat = cfg64(substeps=2, mass_loss="log")  # the coarse levels do change the loss
-    assert ref.mass_loss_torch(ref.as_torch(end.x), ref.as_torch(end.mass), ref.as_torch(t), flat,
-                               cfg.log_mass_eps * state.mass.mean()).item() < 0.99 * L
-    s.backward()
-    x0, c = ref.as_torch(state.x), ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(x0, ref.as_torch(state.v), ref.as_torch(state.C), ref.as_torch(state.F), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg)
-    ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(t), cfg,
-                        cfg.log_mass_eps * state.mass.mean()).backward()
-    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
-    fd_check(s, state, n_checks=6, seed=9)
-    with pytest.raises(MPMConfigError, match="mass_loss_levels"):
-        cfg64(mass_loss_levels=6)  # blocks of 32 nodes do not divide the 16^3 grid
-
-
-# ----------------------------------------------------------------------------- control carried in F
-@pytest.fixture(scope="module")
-def solver3_in_F(state):
-    """As solver3, with dFc carried in F (F_new = (I + dt C') (F + dFc))."""
-    return make(cfg64(control_in_F=True), state)
-
-
-def test_control_in_F_rollout_matches_torch_reference(solver3_in_F, state):
-    s = solver3_in_F
-    ctrl = random_control(s.cfg, state.n)
-    s.load_state(state)
-    s.set_control(ctrl)
-    s.forward()
-    states = ref.rollout_torch(*(ref.as_torch(a) for a in (state.x, state.v, state.C, state.F)), ref.as_torch(ctrl),
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), s.cfg)
-    got = s.state_at(3)
-    np.testing.assert_allclose(got.F, states[3][3].numpy(), rtol=1e-7, atol=1e-9)
-    np.testing.assert_allclose(got.x, states[3][0].numpy(), rtol=1e-7, atol=1e-9)
-    # and it differs from the stress-only rollout by the carried control, first order in dFc
-    plain = ref.rollout_torch(*(ref.as_torch(a) for a in (state.x, state.v, state.C, state.F)), ref.as_torch(ctrl),
-                              ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), cfg64())
-    assert np.abs(got.F - plain[3][3].numpy()).max() > 1e-3
-
-
-def test_control_in_F_gradients_match_fd(solver3_in_F, state):
-    s = solver3_in_F
-    s.set_control(random_control(s.cfg, state.n))
-    fd_check(s, state, n_checks=8, seed=5)
-    gF = 50.0 * np.random.default_rng(21).normal(size=(state.n, 3, 3))
-    fd_check(s, state, gF=gF, n_checks=6, seed=6)
-
-
-def test_control_in_F_gradients_match_torch_autograd(solver3_in_F, state):
-    s = solver3_in_F
-    ctrl = random_control(s.cfg, state.n)
-    gF = np.random.default_rng(8).normal(size=(state.n, 3, 3))
-    s.load_state(state)
-    s.set_control(ctrl)
-    s.forward()
-    s.backward(gF, None)
-    c = ref.as_torch(ctrl, True)
-    states = ref.rollout_torch(*(ref.as_torch(a) for a in (state.x, state.v, state.C, state.F)), c,
-                               ref.as_torch(state.Fp), ref.as_torch(state.mass), ref.as_torch(state.volume), s.cfg)
-    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(state.mass), ref.as_torch(s.target_m.to_numpy()), s.cfg)
-    (loss + (states[-1][3] * ref.as_torch(gF)).sum()).backward()
-    np.testing.assert_allclose(s.control_gradient(), c.grad.numpy(), rtol=1e-6, atol=1e-8 * c.grad.abs().max().item())
-
-
-# ----------------------------------------------------------------------------- packing pressure
-def test_packing_pressure_matches_reference_and_gradients_match_fd(state):
-    """volume_stiffness > 0: the frame's pressure equals the reference's (zero below the onset,
-    K ln(rho / (c rho0)) above it, both present in the test's ball), it pushes a packed ball apart,
-    and the control gradient matches central finite differences and torch autograd. The pressure
-    is measured at the frame's start and held, so the initial-state check leaves x out."""
-    cfg = cfg64(substeps=2, volume_stiffness=2e4, volume_onset=0.45)
-    s = make(cfg, state)
-    press = s.frame_pressure()
-    want = ref.frame_pressure_torch(ref.as_torch(state.x), ref.as_torch(state.mass), cfg).numpy()
-    np.testing.assert_allclose(press, want, rtol=1e-10, atol=1e-9 * want.max())
-    assert (press == 0).any() and (press > 0).sum() > state.n // 4
-    ctrl = random_control(cfg, state.n)
-    s.set_control(ctrl)
-    fd_check(s, state, n_checks=6, seed=5, state_names=("v", "F"))
-    states = autograd_check(s, state, ctrl, check_x0=False)
-    np.testing.assert_allclose(s.state_at(cfg.substeps).x, states[-1][0].detach().numpy(), rtol=1e-9, atol=1e-9)
-
-
-def test_packing_pressure_spreads_a_packed_ball_and_is_off_below_the_onset():
-    """A ball at 8x its density (2.2x after the kernel's smoothing, at this coarse grid) spreads under the pressure, and less without it; the same ball
-    at its rest density (below the default onset of 2) carries none."""
-    rest = ball_state(radius=4.0, perturb=False)
-    packed = ball_state(radius=4.0, perturb=False)
-    packed.x = 0.5 * packed.x
-    spread = {}
-    for K in (0.0, 2e4):
-        s = make(cfg64(substeps=20, volume_stiffness=K), packed, target=False, reuse=True)
-        s.forward()
-        spread[K] = np.linalg.norm(s.state_at(20).x, axis=1).mean()
-    assert spread[2e4] > 1.05 * spread[0.0]  # 1.59 vs 1.48 mean radius after one frame
-    s = make(cfg64(substeps=20, volume_stiffness=2e4), rest, target=False, reuse=True)
-    assert s.frame_pressure().max() == 0.0
 
 
 # ----------------------------------------------------------------------------- isochoric smoothing
@@ -328,14 +192,14 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     precision (float64), the grid (16^3) and the substeps (3) changed, every method setting at its
     default (log mass loss with eps 0.1 x mean mass, the blurred level at 2 cells, the overfill term
     at weight 1 and ratio 0.001, isochoric smoothing with the volume floor J_min = 0.25, fixed
-    corotated stress, drag 0.9, smoothing 0.955, per-substep control outside F; the step_* and
+    corotated stress, drag 0.9, smoothing 0.955, the control in the stress only; the step_* and
     optimiser fields are driver-only and change no gradient). The loss's gradient and that of
     L + <gF, F_T> + <gx, x_T> (the injected render adjoints) w.r.t. the control and the initial x,
     v, F against central finite differences, at the existing checks' tolerance. The floor is a
     clamp, max(det F_new, J_min), not differentiable where det F_new = J_min: a quarter of the
     ball starts compressed to det F ~ 0.17 so that branch is exercised (floored in the first
-    substep, free after), and the test asserts no particle's det F_new lies within 1e-5 of the
-    kink (2e-4 at the nearest here), so a central difference of step 1e-6 stays on one branch:
+    substep, free after), and the test asserts no particle's det F_new lies within 1e-4 of the
+    kink (2e-4 at the nearest here), so a central difference of step 1e-5 stays on one branch:
     the check is where the clamp is smooth. The overfill term max(0, r)^2 is C^1 (its nodes on
     both sides of the cap here)."""
     cfg = dataclasses.replace(MPMConfig(), precision="float64", grid_res=RES, substeps=3)
@@ -358,14 +222,14 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     for k in range(cfg.substeps):
         a, b = s.state_at(k), s.state_at(k + 1)
         moved = np.linalg.det(np.eye(3) + cfg.dt * b.C) * np.linalg.det(a.F)
-        assert np.abs(moved - cfg.min_volume_ratio).min() > 1e-5  # no particle at the clamp's kink
+        assert np.abs(moved - cfg.min_volume_ratio).min() > 1e-4  # no particle at the clamp's kink
         floored += int((moved < cfg.min_volume_ratio).sum())
         free += int((moved > cfg.min_volume_ratio).sum())
     assert floored > 0 and free > 0  # both branches of the floor
     rng = np.random.default_rng(21)
-    fd_check(s, st, n_checks=8, seed=22)
+    fd_check(s, st, n_checks=8, seed=22, h=1e-5)
     fd_check(s, st, gF=50.0 * rng.normal(size=(st.n, 3, 3)), gx=5.0 * rng.normal(size=(st.n, 3)), n_checks=6,
-              seed=23)
+              seed=23, h=1e-5)
 
 
 @pytest.mark.parametrize("precision", ["float64", "float32"])

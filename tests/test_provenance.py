@@ -15,6 +15,7 @@ from physmorph.config import load_settings, to_plain
 from physmorph.page_meta import (PageProvenance, check_pages, from_runs, read_block, readme_table,
                                  shipped_method_settings)
 from physmorph.provenance import differing_keys, git_state, method_settings, method_sha
+from physmorph.settings.retired import RETIRED_METHOD_SETTINGS
 from physmorph.userdocs import results_markdown
 from test_userdocs import _fake_tables
 
@@ -142,6 +143,22 @@ def test_the_repository_pages_read_back():
         assert record is not None, page
         assert record["method_sha"] == method_sha(record["method"]), page
         json.dumps(record)
+
+
+def test_a_retired_setting_counts_as_shipped_only_at_the_value_the_method_ran_with():
+    """A page made before a setting was removed records it: at the value the shipped method always
+    ran with (physmorph.settings.retired) it is no difference, at any other it is one; no retired
+    key is still a setting."""
+    shipped = shipped_method_settings()
+    assert not set(RETIRED_METHOD_SETTINGS) & set(shipped)
+    old = {**shipped, **RETIRED_METHOD_SETTINGS}
+    assert differing_keys(old, shipped) == []
+    assert differing_keys({**old, "mpm.control_in_F": True}, shipped) == ["mpm.control_in_F"]
+    assert differing_keys({**old, "step_backoff": {"values": [1.0, 0.5]}}, shipped) == ["step_backoff"]
+    assert differing_keys({**shipped, "no_such_key": 1}, shipped) == ["no_such_key"]
+    # the pages the repository holds were made before: the check reads them as the shipped method
+    lines, default_differs = check_pages(ROOT / "docs")
+    assert not default_differs, lines
 
 
 @pytest.mark.parametrize("value", [0.002, "x", None])

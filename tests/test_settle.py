@@ -82,6 +82,12 @@ def test_shipped_morph_comes_to_rest_as_good_as_its_best(shipped_run):
     # an undone frame holds the body: the same alpha MSE as the frame before it
     undone = np.flatnonzero(settling == 2.0)
     np.testing.assert_array_equal(a[undone], a[undone - 1])
+    # the step: mpm's at frame 1, times settle_backoff after each undone frame
+    mc = shipped(SHIPPED_FRAMES)
+    expect = [mc.mpm.step_size]
+    for k in range(1, len(settling) - 1):  # frame k + 1's step follows frame k
+        expect.append(expect[-1] * mc.settle_backoff if settling[k] == 2.0 else expect[-1])
+    np.testing.assert_array_equal(m["step_size"][1:], expect)
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from physmorph.grid import Grid, splat_mass
-from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step
+from physmorph.plasticity import PlasticityConfig, chamfer_plasticity_step, displacement_jacobian, nearest_neighbours
 from physmorph.transport import destinations_in_grid_mass, transport_destinations
 
 
@@ -57,17 +57,18 @@ def test_destinations_in_grid_mass_fill_the_target_and_refuse_bad_input():
 
 def test_plasticity_step_uses_the_destinations_given():
     """With destinations x + A x the step's displacement is that affine field (before smoothing,
-    which keeps an affine field), so least_squares recovers A in every particle's update; the
-    nearest-surface displacement would not be affine."""
+    which keeps an affine field), so every particle's update is the one eq. 4 gives that field
+    (the reference Jacobian, A M_i); the nearest-surface displacement would not be affine."""
     rng = np.random.default_rng(3)
     x = rng.uniform(-3, 3, size=(400, 3))
     A = np.array([[0.2, 0.05, 0.0], [0.05, -0.1, 0.0], [0.0, 0.0, 0.1]])
-    cfg = PlasticityConfig(eta=0.5, k_neighbors=16, smooth_iters=0, damping=0.0, jacobian="least_squares",
+    cfg = PlasticityConfig(eta=0.5, k_neighbors=16, smooth_iters=0, damping=0.0,
                            det_bounds=(0.1, 10.0), max_anisotropy=100.0, correspondence="transport")
     Fp = np.tile(np.eye(3), (len(x), 1, 1))
     res = chamfer_plasticity_step(x, Fp, np.zeros((1, 3)), cfg, destination=x + x @ A.T)
     np.testing.assert_allclose(res.displacement, x @ A.T, atol=1e-12)
-    want = np.eye(3) + res.eta[:, None, None] * A
+    J = displacement_jacobian(x, x @ A.T, nearest_neighbours(x, np.arange(len(x)), 16)[0])
+    want = np.eye(3) + res.eta[:, None, None] * 0.5 * (J + J.transpose(0, 2, 1))
     np.testing.assert_allclose(res.Fp, want, atol=1e-9)
     with pytest.raises(ValueError, match="correspondence"):
         PlasticityConfig(correspondence="closest")

@@ -271,7 +271,7 @@ def test_changed_settings_rerun_exactly_the_runs_that_use_them(test_run):
     assert planned_jobs(_run(wd, "-n", *targets, *TEST, "--config", "mesh_dir=null")) == {}
     # a setting at its default is left out of the params (physmorph.config.params_json), so an
     # option added later at a default that changes nothing reruns nothing
-    assert planned_jobs(_run(wd, "-n", *targets, *base, "mpm={mass_loss_levels: 1}", "plasticity={absorb_rate: 1.0}",
+    assert planned_jobs(_run(wd, "-n", *targets, *base, "mpm={mass_loss_blur_weight: 1.0}", "plasticity={max_anisotropy: 4.0}",
                              "sampling={sigma_scale: 0.7}")) == {}
 
 

@@ -8,11 +8,9 @@ Design decisions (documented here and in the docstrings they refer to):
   the MLS-MPM affine term. dFc enters the stress only; F is advected by the grid velocity,
   F <- (I + dt C) F, then smoothed F <- (1 - s) F + s F_prev. Drag scales the P2G momentum by
   (1 - dt d). No gravity.
-* Control: ``MPMConfig.control`` = "per_substep" (default, the paper code: one dFc per particle
-  per substep, each stepped by the optimiser) or "per_frame" (one dFc per particle shared by the T substeps).
-* Warm start: dFc and the Adam moments persist across frames by default
-  (``MPMConfig.warm_start=True``); the morph loop need not call reset_control. With
-  warm_start=False, load_state resets them every frame.
+* Control: one dFc per particle per substep (the paper code), each stepped by the optimiser.
+* Warm start: dFc and the Adam moments persist across frames (load_state leaves them); the
+  morph loop need not call reset_control.
 * Mass loss: "squared" L = sum_I (m_I - m*_I)^2; "log" (default) L = sum_I (log(m_I + e) -
   log(m*_I + e))^2, e = log_mass_eps * mean particle mass. Delta E % = 100 (L_0 - L_J) / L_0.
 * Backward: hand-written reverse kernels per substep (no Taichi tape); stored per substep:

@@ -28,7 +28,6 @@ class SolverFields:
         self.Fp_inv = mat.field(shape=N)
         self.mass = ti.field(f, shape=N)
         self.vol = ti.field(f, shape=N)
-        self.press = ti.field(f, shape=N)  # the frame's packing pressure (volume_stiffness)
         self.step_weight = ti.field(f, shape=N)  # w_p of the normalised step (step_per_volume), else 1
         # control field and its gradient, index [slot, p]
         self.ctrl = mat.field(shape=(Tc, N))
@@ -51,12 +50,7 @@ class SolverFields:
         # sweep), allocated on its first use (_ensure_pair): 96 B a particle in float32
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
         self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
-        # the body-volume projection's coefficient per control slot (step_volume = "body")
-        self.step_volume_acc = ti.Vector.field(2, ti.f64, shape=Tc)
-        self.step_volume_coef = ti.field(ti.f64, shape=Tc)
         self.step_volume_share = ti.field(ti.f64, shape=())  # MPMConfig.step_volume_share, set per step
-        # the step smoothing's grid and direction (step_smoothing = "grid"), allocated on first use
-        self.step_grid = self.step_grid_w = self.step_dir = None
         self._allocate_grid_fields(vec, R)
         # position anchors of the loss (set_position_anchors: the morph loop's stray pull),
         # allocated on first use: a_p and the weight w_p of w_p |x_T,p - a_p|^2
@@ -66,7 +60,7 @@ class SolverFields:
         self._allocate_substep_scratch(vec, mat, T, N, R)
 
     def _allocate_grid_fields(self, vec, R: int) -> None:
-        """The grid, its adjoints, the target, and the mass loss's pyramid and blurred levels."""
+        """The grid, its adjoints, the target, and the mass loss's blurred level."""
         f, cfg = self.dtype, self.cfg
         self.grid_mv = vec.field(shape=(R, R, R))
         self.grid_m = ti.field(f, shape=(R, R, R))
@@ -75,10 +69,6 @@ class SolverFields:
         self.grid_mv_adj = vec.field(shape=(R, R, R))
         self.grid_m_adj = ti.field(f, shape=(R, R, R))
         self.target_m = ti.field(f, shape=(R, R, R))
-        # the coarser levels of the mass-loss pyramid (mass_loss_levels > 1): block sums of the grid
-        # mass, of the target and their loss adjoints, level l = 1 .. levels - 1
-        self.pyramid = [tuple(ti.field(f, shape=(R >> lv,) * 3) for _ in range(3))
-                        for lv in range(1, cfg.mass_loss_levels)]
         # the blurred level of the mass loss (mass_loss_blur > 0): the blurred grid mass, the blurred
         # target, the level's adjoint and two scratch grids for the separable passes
         self._blur_radius = int(np.ceil(3.0 * cfg.mass_loss_blur)) if cfg.mass_loss_blur > 0 else 0
@@ -134,12 +124,3 @@ class SolverFields:
             self.C_adj2, self.F_adj2 = mat.field(shape=N), mat.field(shape=N)
             self.grid_v_adj2, self.grid_mv_adj2 = vec.field(shape=(R, R, R)), vec.field(shape=(R, R, R))
             self.grid_m_adj2 = ti.field(f, shape=(R, R, R))
-
-    def _ensure_step_grid(self) -> None:
-        """Allocate the step smoothing's grid and direction (MPMConfig.step_smoothing) on first use."""
-        if self.step_grid is None:
-            R = self.cfg.grid_res
-            mat = ti.types.matrix(3, 3, self.dtype)
-            self.step_grid = mat.field(shape=(R, R, R))
-            self.step_grid_w = ti.field(self.dtype, shape=(R, R, R))
-            self.step_dir = mat.field(shape=(self.cfg.n_control_slots, self.n))

@@ -2,9 +2,8 @@
 mass loss, backward and a step on dFc per frame), as small objects acting on a solver's control.
 
 NormalizedGD (the default, DiffMPMLib3D's): dFc <- dFc - alpha g / rms(g), alpha halved until the
-objective decreases (MPMConfig.line_search_iters tries, optionally with a sufficient decrease),
-with the step-volume projections, per-volume weights and grid smoothing of the step
-(physmorph.mpm.step_kernels). Adam (the paper's): bias-corrected moments warm-started across
+objective decreases (MPMConfig.line_search_iters tries), with the step-volume projection and
+per-volume weights of the step (physmorph.mpm.step_kernels). Adam (the paper's): bias-corrected moments warm-started across
 frames. Both end with a forward of the updated dFc, so the solver's rollout() returns it.
 """
 
@@ -77,26 +76,14 @@ class NormalizedGD:
                 J += float((np.asarray(grad_x_final) * x).sum())
         return J
 
-    def step_norm(self, direction, use_weight: int, volume_mode: int) -> float:
-        """|d| of the step's direction (_step_direction; the smoothed direction already carries w),
-        each particle counted once or by its volume (MPMConfig.step_rms)."""
+    def step_norm(self, volume_mode: int) -> float:
+        """|d| of the step's direction (_step_direction: the weighted gradient, less a share of its
+        change of volume where asked)."""
         s = self.solver
-        by_volume = s.cfg.step_rms == "volume"
-        if use_weight and not (s._weighted_step or volume_mode or by_volume):
+        if not (s._weighted_step or volume_mode):
             return s.grad_norm  # the backward's own |g|
-        s._direction_norm_sq(direction, use_weight, volume_mode, int(by_volume), s._inv_mean_volume)
+        s._direction_norm_sq(s.ctrl_grad, volume_mode)
         return float(np.sqrt(s.norm_acc[None]))
-
-    def direction(self):
-        """The step's direction field and whether the kernels apply the per-volume weights: the
-        gradient, or with step_smoothing "grid" the smoothed gradient (which carries them)."""
-        s = self.solver
-        if s.cfg.step_smoothing != "grid":
-            return s.ctrl_grad, 1
-        s._ensure_step_grid()
-        for slot in range(s.cfg.n_control_slots):
-            s._smooth_step_slot(slot)
-        return s.step_dir, 0
 
     def run(self, grad_F_final, grad_x_final, iters: int, gradient_ready: bool, learning_rate: float) -> dict:
         """Per iteration dFc <- dFc - alpha g / rms(g), alpha starting at learning_rate and halved
@@ -114,22 +101,14 @@ class NormalizedGD:
             if not (j == 0 and gradient_ready):
                 s.backward(grad_F_final, grad_x_final)
             # the norm was accumulated in float64 by the kernel; the step is taken in place
-            # (_normalized_step), from the control saved at the iteration's start
-            direction, use_weight = self.direction()
-            # the base first: the step's change of volume is taken at the iteration's control
+            # (_normalized_step), from the control saved at the iteration's start (saved first:
+            # the step's change of volume is taken at the iteration's control)
             s._save_ctrl_base()
-            if cfg.step_volume == "body":
-                s._body_volume_coefficients(direction, use_weight)
             s.step_volume_share[None] = cfg.step_volume_share
-            rms = self.step_norm(direction, use_weight, volume_mode) / np.sqrt(cfg.n_control_slots * s.n * 9)
+            rms = self.step_norm(volume_mode) / np.sqrt(cfg.n_control_slots * s.n * 9)
             if not rms > 0:
                 break
-            rate = 0.0
-            if cfg.sufficient_decrease > 0:
-                s._direction_dot_gradient(direction, 1.0 / rms, cfg.step_clip, use_weight, volume_mode)
-                rate = cfg.sufficient_decrease * float(s.norm_acc[None])
-            found, obj, alpha = self.line_search(grad_F_final, grad_x_final, direction, use_weight, volume_mode,
-                                                 obj, alpha, rms, rate)
+            found, obj, alpha = self.line_search(grad_F_final, grad_x_final, volume_mode, obj, alpha, rms)
             if not found:
                 s._restore_ctrl_base()
                 s.current.stale()
@@ -141,18 +120,18 @@ class NormalizedGD:
         self.last_step = alpha
         return frame_summary(loss_initial, s._last_loss, losses, s.grad_norm, accepted, step=alpha)
 
-    def line_search(self, grad_F_final, grad_x_final, direction, use_weight: int, volume_mode: int,
-                    obj: float, alpha: float, rms: float, rate: float) -> tuple[bool, float, float]:
-        """Steps of length alpha, halved until obj falls by alpha * rate: (found, objective, alpha)."""
+    def line_search(self, grad_F_final, grad_x_final, volume_mode: int, obj: float, alpha: float,
+                    rms: float) -> tuple[bool, float, float]:
+        """Steps of length alpha, halved until the objective falls below obj: (found, objective, alpha)."""
         s, cfg = self.solver, self.solver.cfg
         for _ in range(cfg.line_search_iters):
-            s._normalized_step(direction, alpha, 1.0 / rms, cfg.step_clip, use_weight, volume_mode)
+            s._normalized_step(s.ctrl_grad, alpha, 1.0 / rms, cfg.step_clip, volume_mode)
             s.current.stale()
             try:
                 trial = self.objective(grad_F_final, grad_x_final)
             except MPMDivergenceError:  # a step so large the rollout blows up: shorten it
                 trial = float("inf")
-            if trial < obj - alpha * rate:
+            if trial < obj:
                 return True, trial, alpha
             alpha *= 0.5
         return False, obj, alpha

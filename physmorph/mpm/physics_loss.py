@@ -2,9 +2,8 @@
 loss L between the grid mass of x_T and the target's), its forms and terms, and its adjoint.
 
 Forms (MPMConfig.mass_loss): "squared" sum_I (m_I - m*_I)^2, "log" (default) sum_I (log(m_I + e)
-- log(m*_I + e))^2, and the departures log_convex / sqrt; terms: the coarser pyramid levels
-(mass_loss_levels), a blurred level (mass_loss_blur), the packing term (overfill_weight) and
-the stray pull's position anchors w_p |x_T,p - a_p|^2. A mixin of MPMSolver.
+- log(m*_I + e))^2; terms: a blurred level (mass_loss_blur), the packing term (overfill_weight)
+and the stray pull's position anchors w_p |x_T,p - a_p|^2. A mixin of MPMSolver.
 """
 
 import numpy as np
@@ -28,9 +27,8 @@ class PhysicsLoss:
     @ti.kernel
     def _mass_loss(self, log_eps: ti.f64, overfill_w: ti.f64):
         """Loss and dL/dm_I into grid_m_adj. squared: (m - m*)^2; log: (log(m+e) - log(m*+e))^2;
-        sqrt: (sqrt(m+e) - sqrt(m*+e))^2; log_bounded: log below m*, 4 (sqrt(m+e) - sqrt(m*+e))^2 / (m*+e)
-        above it; plus the packing term _overfill_term with weight overfill_w where the
-        configuration has one (overfill_weight > 0)."""
+        plus the packing term _overfill_term with weight overfill_w where the configuration has one
+        (overfill_weight > 0)."""
         self.loss_acc[None] = 0.0
         for I in ti.grouped(self.grid_m):
             r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
@@ -44,27 +42,18 @@ class PhysicsLoss:
     @ti.func
     def _overfill_term(self, m, mt, log_eps: ti.f64, overfill_w: ti.f64):
         """The packing term of MPMConfig.overfill_weight: w max(0, r)^2 with r = log(m + e) -
-        log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e);
-        with mass_loss = "log_convex", r^2 continued linearly in m above r = 1 (_log_convex_term)."""
+        log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e)."""
         e = ti.cast(log_eps, self.dtype)
         w = ti.cast(overfill_w, self.dtype)
         cap = ti.max(self.dtype(self.cfg.overfill_ratio * self.cfg.density * self.cfg.dx ** 3), mt)
-        r2 = ti.cast(0.0, ti.f64)
-        adj = ti.cast(0.0, self.dtype)
-        if ti.static(self.cfg.mass_loss == "log_convex"):
-            if m > cap:
-                r2, adj = self._log_convex_term(m, cap, e)
-        else:
-            r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
-            r2, adj = ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
+        r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
+        r2, adj = ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
         return ti.cast(w, ti.f64) * r2, w * adj
 
     @ti.func
     def _node_loss(self, m, mt, log_eps: ti.f64):
         """One node's loss term and its derivative dL/dm: squared (m - m*)^2, 2 (m - m*); log
-        (log(m + e) - log(m* + e))^2, 2 r / (m + e); sqrt (sqrt(m + e) - sqrt(m* + e))^2,
-        r / sqrt(m + e); log_bounded: log for m <= m*, else k r^2 and k r / sqrt(m + e) with
-        r = sqrt(m + e) - sqrt(m* + e) and k = 4 / (m* + e); log_convex: _log_convex_term."""
+        (log(m + e) - log(m* + e))^2, 2 r / (m + e)."""
         r2 = ti.cast(0.0, ti.f64)
         adj = ti.cast(0.0, self.dtype)
         e = ti.cast(log_eps, self.dtype)
@@ -72,17 +61,6 @@ class PhysicsLoss:
             r = m - mt
             r2 = ti.cast(r * r, ti.f64)
             adj = 2.0 * r
-        elif ti.static(self.cfg.mass_loss == "log_bounded"):
-            if m <= mt:
-                r2, adj = self._log_term(m, mt, e)
-            else:
-                k = 4.0 / (mt + e)
-                r2, adj = self._sqrt_term(m, mt, e)
-                r2, adj = ti.cast(k, ti.f64) * r2, k * adj
-        elif ti.static(self.cfg.mass_loss == "sqrt"):
-            r2, adj = self._sqrt_term(m, mt, e)
-        elif ti.static(self.cfg.mass_loss == "log_convex"):
-            r2, adj = self._log_convex_term(m, mt, e)
         else:
             r2, adj = self._log_term(m, mt, e)
         return r2, adj
@@ -92,45 +70,6 @@ class PhysicsLoss:
         """(log(m + e) - log(m* + e))^2 and its derivative 2 r / (m + e)."""
         r = ti.log(m + e) - ti.log(mt + e)
         return ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
-
-    @ti.func
-    def _log_convex_term(self, m, mt, e):
-        """The log term r^2, r = log(m + e) - log(m* + e), up to r = 1, where it turns concave in m,
-        and its tangent above: 1 + s (m - m1), m1 = (m* + e) exp(1) - e, s = 2 / (m1 + e); its
-        derivative 2 r / (m + e), then s. Convex in m, so packing mass into fewer nodes never lowers it."""
-        r = ti.log(m + e) - ti.log(mt + e)
-        r2 = ti.cast(r * r, ti.f64)
-        adj = 2.0 * r / (m + e)
-        if r > 1.0:
-            m1 = (mt + e) * self.dtype(np.e) - e
-            s = 2.0 / (m1 + e)
-            r2 = ti.cast(1.0 + s * (m - m1), ti.f64)
-            adj = s
-        return r2, adj
-
-    @ti.func
-    def _sqrt_term(self, m, mt, e):
-        """(sqrt(m + e) - sqrt(m* + e))^2 and its derivative r / sqrt(m + e)."""
-        root = ti.sqrt(m + e)
-        r = root - ti.sqrt(mt + e)
-        return ti.cast(r * r, ti.f64), r / root
-
-    @ti.kernel
-    def _pyramid_loss(self, cm: ti.template(), ct: ti.template(), ca: ti.template(), block: ti.i32,
-                      log_eps: ti.f64):
-        """One coarse level of the mass loss (MPMConfig.mass_loss_levels): M_J = sum of m_I over
-        the block^3 nodes I of block J; the node loss of _node_loss on M and M* added to
-        loss_acc, and its adjoint dL/dM_J added to dL/dm_I of every node of the block."""
-        for J in ti.grouped(cm):
-            cm[J] = 0.0
-        for I in ti.grouped(self.grid_m):
-            cm[I // block] += self.grid_m[I]
-        for J in ti.grouped(cm):
-            r2, adj = self._node_loss(cm[J], ct[J], log_eps)
-            self.loss_acc[None] += r2
-            ca[J] = adj
-        for I in ti.grouped(self.grid_m):
-            self.grid_m_adj[I] += ca[I // block]
 
     @ti.kernel
     def _blur_axis(self, src: ti.template(), dst: ti.template(), axis: ti.template()):
@@ -165,15 +104,13 @@ class PhysicsLoss:
 
     @ti.kernel
     def _add_to_mass_adjoint(self, a: ti.template()):
-        """dL/dm_I += a_I (a coarser or blurred level's adjoint brought back to the grid)."""
+        """dL/dm_I += a_I (the blurred level's adjoint brought back to the grid)."""
         for I in ti.grouped(a):
             self.grid_m_adj[I] += a[I]
 
     def _loss_with_adjoint(self) -> None:
         """Mass loss of the splatted grid_m into loss_acc, dL/dm_I into grid_m_adj (all levels)."""
         self._mass_loss(self._log_eps, self._overfill_weight)
-        for lv, (cm, ct, ca) in enumerate(self.pyramid, start=1):
-            self._pyramid_loss(cm, ct, ca, 1 << lv, self._log_eps * 8.0 ** lv)
         if self.blur_grids:
             bm, bt, ba = self.blur_grids[:3]
             self._blur(self.grid_m, bm)
@@ -219,9 +156,6 @@ class PhysicsLoss:
         if not np.isfinite(m).all() or (m < 0).any():
             raise MPMStateError("target grid mass must be finite and >= 0")
         self.target_m.from_numpy(m.astype(self.np_dtype))
-        for lv, (_, ct, _) in enumerate(self.pyramid, start=1):
-            b = 1 << lv
-            ct.from_numpy(m.reshape(R // b, b, R // b, b, R // b, b).sum(axis=(1, 3, 5)).astype(self.np_dtype))
         if self.blur_grids:
             self._blur(self.target_m, self.blur_grids[1])
         self.current.has_target = True

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..grid import BOUNDARY_CELLS, blur_weights
-from physmorph.settings.mpm import BARRIER_J_LINEAR, MPMConfig
+from physmorph.settings.mpm import MPMConfig
 
 _OFFSETS = torch.tensor([[i, j, k] for i in range(3) for j in range(3) for k in range(3)],
                         dtype=torch.int64)  # [27, 3]
@@ -33,21 +33,10 @@ def cofactor_torch(F: torch.Tensor) -> torch.Tensor:  # [N, 3, 3]
                         torch.cross(f0, f1, dim=1)], dim=2)
 
 
-def volume_term_torch(J: torch.Tensor, lam: float, volume_law: str = "fixed_corotated") -> torch.Tensor:  # [N]
-    """g(J) = dPsi_vol/dJ: lam (J - 1) (fixed_corotated), lam (1 - 1/J) (barrier; its tangent
-    below J = BARRIER_J_LINEAR)."""
-    if volume_law == "fixed_corotated":
-        return lam * (J - 1.0)
-    jl = BARRIER_J_LINEAR
-    linear = lam * (1.0 - 1.0 / jl) + lam / jl ** 2 * (J - jl)
-    return torch.where(J >= jl, lam * (1.0 - 1.0 / torch.clamp(J, min=jl)), linear)
-
-
-def stress_torch(Fe: torch.Tensor, mu: float, lam: float,  # [N, 3, 3]
-                 volume_law: str = "fixed_corotated") -> torch.Tensor:
-    """Fixed corotated first Piola-Kirchhoff stress P = 2 mu (Fe - R) + g(J) J Fe^-T, g of volume_law."""
+def stress_torch(Fe: torch.Tensor, mu: float, lam: float) -> torch.Tensor:  # [N, 3, 3] -> [N, 3, 3]
+    """Fixed corotated first Piola-Kirchhoff stress P = 2 mu (Fe - R) + lam (J - 1) J Fe^-T."""
     J = torch.linalg.det(Fe)
-    return 2.0 * mu * (Fe - rotation_torch(Fe)) + volume_term_torch(J, lam, volume_law)[:, None, None] * cofactor_torch(Fe)
+    return 2.0 * mu * (Fe - rotation_torch(Fe)) + (lam * (J - 1.0))[:, None, None] * cofactor_torch(Fe)
 
 
 def _stencil(x: torch.Tensor, cfg: MPMConfig):
@@ -70,26 +59,14 @@ def grid_mass_torch(x: torch.Tensor, mass: torch.Tensor, cfg: MPMConfig) -> torc
     return out.index_add(0, flat.reshape(-1), (W * mass[:, None]).reshape(-1))
 
 
-def frame_pressure_torch(x, mass, cfg: MPMConfig) -> torch.Tensor:  # x [N, 3], mass [N] -> [N]
-    """K ln(rho_p / (c rho0)) where rho_p = sum_I w_Ip m_I / dx^3 exceeds c rho0, else 0."""
-    W, flat, _, _ = _stencil(x, cfg)
-    m = grid_mass_torch(x, mass, cfg)
-    rho = (W * m[flat]).sum(1) / cfg.dx ** 3
-    ratio = rho / (cfg.volume_onset * cfg.density)
-    return torch.where(ratio > 1, cfg.volume_stiffness * torch.log(torch.clamp(ratio, min=1.0)), torch.zeros_like(ratio))
-
-
-def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig, press=None):
-    """One MLS-MPM substep (see physmorph.mpm.solver's module docstring); all [N, ...] float64.
-    press [N]: the frame's packing pressure (frame_pressure_torch), None = none."""
+def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig):
+    """One MLS-MPM substep (see physmorph.mpm.solver's module docstring); all [N, ...] float64."""
     R, dt = cfg.grid_res, cfg.dt
     kq = 4.0 / cfg.dx ** 2
     W, flat, dpos, nodes = _stencil(x, cfg)
     Fe = (F + dFc) @ Fp_inv
-    tau = stress_torch(Fe, cfg.mu, cfg.lam, cfg.volume_law) @ Fe.transpose(1, 2)
+    tau = stress_torch(Fe, cfg.mu, cfg.lam) @ Fe.transpose(1, 2)
     A = -dt * kq * vol[:, None, None] * tau + mass[:, None, None] * C
-    if press is not None:
-        A = A + (dt * kq * vol * press)[:, None, None] * torch.eye(3, dtype=x.dtype)
     mom = (mass * (1.0 - dt * cfg.drag))[:, None] * v
     contrib = W[..., None] * (mom[:, None, :] + torch.einsum("pab,pnb->pna", A, dpos))  # [N,27,3]
     mv = torch.zeros(R ** 3, 3, dtype=x.dtype).index_add(0, flat.reshape(-1), contrib.reshape(-1, 3))
@@ -107,7 +84,7 @@ def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig, press=None
     x_min = cfg.domain_lo + cfg.dx
     x_max = cfg.domain_lo + (R - 2.0) * cfg.dx
     nx = torch.clamp(x + dt * nv, x_min, x_max)
-    Fn = (torch.eye(3, dtype=x.dtype) + dt * nC) @ (F + dFc if cfg.control_in_F else F)
+    Fn = (torch.eye(3, dtype=x.dtype) + dt * nC) @ F
     nF = (1.0 - cfg.smoothing) * Fn + cfg.smoothing * F
     if cfg.smoothing_mode == "isochoric":
         Jn = torch.linalg.det(Fn)
@@ -118,14 +95,11 @@ def substep_torch(x, v, C, F, dFc, Fp_inv, mass, vol, cfg: MPMConfig, press=None
 
 
 def rollout_torch(x, v, C, F, ctrl, Fp, mass, vol, cfg: MPMConfig):
-    """T substeps; ctrl: [Tc, N, 3, 3]. Returns the list of states [(x, v, C, F)] for t = 0..T.
-    The packing pressure (volume_stiffness > 0) is measured at x and held, without a gradient."""
+    """T substeps; ctrl: [T, N, 3, 3]. Returns the list of states [(x, v, C, F)] for t = 0..T."""
     Fp_inv = torch.linalg.inv(Fp)
-    press = frame_pressure_torch(x.detach(), mass, cfg) if cfg.volume_stiffness > 0 else None
     states = [(x, v, C, F)]
     for t in range(cfg.substeps):
-        slot = t if cfg.control == "per_substep" else 0
-        x, v, C, F = substep_torch(x, v, C, F, ctrl[slot], Fp_inv, mass, vol, cfg, press)
+        x, v, C, F = substep_torch(x, v, C, F, ctrl[t], Fp_inv, mass, vol, cfg)
         states.append((x, v, C, F))
     return states
 
@@ -139,19 +113,8 @@ def blur_torch(a: torch.Tensor, sigma: float) -> torch.Tensor:
     return torch.nn.functional.conv3d(a[None, None], kernel[None, None], padding=r)[0, 0]
 
 
-def log_convex_torch(m, t, e) -> torch.Tensor:
-    """Per node: r^2 with r = log(m + e) - log(t + e) where r <= 1, else the tangent at r = 1,
-    1 + 2 (m - m1) / (m1 + e) with m1 = (t + e) exp(1) - e (MPMConfig.mass_loss = "log_convex")."""
-    r = torch.log(m + e) - torch.log(t + e)
-    m1 = (t + e) * np.e - e
-    return torch.where(r <= 1.0, r ** 2, 1.0 + 2.0 * (m - m1) / (m1 + e))
-
-
 def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> torch.Tensor:
-    """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2; sqrt: sum (sqrt(m + e) -
-    sqrt(m* + e))^2; log_bounded: log where m <= m*, 4 (sqrt(m + e) - sqrt(m* + e))^2 / (m* + e) above;
-    log_convex: log_convex_torch (see MPMConfig), summed
-    over the pyramid levels: level l sums blocks of 2^l nodes per axis, with eps x 8^l; plus, where
+    """squared: sum (m - m*)^2; log: sum (log(m + e) - log(m* + e))^2; plus, where
     mass_loss_blur > 0, mass_loss_blur_weight times the same form on the blurred grids (blur_torch)
     with eps; plus, where overfill_weight > 0, w sum_I max(0, log(m_I + e) - log(max(c density dx^3,
     m*_I) + e))^2."""
@@ -162,31 +125,15 @@ def mass_loss_torch(x, mass, target, cfg: MPMConfig, log_eps: float = 0.0) -> to
     def form(ml, tl, e):
         if cfg.mass_loss == "squared":
             return ((ml - tl) ** 2).sum()
-        if cfg.mass_loss == "log_bounded":
-            below = (torch.log(ml + e) - torch.log(tl + e)) ** 2
-            above = 4.0 / (tl + e) * (torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2
-            return torch.where(ml <= tl, below, above).sum()
-        if cfg.mass_loss == "sqrt":
-            return ((torch.sqrt(ml + e) - torch.sqrt(tl + e)) ** 2).sum()
-        if cfg.mass_loss == "log_convex":
-            return log_convex_torch(ml, tl, e).sum()
         return ((torch.log(ml + e) - torch.log(tl + e)) ** 2).sum()
 
-    total = torch.zeros((), dtype=m.dtype)
-    for level in range(cfg.mass_loss_levels):
-        b = 2 ** level
-        ml = m.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
-        tl = t.reshape(R // b, b, R // b, b, R // b, b).sum(dim=(1, 3, 5))
-        total = total + form(ml, tl, log_eps * 8.0 ** level)
+    total = form(m, t, log_eps)
     if cfg.mass_loss_blur > 0:
         total = total + cfg.mass_loss_blur_weight * form(blur_torch(m, cfg.mass_loss_blur),
                                                          blur_torch(t, cfg.mass_loss_blur), log_eps)
-    if cfg.overfill_weight > 0:  # the packing term, on the grid itself (level 0)
+    if cfg.overfill_weight > 0:  # the packing term
         cap = torch.clamp(t, min=cfg.overfill_ratio * cfg.density * cfg.dx ** 3)
-        if cfg.mass_loss == "log_convex":
-            term = torch.where(m > cap, log_convex_torch(m, cap, log_eps), torch.zeros_like(m))
-        else:
-            term = torch.clamp(torch.log(m + log_eps) - torch.log(cap + log_eps), min=0.0) ** 2
+        term = torch.clamp(torch.log(m + log_eps) - torch.log(cap + log_eps), min=0.0) ** 2
         total = total + cfg.overfill_weight * term.sum()
     return total
 

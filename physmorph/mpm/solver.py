@@ -11,10 +11,6 @@ One substep t (state s_t = (x, v, C, F), control dFc_t, constants Fp, m, V0):
           F_new = (I + dt C') F,   F' = (1 - s) F_new + s F
     (with smoothing_mode "isochoric", not in the paper: F' <- (det F_new / det F')^(1/3) F', the
     volume ratio follows the motion and only the shape is smoothed)
-    (with control_in_F: F_new = (I + dt C') (F + dFc_t), the authors' code)
-    (with volume_stiffness K > 0, not in the paper: A += dt V0 (4/dx^2) p I, a packing pressure
-    p = K ln(rho / (c rho0)) where the P2G density at the frame's start, rho = sum_I w_Ip m_I / dx^3,
-    exceeds c rho0; held over the frame's substeps)
 
 P = 2 mu (Fe - R) + lam (J - 1) cof(Fe), with cof(Fe) = J Fe^-T written with cross products
 so it stays finite for singular Fe. The control dFc enters the stress only (it acts like an
@@ -71,7 +67,7 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         self.dtype = ti.f64 if cfg.precision == "float64" else ti.f32
         self.np_dtype = np.float64 if cfg.precision == "float64" else np.float32
         self._allocate_fields()
-        self._stress_model = make_stress_funcs(self.dtype, cfg.mu, cfg.lam, cfg.volume_law)
+        self._stress_model = make_stress_funcs(self.dtype, cfg.mu, cfg.lam)
         # compile-time constants of the kernels
         self._dx = cfg.dx
         self._inv_dx = 1.0 / cfg.dx
@@ -81,8 +77,6 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         # positions are clamped so the 3x3x3 stencil never leaves the grid: x_g in [1, res - 2]
         self._x_min = cfg.domain_lo + 1.0 * cfg.dx
         self._x_max = cfg.domain_lo + (cfg.grid_res - 2.0) * cfg.dx
-        self._clip_on = cfg.control_clip > 0
-        self._pressure_on = cfg.volume_stiffness > 0
         self.reset()
 
     def reset(self) -> None:
@@ -127,19 +121,13 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
         self.mass.from_numpy(st.mass.astype(dt_))
         self.vol.from_numpy(st.volume.astype(dt_))
-        weight = ((st.volume.max() / st.volume) ** self.cfg.step_volume_power if self.cfg.step_per_volume
-                  else np.ones(self.n))
+        weight = st.volume.max() / st.volume if self.cfg.step_per_volume else np.ones(self.n)
         self.step_weight.from_numpy(weight.astype(dt_))
         self._weighted_step = bool(self.cfg.step_per_volume and (weight != 1.0).any())
-        self._inv_mean_volume = float(1.0 / st.volume.mean())
-        if self._pressure_on:
-            self._frame_pressure()
         self._Fp = st.Fp.copy()
         self._log_eps = float(self.cfg.log_mass_eps * st.mass.mean())
         self.current.loaded = True
         self.current.stale()
-        if not self.cfg.warm_start:
-            self.reset_control()
 
     def forward(self) -> float:
         """T substeps from the loaded state with the current dFc; returns the mass loss (or nan
@@ -248,7 +236,7 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         in place for the current rollout (combine_calibration after calibration_gradients: the
         morph loop's injection calibration); that iteration's forward and backward are skipped.
         learning_rate: this call's step (normalised GD: the initial alpha; Adam: lr) instead of
-        cfg.step_size (the morph loop's adaptive step, MorphConfig.step_backoff)."""
+        cfg.step_size (the morph loop's step, backed off after an undone frame: MorphConfig.settle_backoff)."""
         if not self.current.has_target:
             raise RuntimeError("optimize_control needs set_target_grid_mass first")
         J = self.cfg.grad_iters if iters is None else int(iters)
@@ -320,11 +308,6 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         self._clear_grid()
         self._splat_mass(self.cfg.substeps)
         return self.grid_m.to_numpy().astype(np.float64)
-
-    def frame_pressure(self) -> np.ndarray:  # [N]
-        """The loaded frame's packing pressure per particle (zeros when volume_stiffness is 0)."""
-        self._require_loaded()
-        return self.press.to_numpy().astype(np.float64) if self._pressure_on else np.zeros(self.n)
 
     @property
     def grad_norm(self) -> float:

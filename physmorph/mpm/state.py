@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from physmorph.settings.mpm import BARRIER_J_LINEAR, MPMConfig, MPMStateError
+from physmorph.settings.mpm import MPMConfig, MPMStateError
 from physmorph.linalg3 import det3, signed_singular_values
 
 _SHAPES = {"x": (3,), "v": (3,), "F": (3, 3), "C": (3, 3), "Fp": (3, 3), "mass": (), "volume": ()}
@@ -75,32 +75,23 @@ def polar_rotation(F: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3, 3]
     return U @ Vt
 
 
-def fixed_corotated_energy_density(Fe: np.ndarray, mu: float, lam: float,  # [N, 3, 3]
-                                   volume_law: str = "fixed_corotated") -> np.ndarray:  # [N]
-    """Psi(Fe) = mu ||Fe - R||_F^2 + Psi_vol(J) (Stomakhin et al. 2012): Psi_vol = lam/2 (J - 1)^2
-    (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued quadratically below BARRIER_J_LINEAR)."""
+def fixed_corotated_energy_density(Fe: np.ndarray,  # [N, 3, 3]
+                                   mu: float, lam: float) -> np.ndarray:  # [N]
+    """Psi(Fe) = mu ||Fe - R||_F^2 + Psi_vol(J) (Stomakhin et al. 2012), Psi_vol = lam/2 (J - 1)^2."""
     # ||Fe - R||_F^2 = sum_i (s_i - 1)^2 over the signed singular values (R = U V^T, both rotations)
     shear = mu * ((signed_singular_values(Fe) - 1.0) ** 2).sum(axis=1)
-    return shear + volume_energy_density(det3(Fe), lam, volume_law)
+    return shear + volume_energy_density(det3(Fe), lam)
 
 
-def volume_energy_density(J: np.ndarray, lam: float, volume_law: str = "fixed_corotated") -> np.ndarray:  # [N] -> [N]
-    """Psi_vol(J): lam/2 (J - 1)^2 (fixed_corotated) or lam (J - 1 - ln J) (barrier, continued
-    quadratically below BARRIER_J_LINEAR)."""
-    if volume_law == "fixed_corotated":
-        return 0.5 * lam * (J - 1.0) ** 2
-    jl = BARRIER_J_LINEAR
-    Jc = np.maximum(J, jl)
-    vol = lam * (Jc - 1.0 - np.log(Jc))
-    d = np.minimum(J - jl, 0.0)  # the tangent continuation's integral below jl
-    vol += lam * (1.0 - 1.0 / jl) * d + 0.5 * lam / jl ** 2 * d ** 2
-    return vol
+def volume_energy_density(J: np.ndarray, lam: float) -> np.ndarray:  # [N] -> [N]
+    """Psi_vol(J) = lam/2 (J - 1)^2, the fixed corotated model's volume term."""
+    return 0.5 * lam * (J - 1.0) ** 2
 
 
 def elastic_energy(state: ParticleState, cfg: MPMConfig) -> float:
     """Total elastic energy sum_p V0_p Psi(F_p Fp_p^-1) (no control field), in J."""
     Fe = np.asarray(state.F) @ np.linalg.inv(np.asarray(state.Fp))
-    return float((np.asarray(state.volume) * fixed_corotated_energy_density(Fe, cfg.mu, cfg.lam, cfg.volume_law)).sum())
+    return float((np.asarray(state.volume) * fixed_corotated_energy_density(Fe, cfg.mu, cfg.lam)).sum())
 
 
 def total_volume(state: ParticleState) -> float:

@@ -8,14 +8,10 @@ The derivative of the rotation R (which Taichi's autodiff cannot do for ti.svd) 
 dR = R omega^, (tr S - S) omega = axial(R^T dFe - dFe^T R), S = R^T Fe, with the pair sums
 s_i + s_j (eigenvalues of tr S - S) floored for the singular/inverted cases.
 
-The volume term g(J) = dPsi_vol/dJ (MPMConfig.volume_law):
-- "fixed_corotated" (the paper's): Psi_vol = lam/2 (J - 1)^2, g = lam (J - 1). Its Kirchhoff
-  pressure g J = lam (J - 1) J is largest at J = 1/2 and falls to 0 as J -> 0: past half its volume
-  the material resists compression less the more it is compressed.
-- "barrier" (not the paper's): Psi_vol = lam (J - 1 - ln J), g = lam (1 - 1/J), the same to second
-  order at J = 1; its Kirchhoff pressure lam (J - 1) grows monotonically with the compression and
-  its energy is unbounded as J -> 0. Below J = BARRIER_J_LINEAR g is continued linearly (C^1), so
-  an inverted Fe keeps a finite stress.
+The volume term g(J) = dPsi_vol/dJ is the paper's: Psi_vol = lam/2 (J - 1)^2, g = lam (J - 1).
+Its Kirchhoff pressure g J = lam (J - 1) J is largest at J = 1/2 and falls to 0 as J -> 0: past
+half its volume the material resists compression less the more it is compressed (the solver's
+floor on det F, MPMConfig.min_volume_ratio, keeps it from there).
 """
 
 from types import SimpleNamespace
@@ -24,7 +20,6 @@ import numpy as np
 import taichi as ti
 
 from ..taichi_runtime import init_taichi
-from physmorph.settings.mpm import BARRIER_J_LINEAR, VOLUME_LAWS
 
 # Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
 # dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
@@ -176,31 +171,21 @@ def make_rotation_funcs(dtype):
                            hat=newton.hat)
 
 
-def make_stress_funcs(dtype, mu: float, lam: float, volume_law: str = "fixed_corotated"):
-    """Fixed-corotated P(Fe) (with the volume term of volume_law), its polar factors and the
+def make_stress_funcs(dtype, mu: float, lam: float):
+    """Fixed-corotated P(Fe), its polar factors and the
     differential dP(Fe)[dFe], for one float type. Returns a namespace of Taichi functions:
     stress(Fe), polar(Fe) -> (R, S, gap), stress_from_polar(Fe, R), stress_and_diff(Fe, dFe),
     stress_and_diff_polar(Fe, R, S, gap, dFe)."""
-    if volume_law not in VOLUME_LAWS:
-        raise ValueError(f"volume_law must be one of {VOLUME_LAWS}, got {volume_law!r}")
     rotation = make_rotation_funcs(dtype)
     polar, skew_solve, axial, hat = rotation.polar, rotation.skew_solve, rotation.axial, rotation.hat
     # Python float constants would enter kernels as f32; typed constants keep float64 exact
     two_mu = 2.0 * mu
-    jl = BARRIER_J_LINEAR
 
     @ti.func
     def volume_term(J):
-        """(g(J), g'(J)) of the module docstring's volume law."""
+        """(g(J), g'(J)) = (lam (J - 1), lam), the module docstring's volume term."""
         g = dtype(lam) * (J - 1.0)
         dg = dtype(lam)
-        if ti.static(volume_law == "barrier"):
-            if J >= dtype(jl):
-                g = dtype(lam) * (1.0 - 1.0 / J)
-                dg = dtype(lam) / (J * J)
-            else:
-                dg = dtype(lam / (jl * jl))
-                g = dtype(lam * (1.0 - 1.0 / jl)) + dg * (J - dtype(jl))
         return g, dg
 
     @ti.func
@@ -247,17 +232,16 @@ _stress_kernels: dict = {}
 
 def evaluate_stress(Fe: np.ndarray,  # [N, 3, 3]
                     dFe: np.ndarray,  # [N, 3, 3]
-                    mu: float, lam: float, precision: str = "float64",
-                    volume_law: str = "fixed_corotated") -> tuple[np.ndarray, np.ndarray]:
+                    mu: float, lam: float, precision: str = "float64") -> tuple[np.ndarray, np.ndarray]:
     """Run the solver's Taichi stress P(Fe) and differential dP(Fe)[dFe] on arrays (for tests
     and diagnostics). Returns (P [N, 3, 3], dP [N, 3, 3]) as float64."""
     if not _runtime_ready():
         init_taichi("cpu")
     dtype = ti.f64 if precision == "float64" else ti.f32
     npd = np.float64 if precision == "float64" else np.float32
-    key = (precision, float(mu), float(lam), volume_law)
+    key = (precision, float(mu), float(lam))
     if key not in _stress_kernels:
-        stress_and_diff = make_stress_funcs(dtype, float(mu), float(lam), volume_law).stress_and_diff
+        stress_and_diff = make_stress_funcs(dtype, float(mu), float(lam)).stress_and_diff
         mat = ti.types.matrix(3, 3, dtype)
 
         @ti.kernel

@@ -67,12 +67,11 @@ class Transfers:
         mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p.
         The rotation of Fe and its pair sum are kept per substep (R_q, gap_t), so the backward
         (_restore_p2g) needs no second SVD."""
-        slot = t if ti.static(self.cfg.control == "per_substep") else 0
         kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
-            Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
+            Fe = (self.F[t, p] + self.ctrl[t, p]) @ self.Fp_inv[p]
             # warm start: the rotation one substep earlier. At the first substep the zero start
             # (no rotation) makes polar_from take the SVD, so a forward depends only on the loaded
             # state and the control; one call site, since each inlined SVD costs seconds of compile
@@ -85,9 +84,6 @@ class Transfers:
             self.gap_t[t, p] = gap
             P = self._stress_model.stress_from_polar(Fe, R)
             A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
-            if ti.static(self._pressure_on):  # Kirchhoff stress -p I; constant in the frame, so the
-                # backward's x adjoint (through A, restored by _restore_p2g) is all it needs
-                A += (self.dtype(self.cfg.dt) * self.vol[p] * kq * self.press[p]) * ti.Matrix.identity(self.dtype, 3)
             mom = self.mass[p] * (1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)) * self.v[t, p]
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
@@ -134,19 +130,16 @@ class Transfers:
     def _restore_p2g(self, t: ti.i32):
         """The backward's scratch (A, Fe, its polar factors) and substep t's grid, from the forward's stored polar factors and grid:
         Fe = (F + dFc_t) Fp^-1, R and gap as stored, S = sym(R^T Fe), A as in _p2g."""
-        slot = t if ti.static(self.cfg.control == "per_substep") else 0
         kq = 4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx)
         for I in ti.grouped(self.grid_m):
             self.grid_m[I] = self.grid_m_t[t, I]
             self.grid_mv[I] = self.grid_mv_t[t, I]
         for p in range(self.n):
-            Fe = (self.F[t, p] + self.ctrl[slot, p]) @ self.Fp_inv[p]
+            Fe = (self.F[t, p] + self.ctrl[t, p]) @ self.Fp_inv[p]
             R = self._rotation_of(self.R_q[t, p])
             S0 = R.transpose() @ Fe
             P = self._stress_model.stress_from_polar(Fe, R)
             A = (-self.dtype(self.cfg.dt) * self.vol[p] * kq) * (P @ Fe.transpose()) + self.mass[p] * self.C[t, p]
-            if ti.static(self._pressure_on):
-                A += (self.dtype(self.cfg.dt) * self.vol[p] * kq * self.press[p]) * ti.Matrix.identity(self.dtype, 3)
             self.A_s[p] = A
             self.Fe_s[p] = Fe
             self.R_s[p] = R
@@ -157,7 +150,6 @@ class Transfers:
     def _p2g_backward(self, t: ti.i32, pair: ti.template()):
         """Reverse of _p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t (pair:
         also the second set's, sharing the stencil, A and the node loop)."""
-        slot = t if ti.static(self.cfg.control == "per_substep") else 0
         damp = 1.0 - self.dtype(self.cfg.dt) * self.dtype(self.cfg.drag)
         for p in range(self.n):
             xp = self.x[t, p]
@@ -191,11 +183,11 @@ class Transfers:
                         vb, Ab, xb = vbar2, Abar2, xbar2
                 Fhat_bar = self._p2g_F_adjoint(p, Ab)
                 if which == 0:
-                    self._add_particle_adjoints(p, slot, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.x_adj,
+                    self._add_particle_adjoints(p, t, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.x_adj,
                                                 self.v_adj, self.C_adj, self.F_adj, self.ctrl_grad)
                 if ti.static(pair):
                     if which == 1:
-                        self._add_particle_adjoints(p, slot, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.x_adj2,
+                        self._add_particle_adjoints(p, t, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.x_adj2,
                                                     self.v_adj2, self.C_adj2, self.F_adj2, self.ctrl_base)
 
     @ti.func
@@ -218,29 +210,6 @@ class Transfers:
         Ca[p] += Cbar
         Fa[p] += Fbar
         grad[slot, p] += Fbar
-
-    def _frame_pressure(self) -> None:
-        """Packing pressure of the frame (MPMConfig.volume_stiffness): m_I = sum_p w_Ip m_p at x_0,
-        rho_p = sum_I w_Ip m_I / dx^3, p_p = K ln(rho_p / (c rho0)) where rho_p > c rho0, else 0."""
-        self._clear_grid()
-        self._splat_mass(0)
-        self._pressure_from_grid_mass()
-
-    @ti.kernel
-    def _pressure_from_grid_mass(self):
-        inv_cell = self.dtype(self._inv_dx) ** 3
-        rho_on = self.dtype(self.cfg.volume_onset * self.cfg.density)
-        for p in range(self.n):
-            base, fx, w, dw = self._stencil(self.x[0, p])
-            rho = ti.cast(0.0, self.dtype)
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self._node(fx, w, i, j, k)
-                rho += wt * self.grid_m[base + off]
-            rho *= inv_cell
-            pr = ti.cast(0.0, self.dtype)
-            if rho > rho_on:
-                pr = self.dtype(self.cfg.volume_stiffness) * ti.log(rho / rho_on)
-            self.press[p] = pr
 
     @ti.func
     def _boundary(self, I, v):
@@ -306,10 +275,7 @@ class Transfers:
                 nv += wt * gv
                 nC += (4.0 * self.dtype(self._inv_dx) * self.dtype(self._inv_dx) * wt) * gv.outer_product(dpos)
             Fo = self.F[t, p]
-            Fh = Fo
-            if ti.static(self.cfg.control_in_F):
-                Fh = Fo + self.ctrl[t if ti.static(self.cfg.control == "per_substep") else 0, p]
-            Fn = (ti.Matrix.identity(self.dtype, 3) + self.dtype(self.cfg.dt) * nC) @ Fh
+            Fn = (ti.Matrix.identity(self.dtype, 3) + self.dtype(self.cfg.dt) * nC) @ Fo
             self.v[t + 1, p] = nv
             self.C[t + 1, p] = nC
             self.x[t + 1, p] = ti.math.clamp(xp + self.dtype(self.cfg.dt) * nv, self.dtype(self._x_min), self.dtype(self._x_max))
@@ -344,7 +310,6 @@ class Transfers:
         for p in range(self.n):
             xp = self.x[t, p]
             base, fx, w, dw = self._stencil(xp)
-            slot = t if ti.static(self.cfg.control == "per_substep") else 0
             xbar, vbar, Cbar = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3), ti.Matrix.zero(self.dtype, 3, 3)
             xbar2, vbar2, Cbar2 = xbar, vbar, Cbar  # set in the loop below
             # one call site of the particle part for both sets (a loop over the sets)
@@ -353,14 +318,14 @@ class Transfers:
                 if ti.static(pair):
                     if which == 1:
                         xa, va, Ca, Fa = self.x_adj2[p], self.v_adj2[p], self.C_adj2[p], self.F_adj2[p]
-                xb, vb, Cb, Fb, Fh_bar = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
+                xb, vb, Cb, Fb = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
                 if which == 0:
                     xbar, vbar, Cbar = xb, vb, Cb
-                    self._set_F_adjoint(p, slot, Fb, Fh_bar, self.v_adj, self.C_adj, self.F_adj, self.ctrl_grad)
+                    self._set_F_adjoint(p, Fb, self.v_adj, self.C_adj, self.F_adj)
                 if ti.static(pair):
                     if which == 1:
                         xbar2, vbar2, Cbar2 = xb, vb, Cb
-                        self._set_F_adjoint(p, slot, Fb, Fh_bar, self.v_adj2, self.C_adj2, self.F_adj2, self.ctrl_base)
+                        self._set_F_adjoint(p, Fb, self.v_adj2, self.C_adj2, self.F_adj2)
             for i, j, k in ti.ndrange(3, 3, 3):
                 off, dpos, wt = self._node(fx, w, i, j, k)
                 gw = self._node_grad(w, dw, i, j, k)
@@ -379,18 +344,14 @@ class Transfers:
     @ti.func
     def _g2p_particle_adjoint(self, t, p, xbar_n, vbar_n, Cbar_n, Fbar_n):
         """The particle part of _g2p's reverse for one adjoint set: the adjoints of x, v, C, F of
-        state t+1 -> F's of state t, the adjoint of F + dFc (dFc's share where control_in_F) and
-        the (x_bar, v_bar, C_bar) that the node loop scatters."""
+        state t+1 -> F's of state t and the (x_bar, v_bar, C_bar) that the node loop scatters."""
         s = self.dtype(self.cfg.smoothing)
         dt = self.dtype(self.cfg.dt)
         xn = self.x[t + 1, p]
         for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
             if xn[a] <= self.dtype(self._x_min) or xn[a] >= self.dtype(self._x_max):
                 xbar_n[a] = 0.0
-        slot = t if ti.static(self.cfg.control == "per_substep") else 0
         Fh = self.F[t, p]
-        if ti.static(self.cfg.control_in_F):
-            Fh += self.ctrl[slot, p]
         Cn = self.C[t + 1, p]
         Fbar_new = (1.0 - s) * Fbar_n
         Fbar = s * Fbar_n
@@ -415,18 +376,15 @@ class Transfers:
         Fbar += Fh_bar
         Cbar = Cbar_n + dt * Fbar_new @ Fh.transpose()
         vbar = vbar_n + dt * xbar_n
-        return xbar_n, vbar, Cbar, Fbar, Fh_bar
+        return xbar_n, vbar, Cbar, Fbar
 
     @ti.func
-    def _set_F_adjoint(self, p, slot, Fbar, Fh_bar, va: ti.template(), Ca: ti.template(), Fa: ti.template(),
-                       grad: ti.template()):
+    def _set_F_adjoint(self, p, Fbar, va: ti.template(), Ca: ti.template(), Fa: ti.template()):
         """One set's adjoints of state t after _g2p's particle part: F's written, v's and C's
-        consumed (zeroed), dFc's share added where the control enters F."""
+        consumed (zeroed)."""
         Fa[p] = Fbar
         va[p] = ti.Vector.zero(self.dtype, 3)
         Ca[p] = ti.Matrix.zero(self.dtype, 3, 3)
-        if ti.static(self.cfg.control_in_F):
-            grad[slot, p] += Fh_bar
 
     @ti.kernel
     def _load_initial(self, x: ti.types.ndarray(), v: ti.types.ndarray(), F: ti.types.ndarray(),

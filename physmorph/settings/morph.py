@@ -26,21 +26,18 @@ class MorphConfig:
     # (and, for control_decay, because its default changed since runs were first made)
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
                                                               "stray_pull", "settle"})
+    # the paper's method (sections 3-4)
     method: Annotated[Literal["physics_only", "f_inject", "full", "position_inject"], setting(
         "physics_only: mass loss alone; f_inject: + render gradient on F; full: + plasticity; position_inject: "
         "render gradient on positions (set by experiments.<name>.method)")] = "full"
-    frames: Annotated[Int, setting("frames per run; experiments set it with `frames`", ge=1)] = 40
     # relative gains: see calibrate_injection
     gamma: Annotated[Float, setting("gain of the render gradient injected on F, relative to the mass gradient",
                                     ge=0)] = 0.1
     gamma_x: Annotated[Float, setting("position_inject only: gain of the render gradient injected on positions",
                                       ge=0)] = 0.1
-    # "every_frame" costs one more backward pass per frame and keeps the injection gamma of the mass
-    # gradient as the mass loss converges; "absolute" is eq. 3 in this project's loss units (the
-    # F-vs-position comparison at equal gain, docs/study/log.md)
-    injection_calibration: Annotated[Literal["first_frame", "every_frame", "absolute"], setting(
-        "every_frame: gain re-measured each frame; first_frame: once; absolute: no calibration (eq. 3 as "
-        "printed)")] = "every_frame"
+
+    # the run: its length, views, records and guards
+    frames: Annotated[Int, setting("frames per run; experiments set it with `frames`", ge=1)] = 40
     cameras: Annotated[Int | None, setting("views the render loss uses (evenly spaced); null: all target.cameras",
                                            "", "<= target.cameras", ge=1)] = None
     save_every: Annotated[Int, setting("store x, F, Fp every this many frames (and the first and last)", "frames",
@@ -54,6 +51,14 @@ class MorphConfig:
     release_frames: Annotated[Int, setting(
         "frames with the control off after the run (how much of the morph persists)", "frames", ge=0)] = 0
     progress: Annotated[Bool, setting("log a line per frame; changing it reruns nothing")] = True
+
+    # the named departures from the paper, the frame loop's steering, and the restart's levers (docs/method.md)
+    # "every_frame" costs one more backward pass per frame and keeps the injection gamma of the mass
+    # gradient as the mass loss converges; "absolute" is eq. 3 in this project's loss units (the
+    # F-vs-position comparison at equal gain, docs/study/log.md)
+    injection_calibration: Annotated[Literal["first_frame", "every_frame", "absolute"], setting(
+        "every_frame: gain re-measured each frame; first_frame: once; absolute: no calibration (eq. 3 as "
+        "printed)")] = "every_frame"
     # the function-value restart of momentum methods (O'Donoghue & Candes 2015): the physics
     # carries momentum across frames, but each frame's control only sees its own frame, so a shape
     # that reaches its target at speed rings (docs/study/log.md, finding 73). Not in the paper.
@@ -67,6 +72,16 @@ class MorphConfig:
     restart_reference: Annotated[Literal["previous", "two_back"], setting(
         "what a frame's objective must rise above for a restart: the previous frame's (previous) or the one "
         "before it (two_back)")] = "previous"
+    # the control is a stress offset: under the F smoothing a constant one keeps the body flowing
+    restart_control_keep: Annotated[Float, setting("share of the carried control a restart keeps",
+                                                   ge=0, le=1)] = 1.0
+    control_decay: Annotated[Float, setting("share of the control each frame starts with (1: carried whole)",
+                                            ge=0, le=1)] = 0.975  # history: docs/study/CHANGELOG.md
+    # first_restart: the body has arrived and starts to cycle (docs/study/log.md finding 167), so a
+    # body still on its way is not slowed by it (findings 177, 180). Not in the paper.
+    overfill_onset: Annotated[Literal["start", "first_restart"], setting(
+        "when mpm.overfill_weight's packing term starts: start, or first_restart (the frame after the objective "
+        "first rose, the first momentum restart)")] = "first_restart"  # history: docs/study/CHANGELOG.md
     # physmorph.settle; not in the paper
     settle: Annotated[Literal["off", "after_cycle", "after_first_rise"], setting(
         "the last phase: from the frame after the objective first rose (after_first_rise) or after the restart "
@@ -77,33 +92,6 @@ class MorphConfig:
     settle_objective: Annotated[Literal["render", "alpha_mse", "physics"], setting(
         "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, or its physics "
         "loss; physics_only is gated on the physics loss only")] = "alpha_mse"
-    # the "bold driver" rule of Vogl et al. 1988; 1.0 and 1.0: a fixed step (the paper's)
-    step_backoff: Annotated[Float, setting("step multiplier after a frame whose physics loss rose; 1 = fixed step",
-                                           gt=0, le=1)] = 1.0
-    step_growth: Annotated[Float, setting("step multiplier after a frame whose loss fell, up to learning_rate",
-                                          ge=1)] = 1.0
-    # the bold driver's factor on top; 1.0 and 1.0: the same step every frame (the paper's)
-    step_first: Annotated[Float, setting(
-        "the step at the first frame, in learning rates (linear to step_last); 1 = fixed step", gt=0)] = 1.0
-    step_last: Annotated[Float, setting("the step at the last frame, in learning rates", gt=0)] = 1.0
-    # the control is a stress offset: under the F smoothing a constant one keeps the body flowing
-    restart_control_keep: Annotated[Float, setting("share of the carried control a restart keeps",
-                                                   ge=0, le=1)] = 1.0
-    control_decay: Annotated[Float, setting("share of the control each frame starts with (1: carried whole)",
-                                            ge=0, le=1)] = 0.975  # history: docs/study/CHANGELOG.md
-    # as the step backs off the control leaks less and is held rather than lost (docs/study/log.md
-    # finding 170: the body still flows under it). Not in the paper.
-    control_decay_follows_step: Annotated[Bool, setting(
-        "the leak (1 - control_decay) scales with the bold driver's step over mpm's step")] = False
-    # the spread of det F below the cell, which the grid's mass loss cannot see, is taken out of the
-    # state (physmorph.grid.grid_average); docs/study/log.md part 34: it narrows the spread, not the slide
-    volume_averaging: Annotated[Float, setting(
-        "share of each particle's det F moved to its grid average between frames (0: off)", ge=0, le=1)] = 0.0
-    # first_restart: the body has arrived and starts to cycle (docs/study/log.md finding 167), so a
-    # body still on its way is not slowed by it (findings 177, 180). Not in the paper.
-    overfill_onset: Annotated[Literal["start", "first_restart"], setting(
-        "when mpm.overfill_weight's packing term starts: start, or first_restart (the frame after the objective "
-        "first rose, the first momentum restart)")] = "first_restart"  # history: docs/study/CHANGELOG.md
     # The stray pull belongs to the Chamfer guidance, with the plasticity: stray_pull x (m_p /
     # (density dx^3)) |x_T,p - s_p|^2 / dx^2 in the physics loss, the anchor s_p taken at the frame's
     # start. The grid's mass loss has no direction for a region several cells outside the target,
@@ -113,32 +101,14 @@ class MorphConfig:
         "(a cell of material one cell out costs this; 0: off)", ge=0)] = 1.0  # history: docs/study/CHANGELOG.md
     stray_pull_onset: Annotated[Float, setting(
         "the stray pull acts on particles more than this far from the target's surface", "cells", ge=0)] = 1.0
-    # transport: every destination region receives its own mass, so material from a part the target
-    # lacks is sent where the target lacks material; toward_transport: the nearest anchor's pull
-    # with the transport's direction (a far destination's pull would take the normalised step's
-    # scale from the rest of the body). Not in the paper.
-    stray_pull_anchor: Annotated[Literal["nearest", "transport", "toward_transport"], setting(
-        "where the stray pull draws a stray particle: its nearest target surface point, its optimal-transport "
-        "destination in the target's mass, or toward that destination as far as the nearest surface "
-        "point")] = "nearest"
-    # physmorph.frame_measures.frame_strain; at twice the step it takes mid's cow -> bunny lower
-    # (docs/study/log.md finding 197). Not in the paper.
-    strain_rate_cap: Annotated[Float, setting(
-        "the next frame's step is scaled by this over the frame's strain (99th percentile of |F_T F_0^-1 - I|), "
-        "up to learning_rate; 0: off", "per frame", ge=0)] = 0.0
+
+    # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)
     render: Annotated[RenderConfig, setting("the renderer (the render section)")] = field(default_factory=RenderConfig)
     plasticity: Annotated[PlasticityConfig, setting("the plasticity (the plasticity section)")] = field(
         default_factory=PlasticityConfig)
     surface: Annotated[SurfaceMaskConfig, setting("the surface mask (the surface section)")] = field(
         default_factory=SurfaceMaskConfig)
-
-    def step_multiplier(self, frame: int) -> float:
-        """The step schedule's factor at ``frame`` (1..frames): step_first to step_last, linear."""
-        if self.frames == 1:
-            return float(self.step_first)
-        t = (frame - 1) / (self.frames - 1)
-        return float(self.step_first + t * (self.step_last - self.step_first))
 
     def to_dict(self) -> dict:
         return asdict(self)

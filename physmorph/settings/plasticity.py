@@ -15,18 +15,11 @@ class PlasticityConfig:
     # run's params, so runs made with the old default rerun
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
                                                              "eta", "correspondence", "start_frame"})
+    # the paper's plasticity (section 3.4; eta and start_frame at values of their own, docs/method.md)
     # base rate per frame (the paper: 0.2; config/paper_method.yaml uses it; 0.02 until 2026-11-24,
     # with the nearest-point correspondence, then 0.1; see config/config.yaml)
     eta: Annotated[Float, setting("plasticity rate (the paper: 0.2)", ge=0)] = 0.05
     k_neighbors: Annotated[Int, setting("neighbours of the displacement smoothing", ge=1)] = 64
-    # the particles a neighbourhood is drawn from: at most neighbour_ppc per cell per axis (one per
-    # sub-cell of dx / neighbour_ppc, the one nearest its centre at rest; neighbour_pool), so the k
-    # neighbours span the same cells at every sampling density: k = 64 from the default sampling
-    # (PPC 2/1, which it keeps whole) is about 8 cells. 0: every particle (until 2026-11-26; at
-    # the paper's PPC 5 a neighbourhood was half a cell)
-    neighbour_ppc: Annotated[Int, setting(
-        "the neighbours are drawn from at most this many particles per cell per axis, so k_neighbors spans the "
-        "same cells at every sampling density (0 = every particle)", ge=0)] = 2
     smooth_iters: Annotated[Int, setting("passes of neighbour averaging of the displacements", ge=0)] = 3
     damping: Annotated[Float, setting("damping d_p of the Fp update", ge=0, le=1)] = 0.05
     # k0 (the paper: 20 of 90 frames; 10, then 5, until 2026-11-24): transport destinations need
@@ -36,10 +29,16 @@ class PlasticityConfig:
     det_bounds: Annotated[tuple[Float, Float], setting("bounds [lo, hi] on det Fp", "",
                                                        "0 < lo <= 1 <= hi")] = (0.5, 2.0)
     max_anisotropy: Annotated[Float, setting("bound on the ratio of Fp's largest to smallest stretch", ge=1)] = 4.0
-    jacobian: Annotated[Literal["paper", "least_squares"], setting(
-        "paper: eq. 4 as printed; least_squares: exact for affine displacement fields")] = "paper"
-    update: Annotated[Literal["incremental", "target_rest"], setting(
-        "incremental: eq. 4 as printed; target_rest: relax toward the rest state on the target")] = "incremental"
+
+    # the named departures from the paper (docs/method.md)
+    # the particles a neighbourhood is drawn from: at most neighbour_ppc per cell per axis (one per
+    # sub-cell of dx / neighbour_ppc, the one nearest its centre at rest; neighbour_pool), so the k
+    # neighbours span the same cells at every sampling density: k = 64 from the default sampling
+    # (PPC 2/1, which it keeps whole) is about 8 cells. 0: every particle (until 2026-11-26; at
+    # the paper's PPC 5 a neighbourhood was half a cell)
+    neighbour_ppc: Annotated[Int, setting(
+        "the neighbours are drawn from at most this many particles per cell per axis, so k_neighbors spans the "
+        "same cells at every sampling density (0 = every particle)", ge=0)] = 2
     # "transport" the default since 2026-11-24; its plan is computed once per run (physmorph.transport)
     correspondence: Annotated[Literal["nearest", "transport"], setting(
         "where each particle is pulled: nearest, the nearest target surface point (the paper); transport, its "
@@ -48,14 +47,11 @@ class PlasticityConfig:
     transport_blur: Annotated[Float, setting(
         "blur of the transport plan (correspondence: transport), the entropic scale of its last iterations",
         "grid cells", gt=0)] = 1.0
-    continuous_stress: Annotated[Bool, setting(
-        "re-base the control so an Fp update leaves the elastic Fe unchanged")] = False
     # the default, the shape at the last update only, commits the final shape to the rest state
     # without changing the run, so it persists with the control off (docs/study/log.md finding 49)
     absorb_control: Annotated[Bool, setting(
         "commit the achieved shape (or control) to the rest state Fp at the updates absorb_start_frame "
         "picks")] = True
-    absorb_rate: Annotated[Float, setting("share moved into Fp per absorbing update", gt=0, le=1)] = 1.0
     # "control": a driving stress, which a released body keeps following (the whole update is then
     # re-based); "shape": only that is re-based, the Chamfer step stays a stress unless
     # continuous_stress (docs/study/log.md findings 46-47)
@@ -65,6 +61,10 @@ class PlasticityConfig:
     # before it the update is the plain one (re-based only with continuous_stress); docs/study/log.md part 9
     absorb_start_frame: Annotated[Int | None, setting(
         "updates that commit: -n the last n, n from frame n on, null every update", "frame", "!= 0")] = -1
+
+    # the paper's continuous stress as its text describes it (config/paper_method.yaml)
+    continuous_stress: Annotated[Bool, setting(
+        "re-base the control so an Fp update leaves the elastic Fe unchanged")] = False
 
     def absorbs_at(self, frame: int, frames: int) -> bool:
         """Whether the update at ``frame`` (1..``frames``) absorbs: absorb_control on and frame past
