@@ -256,6 +256,12 @@ class Settings:
         for i, name in enumerate(self.tables.experiments):
             if name not in self.experiments:
                 _fail(f"tables.experiments[{i}]", f"unknown experiment '{name}'")
+        if len(self.tables.noise) not in (0, 2):
+            _fail("tables.noise", f"two experiments (one morph from two particle samples) or none, got "
+                                  f"{list(self.tables.noise)}")
+        for i, name in enumerate(self.tables.noise):
+            if name not in self.tables.experiments:
+                _fail(f"tables.noise[{i}]", f"'{name}' is not one of tables.experiments")
         if self.tradeoff is not None and self.tradeoff.experiment not in self.experiments:
             _fail("tradeoff.experiment", f"unknown experiment '{self.tradeoff.experiment}'")
 
@@ -271,6 +277,11 @@ class Settings:
         if name not in self.shapes:
             raise ConfigError(f"unknown shape '{name}' (known: {', '.join(sorted(self.shapes))})")
         return self.shapes[name]
+
+    def particle_seed(self, name: str) -> int:
+        """The seed shape ``name``'s particles are sampled with: its own, else the top-level seed."""
+        own = self.shape(name).seed
+        return self.seed if own is None else own
 
     def experiment_config(self, name: str, sampling: SamplingConfig | None = None,
                           target: TargetConfig | None = None, **exp_changes):

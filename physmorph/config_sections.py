@@ -41,6 +41,9 @@ class ShapeSettings:
         "longest extent after normalisation; choose it so the shape holds ~1170 units^3 like the benchmark shapes "
         "(MPM keeps volume); python -m physmorph.meshes.fit MESH prints it", "domain units", gt=0)] = 16.0
     depth: Annotated[Float | None, setting("kind letter: extrusion depth", "domain units", gt=0)] = None
+    seed: Annotated[Int | None, setting(
+        "the seed of this shape's particle sampling (null: the top-level seed); a second entry of a shape with "
+        "another seed is a second sample of it, whose runs measure a result's noise (tables.noise)", ge=0)] = None
 
     def __post_init__(self) -> None:
         """What each kind needs: a file kind exactly one of file and path, a letter one character."""
@@ -142,3 +145,7 @@ class Tables:
                                                "shapes keys")] = ()
     experiments: Annotated[tuple[str, ...], setting("experiments run for the tables and figures", "",
                                                     "experiments keys")] = ()
+    noise: Annotated[tuple[str, ...], setting(
+        "two of the experiments, one morph from two particle samples (a shape entry with its own seed): the spread "
+        "of each measure between them is the directions table's noise; empty: none measured", "",
+        "none or two tables.experiments")] = ()

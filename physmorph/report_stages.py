@@ -12,15 +12,16 @@ from physmorph.stages import stage_log, typed
 
 
 def tables_stage(names: list[str], runs: list[str], layout: str, out_dir: str, log=None,
-                 exported: dict[str, str] | None = None) -> dict:
+                 exported: dict[str, str] | None = None, noise: list[str] | None = None) -> dict:
     """``layout``: the YAML naming the runs of each table and the paper's numbers (physmorph.layout);
-    ``exported``: run name -> its exported meshes' folder (their measures.csv)."""
+    ``exported``: run name -> its exported meshes' folder (their measures.csv); ``noise``: the two
+    runs whose spread is the directions table's noise (config tables.noise)."""
     from physmorph.layout import load_layout
     from physmorph.tables import build_tables
 
     measures = {n: str(Path(d) / "measures.csv") for n, d in (exported or {}).items()}
     with stage_log(log):
-        return build_tables(dict(zip(names, runs)), out_dir, load_layout(layout), measures)
+        return build_tables(dict(zip(names, runs)), out_dir, load_layout(layout), measures, tuple(noise or ()))
 
 
 def figures_stage(names: list[str], runs: list[str], shapes: list[str], targets: list[str], target,

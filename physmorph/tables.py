@@ -192,21 +192,46 @@ def timing_table(m: dict[str, dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def directions_table(m: dict[str, dict], t: TableLayout, main: pd.DataFrame, plast: pd.DataFrame) -> pd.DataFrame:
-    """The paper's three directions, each as a comparison where lower is better: ``ours`` (the
-    paper's choice) against ``baseline``; ``ours_vs_baseline_%`` = 100 (baseline - ours) / baseline,
-    ``holds`` yes when ours is lower, empty when a run is missing. Rows: full vs physics-only
-    alpha MSE at the matched-convergence frame (one per main-table target); F- vs position
-    injection, final alpha MSE; plasticity vs none, rebound % in the run and, where the runs were
-    released (morph.release_frames), after the release. ``main`` and ``plast``: the main and
-    plasticity tables of the same runs."""
-    rows = []
+DIRECTION_COLUMNS = ["direction", "case", "measure", "ours", "baseline", "ours_vs_baseline_%", "margin", "noise",
+                     "holds", "paper"]
 
-    def add(direction, case, measure, ours, baseline, paper):
+
+def _noise_of(m: dict[str, dict], noise: tuple[str, ...]):
+    """The spread of a measure between the two runs of ``noise`` (one experiment from two particle
+    samples, config tables.noise): a function of the measure (a curve -> a number) giving
+    |measure(first) - measure(second)|, NaN where the pair is not configured or not run."""
+    pair = [m.get(name) for name in noise]
+    if len(pair) != 2 or any(r is None for r in pair):
+        return lambda measure: float("nan")
+    return lambda measure: float(abs(measure(pair[0]["alpha_mse"]) - measure(pair[1]["alpha_mse"])))
+
+
+def directions_table(m: dict[str, dict], t: TableLayout, main: pd.DataFrame, plast: pd.DataFrame,
+                     noise: tuple[str, ...] = ()) -> pd.DataFrame:
+    """The paper's three directions, each as a comparison where lower is better: ``ours`` (the
+    paper's choice) against ``baseline``; ``ours_vs_baseline_%`` = 100 (baseline - ours) / baseline;
+    ``margin`` = baseline - ours; ``noise`` the same measure's spread between the two runs of
+    ``noise`` (one experiment from two particle samples: config tables.noise), NaN without them.
+    ``holds``: yes where the margin exceeds the noise, no where it is below minus the noise,
+    "within noise" between, and without a noise measure yes where ours is lower; empty when a run
+    is missing. Rows: full vs physics-only alpha MSE at the matched-convergence frame (one per
+    main-table target); F- vs position injection, final alpha MSE; plasticity vs none, rebound % in
+    the run and, where the runs were released (morph.release_frames), after the release (no noise
+    measure: the noise pair is not released). ``main`` and ``plast``: the main and plasticity
+    tables of the same runs."""
+    rows = []
+    spread_of = _noise_of(m, tuple(noise))
+
+    def add(direction, case, measure, ours, baseline, paper, noise_value=float("nan")):
         row = {"direction": direction, "case": case, "measure": measure, "ours": ours, "baseline": baseline,
-               "ours_vs_baseline_%": np.nan, "holds": "", "paper": paper}
+               "ours_vs_baseline_%": np.nan, "margin": np.nan, "noise": noise_value, "holds": "", "paper": paper}
         if np.isfinite(ours) and np.isfinite(baseline):
-            row["holds"] = "yes" if ours < baseline else "no"
+            margin = baseline - ours
+            row["margin"] = margin
+            if np.isfinite(noise_value):
+                row["holds"] = "yes" if margin > noise_value else "no" if margin < -noise_value else "within noise"
+            else:
+                row["holds"] = "yes" if ours < baseline else "no"
             if baseline != 0:
                 row["ours_vs_baseline_%"] = improvement_percent(baseline, ours)
         rows.append(row)
@@ -214,32 +239,38 @@ def directions_table(m: dict[str, dict], t: TableLayout, main: pd.DataFrame, pla
     main = main.set_index("target")
     for target, c in t.main.items():
         r = main.loc[target]
-        frame = f" (frame {int(r['frame'])})" if "frame" in r and np.isfinite(r["frame"]) else ""
+        has_frame = "frame" in r and np.isfinite(r["frame"])
+        frame = f" (frame {int(r['frame'])})" if has_frame else ""
+        at_frame = (lambda a, k=int(r["frame"]): float(a[min(k, len(a) - 1)])) if has_frame else None
         add("full beats physics-only at matched convergence", target, "alpha MSE at the matched frame" + frame,
-            float(r.get("ours", np.nan)), float(r.get("physics_only", np.nan)), f"{c.paper_improvement_percent:+g} %")
+            float(r.get("ours", np.nan)), float(r.get("physics_only", np.nan)), f"{c.paper_improvement_percent:+g} %",
+            spread_of(at_frame) if at_frame is not None else float("nan"))
     if t.injection is not None:
         f, x = m.get(t.injection.f_inject), m.get(t.injection.position_inject)
         add("F-injection beats position injection", f"{t.injection.f_inject} vs {t.injection.position_inject}",
             "final alpha MSE", np.nan if f is None else float(f["alpha_mse"][-1]),
-            np.nan if x is None else float(x["alpha_mse"][-1]), t.injection.paper)
+            np.nan if x is None else float(x["alpha_mse"][-1]), t.injection.paper, spread_of(lambda a: float(a[-1])))
     if len(plast) == 2:
         with_, without = plast.iloc[0], plast.iloc[1]
         case = f"{with_['experiment']} vs {without['experiment']}"
         for column, measure in (("rebound_%", "rebound % after the best frame"),
                                 ("release_rebound_%", "release rebound % (control off)")):
             if column in plast:
+                in_run = column == "rebound_%"
                 add("plasticity lowers rebound", case, measure, float(with_[column]), float(without[column]),
-                    f"{t.plasticity.paper_rebound} %" if column == "rebound_%" else "")
-    return pd.DataFrame(rows, columns=["direction", "case", "measure", "ours", "baseline", "ours_vs_baseline_%", "holds",
-                                       "paper"])
+                    f"{t.plasticity.paper_rebound} %" if in_run else "",
+                    spread_of(rebound_percent) if in_run else float("nan"))
+    return pd.DataFrame(rows, columns=DIRECTION_COLUMNS)
 
 
 def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: PaperLayout,
-                 measures: dict[str, str | Path] | None = None) -> dict[str, pd.DataFrame]:
+                 measures: dict[str, str | Path] | None = None,
+                 noise: tuple[str, ...] = ()) -> dict[str, pd.DataFrame]:
     """Write every table as {out_dir}/{name}.csv, .md and .tex; returns the DataFrames. ``layout``
     (physmorph.layout): which runs each table compares and the paper's numbers; ``measures``: run
     name -> the measures.csv of its exported surfaces (physmorph.export.measures), whose last row
-    gives the convergence table's stray and surface columns."""
+    gives the convergence table's stray and surface columns; ``noise``: the two runs (one
+    experiment, two particle samples) whose spread is the directions table's noise."""
     m = _load(runs)
     for name, path in (measures or {}).items():
         if name in m and Path(path).exists():
@@ -252,7 +283,7 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: Paper
     tables = {"main": main_table(m, t), "ablation_components": components_table(m, t), "ablation_drag": drag_table(m, t),
               "source_invariance": source_table(m, t), "plasticity": plasticity_table(m, t), "shapes": shapes_table(m, t),
               "timing": timing_table(m), "convergence": convergence_table(m, layout)}
-    tables["directions"] = directions_table(m, t, tables["main"], tables["plasticity"])
+    tables["directions"] = directions_table(m, t, tables["main"], tables["plasticity"], noise)
     assert set(tables) == set(TABLE_NAMES), "physmorph.metrics.TABLE_NAMES lists the tables written here"
     for name, df in tables.items():
         df.to_csv(out / f"{name}.csv", index=False)

@@ -138,12 +138,19 @@ def _paper_sections(direc: pd.DataFrame, main: pd.DataFrame, source: pd.DataFram
     direc = _with_data(direc, "ours")
     if len(direc):
         out.append("## The paper's three directions\n")
-        out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, `holds` is yes "
-                   "when ours is lower.\n")
+        noisy = "noise" in direc and direc["noise"].notna().any()
+        out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, the margin is "
+                   "baseline minus ours, and `holds` is yes when ours is lower"
+                   + (" by more than the noise: the same measure's spread between two runs of one experiment "
+                      "from two particle samples (`tables.noise`), `within noise` where the margin is smaller.\n"
+                      if noisy else " (no noise measured: `tables.noise` names no pair of runs here).\n"))
         rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
-                 _pct(r["ours_vs_baseline_%"]), _fmt(r["holds"]) if isinstance(r["holds"], str) else "",
-                 _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
-        out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain", "holds", "paper"], rows))
+                 _pct(r["ours_vs_baseline_%"])]
+                + ([_fmt(r.get("margin", np.nan)), _fmt(r.get("noise", np.nan))] if noisy else [])
+                + [_fmt(r["holds"]) if isinstance(r["holds"], str) else "",
+                   _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
+        out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain"]
+                          + (["margin", "noise"] if noisy else []) + ["holds", "paper"], rows))
 
     main, source, plast = _with_data(main, "ours"), _with_data(source, "best"), _with_data(plast, "rebound_%")
     if len(main):

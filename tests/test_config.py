@@ -122,6 +122,9 @@ EXP = {"source": "iso", "target": "bunny", "method": "full"}
         # a setting the code no longer has: named as such, with the value the method runs at
         ({"mpm": {"control_in_F": True}}, "'mpm.control_in_F': no longer a setting: the method runs as it did with False"),
         ({"morph": {"step_backoff": 0.5}}, "'morph.step_backoff': no longer a setting: the method runs as it did with 1.0"),
+        ({"tables": {"noise": ["iso_bunny_full"]}}, "'tables.noise': two experiments (one morph from two particle samples) or none"),
+        ({"tables": {"noise": ["iso_bunny_full", "nope"]}}, "'tables.noise[1]': 'nope' is not one of tables.experiments"),
+        ({"shapes": {"iso": {"kind": "isosphere", "seed": -1}}}, "'shapes.iso.seed': seed must be >= 0, got -1"),
         ({"morph": {"frames": 0}}, "'morph.frames': frames must be >= 1, got 0"),
         ({"morph": {"method": "full"}}, "'morph.method': not settable here: it is set by experiments.<name>.method"),
         ({"morph": {"cameras": 100}}, "'morph.cameras': 100 render-loss views, but the target has only 8"),
@@ -139,6 +142,20 @@ def test_bad_config_names_the_key(override, message):
     # the key and the reason are the error's data; the message is made of them
     assert err.value.key == message.split("'")[1]
     assert str(err.value) == f"config key '{err.value.key}': {err.value.reason}"
+
+
+def test_a_shape_entry_with_its_own_seed_is_a_second_particle_sample():
+    """shapes.<name>.seed sets that shape's sampling seed (the top-level seed otherwise): the
+    paper profile's isob is the isosphere sampled again, and its iso -> bunny full run pairs with
+    the first as the directions table's noise."""
+    s = load_settings(BASE, "config/paper.yaml")
+    assert s.particle_seed("iso") == s.seed == 0 and s.particle_seed("isob") == 1
+    iso, isob = s.shape("iso"), s.shape("isob")
+    assert dataclasses.replace(isob, seed=None) == iso
+    assert s.tables.noise == ("iso_bunny_full", "isob_bunny_full")
+    a, b = (s.experiment_config(n) for n in s.tables.noise)
+    assert dataclasses.replace(b, release_frames=a.release_frames) == a  # the same morph (no release probe)
+    assert load_settings(BASE).tables.noise == ()  # the default profile measures no noise
 
 
 def test_numbers_as_ints_floats_and_strings():

@@ -147,6 +147,39 @@ def test_directions_table_states_each_paper_direction_from_the_runs(tmp_path):
     assert (released["ours"], released["baseline"]) == pytest.approx((100 / 41, 2500 / 35))
     md = (out / "directions.md").read_text()
     assert md.startswith("| direction | case |") and "F-injection beats position injection" in md
+    assert d["noise"].isna().all()  # no noise pair: holds says only which is lower
+
+
+def test_directions_hold_only_where_the_margin_exceeds_the_noise(tmp_path):
+    """With tables.noise (iso -> bunny full from a second particle sample), each row's noise is
+    its measure's spread between the two runs: at the matched frame 2 |0.018 - 0.0195| = 0.0015
+    against a margin 0.02 - 0.018 = 0.002 (holds); final alpha MSE |0.019 - 0.0185| = 0.0005 against
+    F-injection's margin 0.022 - 0.025 = -0.003 (does not hold); in-run rebound
+    |100 / 42 - 100 (0.0185 - 0.0185) / 0.0415| = 2.38 points against 12.5 - 2.38 = 10.1 (holds).
+    The same runs with a second sample far off the first make the bunny row 'within noise'."""
+    ceiling = {"ceiling_alpha_mse": 0.01, "ceiling_iou": 0.9}
+    runs = {
+        "iso_bunny_physics_only": write_run(tmp_path / "po.h5", [0.06, 0.03, 0.02, 0.02],
+                                            {"method": "physics_only", **ceiling}),
+        "iso_bunny_full": write_run(tmp_path / "full.h5", [0.06, 0.03, 0.018, 0.019], {"method": "full", **ceiling}),
+        "isob_bunny_full": write_run(tmp_path / "fullb.h5", [0.06, 0.03, 0.0195, 0.0185], {"method": "full", **ceiling}),
+        "iso_bunny_f_inject": write_run(tmp_path / "fi.h5", [0.06, 0.03, 0.02, 0.025], {"method": "f_inject", **ceiling}),
+        "iso_bunny_position_inject": write_run(tmp_path / "xi.h5", [0.06, 0.03, 0.02, 0.022],
+                                               {"method": "position_inject", **ceiling}),
+    }
+    d = build_tables(runs, tmp_path / "tables", LAYOUT, noise=("iso_bunny_full", "isob_bunny_full"))["directions"]
+    bunny = d[d["direction"].str.startswith("full beats")].set_index("case").loc["bunny"]
+    assert bunny["margin"] == pytest.approx(0.002) and bunny["noise"] == pytest.approx(0.0015)
+    assert bunny["holds"] == "yes"
+    inj = d[d["direction"].str.startswith("F-injection")].iloc[0]
+    assert inj["margin"] == pytest.approx(-0.003) and inj["noise"] == pytest.approx(0.0005) and inj["holds"] == "no"
+    reb = d[d["direction"] == "plasticity lowers rebound"].set_index("measure").loc["rebound % after the best frame"]
+    assert reb["noise"] == pytest.approx(100 / 42) and reb["margin"] == pytest.approx(12.5 - 100 / 42)
+    assert reb["holds"] == "yes"
+    runs["isob_bunny_full"] = write_run(tmp_path / "fullc.h5", [0.06, 0.03, 0.0225, 0.02], {"method": "full", **ceiling})
+    d = build_tables(runs, tmp_path / "tables2", LAYOUT, noise=("iso_bunny_full", "isob_bunny_full"))["directions"]
+    bunny = d[d["direction"].str.startswith("full beats")].set_index("case").loc["bunny"]
+    assert bunny["noise"] == pytest.approx(0.0045) and bunny["holds"] == "within noise"
 
 
 # ------------------------------------------------------------------ every table's values from its run files

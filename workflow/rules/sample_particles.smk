@@ -7,7 +7,7 @@ rule sample_particles:
         png=f"{R}/previews/particles/{{shape}}_{{res}}.png",
     params:
         sampling=lambda wc: params_json(S.sampling.with_tag(wc.res)),
-        seed=S.seed,
+        seed=lambda wc: S.particle_seed(wc.shape),
     log:
         f"{R}/logs/sample_particles/{{shape}}_{{res}}.log",
     benchmark:

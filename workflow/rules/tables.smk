@@ -14,6 +14,7 @@ rule make_tables:
     params:
         names=list(S.tables.experiments),
         full=FULL_RUNS,
+        noise=list(S.tables.noise),
         out_dir=folder_of_first_output,
     log:
         f"{R}/logs/make_tables.log",
