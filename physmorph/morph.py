@@ -164,8 +164,10 @@ class MorphRun:
             self.gate.restore(checkpoint.data)
             if self.gate.at_rest_after(start - 1):  # the checkpoint's state is the last accepted frame's
                 fs = self.fs
-                self.gate.accepted = _accepted_from_run(run, start - 1, fs.state, solver, fs.mask, fs.g_F, fs.g_x,
-                                                        fs.injection_scale, self.gate.objective_key)
+                scalars, per_view = run.frame_metrics(start - 1)
+                self.gate.accepted = self.keep_accepted(AcceptedFrame(
+                    fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale, scalars, per_view,
+                    float(scalars.get(self.gate.objective_key, np.nan))))
         return start
 
     def frame_zero(self) -> FrameState:
@@ -356,6 +358,18 @@ class MorphRun:
         if rebase_to is not None:
             solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
 
+    def keep_accepted(self, frame: AcceptedFrame) -> AcceptedFrame:
+        """The settle gate's last accepted frame, with the solver's control kept beside it. On the CPU
+        both go to files in the partial run (removed with it): in memory they would add ~510 MB to
+        every later frame's peak at the paper's scale (the control 340 MB, the state and gradients
+        170 MB), and the page cache holds them instead; on a GPU the control stays on the device."""
+        if self.device != "cpu":
+            self.solver.keep_control()
+            return frame
+        scratch = self.run.scratch_dir("settle")
+        self.solver.keep_control(spill=scratch / "control.bin")
+        return frame.spill(scratch)
+
     def steer(self, k: int, scal: dict, per_view: np.ndarray, m: dict, frame_step: float):
         """The frame judged: the settle gate may undo it (the body holds still at the last accepted
         frame, and the step backs off), the momentum restart and the packing term's onset act on
@@ -364,8 +378,8 @@ class MorphRun:
         rejected = gate.rejects(k, scal.get(gate.objective_key, np.nan))
         if rejected:  # the frame is undone: the body holds still at the last accepted frame
             back = gate.accepted
-            fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale = (back.state, back.mask, back.g_F, back.g_x,
-                                                                      back.injection_scale)
+            fs.state, fs.mask, fs.g_F, fs.g_x = back.arrays()
+            fs.injection_scale = back.injection_scale
             solver.restore_kept_control()
             scal, per_view, m = dict(back.scalars), back.per_view, back.scalars
             self.nearest_d = self.nearest_i = None
@@ -388,9 +402,8 @@ class MorphRun:
                     solver.scale_control(self.restart.control_keep)
             scal["momentum_restart"] = float(restart)
         if gate.at_rest_after(k) and not rejected:
-            solver.keep_control()  # on the device: a host copy of the control costs 340 MB at the paper's scale
-            gate.accepted = AcceptedFrame(fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale, dict(scal), per_view,
-                                          float(scal.get(gate.objective_key, np.nan)))
+            gate.accepted = self.keep_accepted(AcceptedFrame(fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale,
+                                                             dict(scal), per_view, float(scal.get(gate.objective_key, np.nan))))
         if self.onset.after_frame(solver, objective_rose):
             self.log(f"[{self.name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")
         fs.next_step, fs.overfill_weight = self.schedule.step, solver.overfill_weight
@@ -498,16 +511,6 @@ def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, 
     if frames:
         log(f"[{name}] released for {frames} frames: alpha_mse {curve[0]:.4f} -> {curve[-1]:.4f}")
     return curve
-
-
-def _accepted_from_run(run: RunWriter, frame: int, st: ParticleState, solver: MPMSolver, mask, g_F, g_x,
-                       scale: float, objective_key: str) -> AcceptedFrame:
-    """A resumed run's last accepted frame: its loop state is the checkpoint's (after a settling
-    frame the state is the accepted one) and its metrics the committed frame's."""
-    scalars, per_view = run.frame_metrics(frame)
-    solver.keep_control()
-    return AcceptedFrame(st, mask, g_F, g_x, scale, scalars, per_view,
-                         float(scalars.get(objective_key, np.nan)))
 
 
 def _absorb_at_rest(st: ParticleState, solver: MPMSolver, cfg: MorphConfig) -> ParticleState:

@@ -432,6 +432,14 @@ class RunWriter:
             ended = _clock()
             self._checkpoint_due = ended + (ended - began) / CHECKPOINT_WALL_SHARE
 
+    def scratch_dir(self, name: str) -> Path:
+        """A directory of the partial run for the loop's transient files (``name``: no frame's),
+        removed with the partial run when it finishes or restarts."""
+        self._require_lock()
+        d = self.dir / name
+        d.mkdir(exist_ok=True)
+        return d
+
     def set_meta(self, meta: dict) -> None:
         """The run's description (stored with frame 0, copied to the finished file's attributes)."""
         self.meta = dict(meta)

@@ -20,7 +20,8 @@ settling frame the loop's state is the accepted one, and its metrics are the las
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -30,19 +31,54 @@ from physmorph.mpm import ParticleState
 OBJECTIVES = {"render": "loss_render", "alpha_mse": "alpha_mse", "physics": "physics_loss"}
 
 
+# the accepted frame's per-particle arrays written by AcceptedFrame.spill (mass and volume stay:
+# they are the run's constants, shared with every state)
+SPILLED = ("x", "v", "F", "C", "Fp", "mask", "g_F", "g_x")
+
+
 @dataclass
 class AcceptedFrame:
     """What a rejected frame goes back to: the loop's state after the last accepted frame (its
-    control is kept by the solver: MPMSolver.keep_control)."""
+    control is kept by the solver: MPMSolver.keep_control). Its arrays are held in memory or,
+    after :meth:`spill`, in files read back by :meth:`arrays`."""
 
-    state: ParticleState
-    mask: np.ndarray  # [N] bool
-    g_F: np.ndarray  # [N, 3, 3] the pending render gradient
-    g_x: np.ndarray  # [N, 3]
+    state: ParticleState | None
+    mask: np.ndarray | None  # [N] bool
+    g_F: np.ndarray | None  # [N, 3, 3] the pending render gradient
+    g_x: np.ndarray | None  # [N, 3]
     injection_scale: float
     scalars: dict  # its committed metrics
     per_view: np.ndarray  # [V] its alpha MSE per view
     objective: float
+    spilled: Path | None = None  # the directory of its arrays after spill()
+    rest: tuple | None = None  # (mass [N], volume [N]) of a spilled state
+
+    def spill(self, directory: Path) -> "AcceptedFrame":
+        """This frame with its arrays written to ``directory`` (replacing what an earlier accepted
+        frame left there) and not held: at 471K particles the state and the gradients are 170 MB
+        that would otherwise stay resident beside the next frame's."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        held = {name: getattr(self.state, name) for name in SPILLED[:5]}
+        held.update(mask=self.mask, g_F=self.g_F, g_x=self.g_x)
+        for name, a in held.items():
+            path = directory / f"{name}.npy"
+            if a is None:
+                path.unlink(missing_ok=True)
+            else:
+                np.save(path, a, allow_pickle=False)
+        return replace(self, state=None, mask=None, g_F=None, g_x=None, spilled=directory,
+                       rest=(self.state.mass, self.state.volume))
+
+    def arrays(self) -> tuple[ParticleState, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(state, mask, g_F, g_x) of the frame: new arrays where spilled, else the held ones."""
+        if self.spilled is None:
+            return self.state, self.mask, self.g_F, self.g_x
+        got = {name: np.load(self.spilled / f"{name}.npy") if (self.spilled / f"{name}.npy").exists() else None
+               for name in SPILLED}
+        mass, volume = self.rest
+        state = ParticleState(**{name: got[name] for name in SPILLED[:5]}, mass=mass, volume=volume)
+        return state, got["mask"], got["g_F"], got["g_x"]
 
 
 @dataclass

@@ -178,14 +178,15 @@ def test_optimizer_state_round_trip(solver3, state):
         s.set_optimizer_state({**saved, "adam_m": saved["adam_m"][:, :1]})
 
 
-def test_kept_control_restores_the_next_step(solver3, state):
-    """keep_control / restore_kept_control (the settle phase's undo, on the device) put back the
-    control and Adam's moments: the next optimization step is the one taken from the kept point."""
+@pytest.mark.parametrize("spill", [False, True])
+def test_kept_control_restores_the_next_step(solver3, state, spill, tmp_path):
+    """keep_control / restore_kept_control (the settle phase's undo, on the device or in a file) put
+    back the control and Adam's moments: the next optimization step is the one taken from the kept point."""
     s = solver3
     s.reset_control()
     s.load_state(state)
     s.optimize_control(iters=2)
-    s.keep_control()
+    s.keep_control(spill=tmp_path / "kept.bin" if spill else None)
     after_a = s.optimize_control(iters=1)["loss_final"]
     ctrl_a = s.control()
     s.optimize_control(iters=2)  # moves the control and the moments on

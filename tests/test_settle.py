@@ -13,6 +13,7 @@ from physmorph.config import load_settings
 from physmorph.meshes.fit import VOLUME_MISMATCH, volume_mismatch
 from physmorph.metrics import REST_SWING_PERCENT, at_rest, sign_changes, swing_percent
 from physmorph.morph import MorphConfig, morph_config, read_metrics, run_morph
+from physmorph.mpm import ParticleState
 from physmorph.settle import AcceptedFrame, SettleGate, settle_gate
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
@@ -183,3 +184,42 @@ def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, ship
     resumed, _ = _run(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_resumed.h5", mc)
     for key in ("alpha_mse", "physics_loss", "settling"):
         np.testing.assert_allclose(resumed[key], full[key], rtol=1e-4, err_msg=key)
+
+
+def test_the_accepted_frame_kept_in_files_is_the_one_kept_in_memory(tiny, shipped_run, monkeypatch):
+    """On the CPU the accepted frame and its control are written to the partial run and read back
+    when a frame is undone (MorphRun.keep_accepted, as in shipped_run); kept in memory instead (the
+    GPU's way), the run is the same (to the rounding of the threads' atomic sums)."""
+    _, d = tiny
+
+    def in_memory(self, frame):
+        self.solver.keep_control()
+        return frame
+
+    monkeypatch.setattr(morph.MorphRun, "keep_accepted", in_memory)
+    held = _run(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_in_memory.h5", shipped(SHIPPED_FRAMES))[0]
+    on_disk = shipped_run[0]
+    assert np.nansum(np.asarray(held["settling"]) == 2.0) > 0
+    for key in ("alpha_mse", "physics_loss", "settling", "step_size", "volume_iou"):
+        np.testing.assert_allclose(held[key], on_disk[key], rtol=1e-4, err_msg=key)
+
+
+def test_a_spilled_accepted_frame_reads_back_exactly(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 50
+    st = ParticleState(x=rng.normal(size=(n, 3)), v=rng.normal(size=(n, 3)), F=rng.normal(size=(n, 3, 3)),
+                       C=rng.normal(size=(n, 3, 3)), Fp=rng.normal(size=(n, 3, 3)), mass=rng.random(n),
+                       volume=rng.random(n))
+    mask = rng.random(n) > 0.5
+    frame = AcceptedFrame(st, mask, rng.normal(size=(n, 3, 3)), None, 0.7, {"alpha_mse": 0.1}, np.ones(4), 0.1)
+    spilled = frame.spill(tmp_path / "settle")
+    assert spilled.state is None and spilled.g_F is None and spilled.objective == 0.1
+    back, back_mask, g_F, g_x = spilled.arrays()
+    for name in ("x", "v", "F", "C", "Fp", "mass", "volume"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(st, name), err_msg=name)
+    np.testing.assert_array_equal(back_mask, mask)
+    np.testing.assert_array_equal(g_F, frame.g_F)
+    assert g_x is None and back_mask.dtype == bool
+    # a later accepted frame replaces the files, one without g_F leaves none behind
+    AcceptedFrame(st, mask, None, None, 0.7, {}, np.ones(4), 0.1).spill(tmp_path / "settle")
+    assert not (tmp_path / "settle" / "g_F.npy").exists()

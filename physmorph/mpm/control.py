@@ -3,6 +3,8 @@ its in-place operations: zero, scale, mean, rebase, the line search's base copy 
 accepted frame's kept copy, without [Tc, N, 3, 3] NumPy copies. A mixin of MPMSolver.
 """
 
+import os
+
 import numpy as np
 import taichi as ti
 
@@ -135,34 +137,69 @@ class ControlField:
         g = self.ctrl_grad.to_numpy()
         return g if native else g.astype(np.float64)
 
-    def keep_control(self) -> None:
-        """Copy the control (and the Adam moments where Adam has run) into fields of their own, for
-        :meth:`restore_kept_control`: the settle phase's undo without a host copy (340 MB at 471K
-        particles)."""
-        if self._kept is None:
-            mat = ti.types.matrix(3, 3, self.dtype)
-            self._kept = {"ctrl": mat.field(shape=(self.cfg.n_control_slots, self.n))}
-        self._copy_slots(self._kept["ctrl"], self.ctrl)
-        if self.adam_m is not None:
-            for name, src in (("adam_m", self.adam_m), ("adam_v", self.adam_v)):
+    @ti.kernel
+    def _slot_to_array(self, src: ti.template(), s: ti.i32, out: ti.types.ndarray()):
+        for p in range(self.n):
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                out[p, a, b] = src[s, p][a, b]
+
+    @ti.kernel
+    def _array_to_slot(self, dst: ti.template(), s: ti.i32, arr: ti.types.ndarray()):
+        for p in range(self.n):
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                dst[s, p][a, b] = arr[p, a, b]
+
+    def _kept_names(self) -> tuple[str, ...]:
+        return ("ctrl", "adam_m", "adam_v") if self.adam_m is not None else ("ctrl",)
+
+    def keep_control(self, spill: str | os.PathLike | None = None) -> None:
+        """Keep the control (and the Adam moments where Adam has run) for :meth:`restore_kept_control`,
+        the settle phase's undo: in fields of their own (``spill`` None: on the device), or written to
+        the file ``spill`` a slot at a time, so that on the CPU the kept copy does not stay resident
+        (at 471K particles x 20 slots it is 340 MB, and the page cache holds the file instead)."""
+        names = self._kept_names()
+        if spill is None:
+            if self._kept is None or isinstance(self._kept, (str, os.PathLike)):
+                self._kept = {}
+            for name in names:
+                src = getattr(self, name)
                 if name not in self._kept:
                     self._kept[name] = ti.types.matrix(3, 3, self.dtype).field(shape=src.shape)
                 self._copy_slots(self._kept[name], src)
+        else:
+            slot = np.empty((self.n, 3, 3), dtype=self.np_dtype)
+            with open(spill, "wb") as f:
+                for name in names:
+                    for s in range(self.cfg.n_control_slots):
+                        self._slot_to_array(getattr(self, name), s, slot)
+                        slot.tofile(f)
+            self._kept = spill
         self._kept_adam_step = (int(self.adam.steps), self.adam_m is not None)
 
+    def _restore_spilled(self, path, names: tuple[str, ...]) -> None:
+        count = self.n * 9
+        with open(path, "rb") as f:
+            for name in names:
+                for s in range(self.cfg.n_control_slots):
+                    slot = np.fromfile(f, dtype=self.np_dtype, count=count)
+                    if slot.size != count:
+                        raise MPMStateError(f"{path}: the kept control ends early (slot {s} of {name})")
+                    self._array_to_slot(getattr(self, name), s, slot.reshape(self.n, 3, 3))
+
     def restore_kept_control(self) -> None:
-        """Put back what :meth:`keep_control` copied (moments Adam made since then: zero)."""
+        """Put back what :meth:`keep_control` kept (moments Adam made since then: zero)."""
         if self._kept is None:
             raise MPMStateError("restore_kept_control before keep_control")
-        self._copy_slots(self.ctrl, self._kept["ctrl"])
         step, had_moments = self._kept_adam_step
-        if self.adam_m is not None:
-            if had_moments:
-                self._copy_slots(self.adam_m, self._kept["adam_m"])
-                self._copy_slots(self.adam_v, self._kept["adam_v"])
-            else:
-                self.adam_m.fill(0.0)
-                self.adam_v.fill(0.0)
+        names = ("ctrl", "adam_m", "adam_v") if had_moments and self.adam_m is not None else ("ctrl",)
+        if isinstance(self._kept, dict):
+            for name in names:
+                self._copy_slots(getattr(self, name), self._kept[name])
+        else:
+            self._restore_spilled(self._kept, names)
+        if self.adam_m is not None and not had_moments:
+            self.adam_m.fill(0.0)
+            self.adam_v.fill(0.0)
         self.adam.steps = step
         self.current.stale()
 

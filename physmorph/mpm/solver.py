@@ -89,7 +89,7 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         self._last_loss: float | None = None
         self._last_mass_loss: float | None = None  # the last forward's loss without the anchors' term
         self.adam, self.normalized_gd = Adam(self), NormalizedGD(self)
-        self._kept = None  # keep_control's fields, allocated on first use
+        self._kept = None  # keep_control: its fields (allocated on first use) or its file
         self._kept_adam_step = (0, False)
         self._log_eps = 0.0
         self._overfill_weight = float(self.cfg.overfill_weight)
