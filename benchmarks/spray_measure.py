@@ -87,6 +87,11 @@ def main() -> None:
     print(f"{Path(args.run).stem} frame {k}: loose {share(loose):.3f} % ({int(loose.sum())} particles; median "
           f"material within a cell {np.median(frac):.2f}); outside the target beyond 0.5 / 1 / 2 cells "
           f"{share(out > 0.5):.2f} / {share(out > 1):.2f} / {share(out > 2):.2f} %")
+    if loose.any():  # where the loose particles lie: the stray pull acts beyond stray_pull_onset cells
+        q = np.quantile(out[loose], [0.1, 0.5, 0.9])
+        print(f"  the loose particles' distance outside the target: 10 / 50 / 90 % quantiles "
+              f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} cells; inside {100 * np.mean(out[loose] == 0):.0f} %, "
+              f"beyond 1 cell {100 * np.mean(out[loose] > 1):.0f} %")
     if args.image:
         write_image(s["x"], loose, f"{Path(args.run).stem} frame {k}: loose particles (red, {int(loose.sum())})",
                     args.image)
