@@ -16,7 +16,7 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from physmorph.settings.retired import RETIRED_METHOD_SETTINGS
+from physmorph.settings.retired import ADDED_METHOD_SETTINGS, RETIRED_METHOD_SETTINGS
 
 # leaf names that set size, length or hardware, never the algorithm (at any depth of the config)
 RESOLUTION_LEAVES = frozenset({
@@ -62,7 +62,10 @@ def differing_keys(settings: dict[str, Any], reference: dict[str, Any]) -> list[
     """Keys whose value in ``settings`` is not the reference's (a key either lacks counts; a
     list of values, as a page keeps for keys its runs disagree on, differs unless all equal it).
     A key the code no longer has (physmorph.settings.retired) counts as the reference's where
-    ``settings`` holds the value the shipped method always ran with."""
+    ``settings`` holds the value the shipped method always ran with; a key added since
+    (physmorph.settings.retired.ADDED_METHOD_SETTINGS) that ``settings`` lacks holds the value at
+    which the method runs as before it."""
+    settings = {**{k: v for k, v in ADDED_METHOD_SETTINGS.items() if k in reference}, **settings}
     out = []
     for key in sorted(set(settings) | set(reference)):
         if key not in reference and key in RETIRED_METHOD_SETTINGS:

@@ -108,14 +108,24 @@ def stray_pull_anchors(x: np.ndarray,  # [N, 3]
                        nearest_d: np.ndarray,  # [N] distance to the nearest target surface point
                        nearest_i: np.ndarray,  # [N] its index in target.surface_points
                        target, cfg: MorphConfig) -> tuple[np.ndarray, np.ndarray]:  # [N, 3], [N]
-    """The stray pull's anchors and weights (MorphConfig.stray_pull): a particle whose nearest grid
-    node holds no target mass and which lies more than stray_pull_onset cells from the target's
-    surface gets the anchor s_p, its nearest surface point, and the weight stray_pull m_p /
-    (density dx^3) / dx^2 (the solver adds w_p |x_T,p - s_p|^2); every other particle weight 0."""
+    """The stray pull's anchors and weights (MorphConfig.stray_pull): a particle outside the target
+    (its nearest grid node holds no target mass, or with stray_pull_density > 0 the target's grid
+    density interpolated at it is at most that share of the material's: the target's splat reaches
+    about a cell beyond its surface, where the node test sees no particle as outside) and more than
+    stray_pull_onset cells from the target's surface gets the anchor s_p, its nearest surface point,
+    and the weight stray_pull m_p / (density dx^3) / dx^2 (the solver adds w_p |x_T,p - s_p|^2);
+    every other particle weight 0."""
     grid = target.grid
-    node = np.clip(np.rint((x - np.asarray(grid.lo)) / grid.dx).astype(np.int64), 0, grid.res - 1)
-    outside = target.grid_mass[node[:, 0], node[:, 1], node[:, 2]] <= 0.0
-    stray = outside & (nearest_d > cfg.stray_pull_onset * grid.dx)
     cell_mass = cfg.mpm.density * grid.dx ** 3
+    if cfg.stray_pull_density > 0:
+        from scipy.ndimage import map_coordinates
+
+        at = map_coordinates(np.asarray(target.grid_mass, dtype=np.float64) / cell_mass,
+                             ((x - np.asarray(grid.lo)) / grid.dx).T, order=1, mode="constant", cval=0.0)
+        outside = at <= cfg.stray_pull_density
+    else:
+        node = np.clip(np.rint((x - np.asarray(grid.lo)) / grid.dx).astype(np.int64), 0, grid.res - 1)
+        outside = target.grid_mass[node[:, 0], node[:, 1], node[:, 2]] <= 0.0
+    stray = outside & (nearest_d > cfg.stray_pull_onset * grid.dx)
     weight = np.where(stray, cfg.stray_pull * mass / cell_mass / grid.dx ** 2, 0.0)
     return np.asarray(target.surface_points)[nearest_i], weight

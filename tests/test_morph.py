@@ -573,6 +573,29 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     np.testing.assert_array_equal(anchor, target.surface_points[[0, 0, 0]])
 
 
+def test_stray_pull_density_counts_the_target_splats_rim_as_outside(tiny):
+    """stray_pull_density > 0: a particle is outside where the target's grid density at it
+    (trilinear, in units of the material's) is at most that share, so a particle at a node the
+    target's splat only grazes (the node test calls it inside) is pulled; one in the bulk is not."""
+    from physmorph.targets import load_target
+
+    cfg, d = tiny
+    target = load_target(d / "t_bunny.h5")
+    g = target.grid
+    density = target.grid_mass / (cfg.mpm.density * g.dx ** 3)
+    rim = np.argwhere((density > 0) & (density < 0.05))[0]
+    bulk = np.unravel_index(np.argmax(density), density.shape)
+    x = (g.lo + np.stack([rim, bulk]) * g.dx).astype(float)  # at the nodes: the interpolation is the node's value
+    near_d = np.array([2.0, 2.0]) * g.dx
+    by_node = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), stray_pull=1.0, stray_pull_onset=1.0)
+    assert by_node.stray_pull_density == 0.0  # the default: the node test
+    _, w_node = morph.stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_node)
+    np.testing.assert_array_equal(w_node, [0.0, 0.0])
+    by_density = dataclasses.replace(by_node, stray_pull_density=0.1)
+    _, w = morph.stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_density)
+    assert w[0] == 1.0 / (cfg.mpm.density * g.dx ** 3) / g.dx ** 2 and w[1] == 0.0
+
+
 def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny):
     """The default plasticity (absorb_target: shape at the last update) makes the achieved shape
     the stress-free rest state: it leaves the run itself unchanged (alpha MSE equal frame by frame

@@ -15,7 +15,7 @@ from physmorph.config import load_settings, to_plain
 from physmorph.page_meta import (PageProvenance, check_pages, from_runs, read_block, readme_table,
                                  shipped_method_settings)
 from physmorph.provenance import differing_keys, git_state, method_settings, method_sha
-from physmorph.settings.retired import RETIRED_METHOD_SETTINGS
+from physmorph.settings.retired import ADDED_METHOD_SETTINGS, RETIRED_METHOD_SETTINGS
 from physmorph.userdocs import results_markdown
 from test_userdocs import _fake_tables
 
@@ -156,6 +156,11 @@ def test_a_retired_setting_counts_as_shipped_only_at_the_value_the_method_ran_wi
     assert differing_keys({**old, "mpm.control_in_F": True}, shipped) == ["mpm.control_in_F"]
     assert differing_keys({**old, "step_backoff": {"values": [1.0, 0.5]}}, shipped) == ["step_backoff"]
     assert differing_keys({**shipped, "no_such_key": 1}, shipped) == ["no_such_key"]
+    # a setting added since: a record without it ran as the added setting's value does
+    assert set(ADDED_METHOD_SETTINGS) <= set(shipped)
+    before = {k: v for k, v in shipped.items() if k not in ADDED_METHOD_SETTINGS}
+    assert differing_keys(before, shipped) == []
+    assert differing_keys(before, {**shipped, "stray_pull_density": 0.2}) == ["stray_pull_density"]
     # the pages the repository holds were made before: the check reads them as the shipped method
     lines, default_differs = check_pages(ROOT / "docs")
     assert not default_differs, lines

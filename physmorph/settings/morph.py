@@ -101,6 +101,10 @@ class MorphConfig:
         "(a cell of material one cell out costs this; 0: off)", ge=0)] = 1.0  # history: docs/study/CHANGELOG.md
     stray_pull_onset: Annotated[Float, setting(
         "the stray pull acts on particles more than this far from the target's surface", "cells", ge=0)] = 1.0
+    stray_pull_density: Annotated[Float, setting(
+        "a particle is outside the target for the stray pull where the target's grid density at it (trilinear, in "
+        "units of the material's) is at most this; 0: where its nearest grid node holds no target mass", ge=0,
+        lt=1)] = 0.0
 
     # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)

@@ -41,3 +41,11 @@ RETIRED_METHOD_SETTINGS: dict[str, object] = {
     "plasticity.update": "incremental",  # target_rest: relax toward the rest state on the target
     "plasticity.absorb_rate": 1.0,  # a share of the control moved into Fp at each absorbing update
 }
+
+# Settings added since some pages and run files were made, each with the value at which the method
+# runs as it did before the setting existed: a record without the key counts as holding that value
+# (physmorph.provenance.differing_keys), so adding a setting off by default marks no page as made
+# with other settings.
+ADDED_METHOD_SETTINGS: dict[str, object] = {
+    "stray_pull_density": 0.0,  # the stray pull's outside test: the nearest grid node's target mass
+}
