@@ -300,3 +300,22 @@ def test_solver_for_reuses_only_an_equal_config_and_size(monkeypatch):
     assert again is a and a.cfg == cfg64() and a.resets == 3  # reset and given the caller's settings
     assert solver_module.solver_for(cfg64(drag=0.5), 11) is c and solver_module.solver_for(cfg64(drag=0.5), 10) is b
     assert len(solver_module._reusable) == 3
+
+
+def test_a_lone_particles_control_cannot_move_it():
+    """The control acts through the particle's stress, whose forces on its grid nodes sum to zero
+    (APIC P2G, paper eq. 6): a particle sharing no node with another stays where it is under any
+    control, while its F follows the control. So material torn off the body (the spray) cannot be
+    steered back by any loss through the control (docs/study/log.md finding 229)."""
+    cfg = cfg64()
+    st = ParticleState.at_rest(np.array([[0.3, -0.2, 0.1]]), np.array([75.0]), np.array([1.0]))
+    s = make(cfg, st, reuse=True)
+    for scale in (0.05, 0.2):
+        s.load_state(st)
+        c = np.zeros((cfg.n_control_slots, 1, 3, 3))
+        c[:, 0] = scale * np.array([[1.0, 0.3, 0.0], [0.0, -0.5, 0.2], [0.1, 0.0, 0.4]])
+        s.set_control(c)
+        s.forward()
+        out = s.state_at(cfg.substeps)
+        np.testing.assert_allclose(out.x, st.x, rtol=0, atol=1e-12)
+        assert np.abs(out.F[0] - np.eye(3)).max() > 1e-4
