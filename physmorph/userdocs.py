@@ -240,6 +240,8 @@ def results_doc_paths(profile: str, docs_dir: str | Path) -> tuple[Path, Path]:
     docs = Path(docs_dir)
     if profile == "default":
         return docs / "results.md", docs / "images"
+    if profile == "paper":  # the paper's scale has its page of that name (also written by paper_main)
+        return docs / "paper_scale.md", docs / "images" / profile
     return docs / f"results_{profile}.md", docs / "images" / profile
 
 
@@ -501,14 +503,15 @@ def _parser() -> argparse.ArgumentParser:
                         help="the checkout whose results/ and config/ are read and whose docs/, config/README.md, "
                              "README.md and workflow/report/captions/ are written (default: the one holding physmorph)")
     sub = parser.add_subparsers(dest="what", required=True)
-    res = sub.add_parser("results", help="docs/results.md (docs/results_{profile}.md for another profile) "
-                                         "from results/{profile}/tables/")
+    res = sub.add_parser("results", help="docs/results.md (docs/results_{profile}.md for another profile, "
+                                         "docs/paper_scale.md for paper) from results/{profile}/tables/")
     res.add_argument("profile", nargs="?", default="default")
     res.add_argument("--out", default=None, help="default: docs/results.md, or docs/results_{profile}.md")
     res.add_argument("--images", default=None,
                      help="copy the profile's figures here and link them ('' links them in place); "
                           "default: docs/images/, or docs/images/{profile}/")
-    pm = sub.add_parser("paper_main", help="docs/paper_scale.md from results/{profile}/main_tables/ and main_figures/")
+    pm = sub.add_parser("paper_main", help="docs/paper_scale.md from results/{profile}/main_tables/ and main_figures/ "
+                                           "(the main table's six runs alone; `results paper` writes it from every run)")
     pm.add_argument("profile", nargs="?", default="paper")
     sub.add_parser("config", help="config/README.md from the settings")
     sub.add_parser("captions", help="workflow/report/captions/ from docs/outputs.md")

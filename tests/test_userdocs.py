@@ -195,3 +195,12 @@ def test_report_captions_come_from_outputs_md():
         path = ROOT / "workflow" / "report" / "captions" / f"{name}.rst"
         assert path.read_text() == caption_rst(captions[name]), \
             f"{path} is stale: python -m physmorph.userdocs captions"
+
+
+def test_each_profile_writes_its_own_results_page(tmp_path):
+    """The default profile's page is docs/results.md, the paper profile's docs/paper_scale.md (the
+    page the README's paper row links), any other's docs/results_{profile}.md, each with its images."""
+    paths = {p: userdocs.results_doc_paths(p, tmp_path) for p in ("default", "paper", "mid")}
+    assert paths["default"] == (tmp_path / "results.md", tmp_path / "images")
+    assert paths["paper"] == (tmp_path / "paper_scale.md", tmp_path / "images" / "paper")
+    assert paths["mid"] == (tmp_path / "results_mid.md", tmp_path / "images" / "mid")
