@@ -26,6 +26,7 @@ import re
 import shutil
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pandas as pd
 
@@ -91,8 +92,21 @@ def _with_data(df: pd.DataFrame, column: str) -> pd.DataFrame:
     return df[pd.to_numeric(df[column], errors="coerce").notna()]
 
 
+def _run_wall_time_s(run_h5: Path) -> float:
+    """A finished run's wall time over all its sittings (its ``wall_time_s``; NaN without one)."""
+    if not run_h5.exists():
+        return float("nan")
+    try:
+        with h5py.File(run_h5, "r") as f:
+            return float(f.attrs.get("wall_time_s", np.nan))
+    except OSError:
+        return float("nan")
+
+
 def _wall_time_s(results_dir: Path) -> float:
-    """Sum of the jobs' wall times recorded in results_dir/benchmarks/ (NaN when there are none)."""
+    """Sum of the jobs' wall times recorded in results_dir/benchmarks/ (NaN when there are none).
+    A morph job resumed after a kill records only its last sitting there, so a morph counts the
+    run's own wall time over its sittings where that is longer."""
     total, found = 0.0, False
     for tsv in sorted((results_dir / "benchmarks").rglob("*.tsv")):
         try:
@@ -100,7 +114,10 @@ def _wall_time_s(results_dir: Path) -> float:
         except (pd.errors.EmptyDataError, pd.errors.ParserError):
             continue
         if "s" in df and len(df):
-            total += float(df["s"].iloc[-1])
+            job = float(df["s"].iloc[-1])
+            if tsv.parent.name == "morph":
+                job = np.nanmax([job, _run_wall_time_s(results_dir / "runs" / f"{tsv.stem}.h5")])
+            total += job
             found = True
     return total if found else float("nan")
 

@@ -204,3 +204,18 @@ def test_each_profile_writes_its_own_results_page(tmp_path):
     assert paths["default"] == (tmp_path / "results.md", tmp_path / "images")
     assert paths["paper"] == (tmp_path / "paper_scale.md", tmp_path / "images" / "paper")
     assert paths["mid"] == (tmp_path / "results_mid.md", tmp_path / "images" / "mid")
+
+
+def test_a_resumed_morph_counts_its_wall_time_over_every_sitting(tmp_path):
+    """A morph job's benchmark file records only its last sitting; the summed jobs' time takes the
+    run's own wall time over its sittings where that is longer."""
+    import h5py
+
+    for rule, name, s in (("morph", "iso_bunny_full", 100.0), ("morph", "iso_cow_full", 300.0), ("prepare_mesh", "bunny", 5.0)):
+        (tmp_path / "benchmarks" / rule).mkdir(parents=True, exist_ok=True)
+        pd.DataFrame({"s": [s], "max_rss": [1.0]}).to_csv(tmp_path / "benchmarks" / rule / f"{name}.tsv", sep="\t", index=False)
+    (tmp_path / "runs").mkdir()
+    for name, wall in (("iso_bunny_full", 250.0), ("iso_cow_full", 280.0)):
+        with h5py.File(tmp_path / "runs" / f"{name}.h5", "w") as f:
+            f.attrs["wall_time_s"] = wall
+    assert userdocs._wall_time_s(tmp_path) == 250.0 + 300.0 + 5.0
