@@ -366,7 +366,8 @@ class MorphRun:
         if self.device != "cpu":
             self.solver.keep_control()
             return frame
-        scratch = self.run.scratch_dir("settle")
+        scratch = self.run.dir / "settle"  # removed with the partial run
+        scratch.mkdir(exist_ok=True)
         self.solver.keep_control(spill=scratch / "control.bin")
         return frame.spill(scratch)
 

@@ -18,6 +18,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 import pandas as pd
 
@@ -259,3 +260,33 @@ def update_readme(readme: Path, docs_dir: Path) -> None:
         raise ValueError(f"{readme}: no profile table markers ({README_START!r} ... {README_END!r})")
     text = text[:start + len(README_START)] + "\n" + readme_table(docs_dir) + "\n" + text[end:]
     readme.write_text(text)
+
+
+def _run_wall_time_s(run_h5: Path) -> float:
+    """A finished run's wall time over all its sittings (its ``wall_time_s``; NaN without one)."""
+    if not run_h5.exists():
+        return float("nan")
+    try:
+        with h5py.File(run_h5, "r") as f:
+            return float(f.attrs.get("wall_time_s", np.nan))
+    except OSError:
+        return float("nan")
+
+
+def jobs_wall_time_s(results_dir: Path) -> float:
+    """Sum of the jobs' wall times recorded in results_dir/benchmarks/ (NaN when there are none).
+    A morph job resumed after a kill records only its last sitting there, so a morph counts the
+    run's own wall time over its sittings where that is longer."""
+    total, found = 0.0, False
+    for tsv in sorted((results_dir / "benchmarks").rglob("*.tsv")):
+        try:
+            df = pd.read_csv(tsv, sep="\t")
+        except (pd.errors.EmptyDataError, pd.errors.ParserError):
+            continue
+        if "s" in df and len(df):
+            job = float(df["s"].iloc[-1])
+            if tsv.parent.name == "morph":
+                job = np.nanmax([job, _run_wall_time_s(results_dir / "runs" / f"{tsv.stem}.h5")])
+            total += job
+            found = True
+    return total if found else float("nan")

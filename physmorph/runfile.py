@@ -91,8 +91,7 @@ class RunLockedError(RunFileError):
 
 def partial_dir(out: str | os.PathLike) -> Path:
     """The directory a run ``out`` lives in until it finishes."""
-    out = Path(out)
-    return out.with_name(out.name + ".partial")
+    return Path(out).with_name(Path(out).name + ".partial")
 
 
 def frame_name(frame: int) -> str:
@@ -431,14 +430,6 @@ class RunWriter:
         if CHECKPOINT_WALL_SHARE is not None:
             ended = _clock()
             self._checkpoint_due = ended + (ended - began) / CHECKPOINT_WALL_SHARE
-
-    def scratch_dir(self, name: str) -> Path:
-        """A directory of the partial run for the loop's transient files (``name``: no frame's),
-        removed with the partial run when it finishes or restarts."""
-        self._require_lock()
-        d = self.dir / name
-        d.mkdir(exist_ok=True)
-        return d
 
     def set_meta(self, meta: dict) -> None:
         """The run's description (stored with frame 0, copied to the finished file's attributes)."""

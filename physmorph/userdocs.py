@@ -26,7 +26,6 @@ import re
 import shutil
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pandas as pd
 
@@ -34,8 +33,8 @@ from physmorph.config_docs import schema_keys
 from physmorph.figures import figure_runs
 from physmorph.markdown import markdown_table
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
-from physmorph.page_meta import PageProvenance, block, check_pages, from_checkout, from_runs, results_summary, \
-    update_readme
+from physmorph.page_meta import PageProvenance, block, check_pages, from_checkout, from_runs, jobs_wall_time_s, \
+    results_summary, update_readme
 from physmorph.stability_map import FAILURES, MAP_EXPERIMENT, OUTCOMES
 
 FIGURE_TITLES = {
@@ -90,36 +89,6 @@ def _with_data(df: pd.DataFrame, column: str) -> pd.DataFrame:
     if column not in df:
         return df.iloc[0:0]
     return df[pd.to_numeric(df[column], errors="coerce").notna()]
-
-
-def _run_wall_time_s(run_h5: Path) -> float:
-    """A finished run's wall time over all its sittings (its ``wall_time_s``; NaN without one)."""
-    if not run_h5.exists():
-        return float("nan")
-    try:
-        with h5py.File(run_h5, "r") as f:
-            return float(f.attrs.get("wall_time_s", np.nan))
-    except OSError:
-        return float("nan")
-
-
-def _wall_time_s(results_dir: Path) -> float:
-    """Sum of the jobs' wall times recorded in results_dir/benchmarks/ (NaN when there are none).
-    A morph job resumed after a kill records only its last sitting there, so a morph counts the
-    run's own wall time over its sittings where that is longer."""
-    total, found = 0.0, False
-    for tsv in sorted((results_dir / "benchmarks").rglob("*.tsv")):
-        try:
-            df = pd.read_csv(tsv, sep="\t")
-        except (pd.errors.EmptyDataError, pd.errors.ParserError):
-            continue
-        if "s" in df and len(df):
-            job = float(df["s"].iloc[-1])
-            if tsv.parent.name == "morph":
-                job = np.nanmax([job, _run_wall_time_s(results_dir / "runs" / f"{tsv.stem}.h5")])
-            total += job
-            found = True
-    return total if found else float("nan")
 
 
 def _convergence_section(conv: pd.DataFrame) -> list[str]:
@@ -213,7 +182,7 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
         date = _dt.date.fromtimestamp((tables_dir / "convergence.csv").stat().st_mtime).isoformat()
     command = command or f"python -m physmorph.userdocs results {profile}"
     provenance = provenance or from_checkout()
-    wall = _wall_time_s(tables_dir.parent)
+    wall = jobs_wall_time_s(tables_dir.parent)
     out = [f"# {title or f'Results of the `{profile}` profile'}\n",
            f"Generated on {date} by `{command}` from `results/{profile}/{tables_dir.name}/`"
            + f", {provenance.line()} (do not edit by hand: "

@@ -12,7 +12,7 @@ from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.userdocs import (caption_rst, config_reference, output_captions, results_markdown, runs_provenance,
                                 schema_keys, tradeoff_provenance, write_results_doc)
 from physmorph.page_meta import PageProvenance, read_block, shipped_method_settings
-from physmorph import userdocs
+from physmorph import page_meta, userdocs
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -218,4 +218,4 @@ def test_a_resumed_morph_counts_its_wall_time_over_every_sitting(tmp_path):
     for name, wall in (("iso_bunny_full", 250.0), ("iso_cow_full", 280.0)):
         with h5py.File(tmp_path / "runs" / f"{name}.h5", "w") as f:
             f.attrs["wall_time_s"] = wall
-    assert userdocs._wall_time_s(tmp_path) == 250.0 + 300.0 + 5.0
+    assert page_meta.jobs_wall_time_s(tmp_path) == 250.0 + 300.0 + 5.0
