@@ -96,8 +96,8 @@ def morph_params(cfg) -> str:
     d.get("mpm", {}).pop("threads", None)
     if cfg.method != "full":
         d.pop("plasticity", None)
-        d.pop("stray_pull", None)
-        d.pop("stray_pull_onset", None)
+        for k in ("stray_pull", "stray_pull_onset", "stray_pull_density"):
+            d.pop(k, None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):
             d.pop(k, None)

@@ -210,7 +210,7 @@ def test_experiment_resolution_and_its_params():
     assert morph_params(s2.experiment_config("iso_bunny_physics_only")) == morph_params(po)
     assert morph_params(s2.experiment_config("iso_bunny_f_inject")) == morph_params(s.experiment_config("iso_bunny_f_inject"))
     # so does the stray pull (the full method's alone)
-    s4 = load_settings(BASE, overrides={"morph": {"stray_pull": 2.0, "stray_pull_onset": 2.0}})
+    s4 = load_settings(BASE, overrides={"morph": {"stray_pull": 2.0, "stray_pull_onset": 2.0, "stray_pull_density": 0.2}})
     assert morph_params(s4.experiment_config("iso_bunny_full")) != morph_params(full)
     for name in ("iso_bunny_physics_only", "iso_bunny_f_inject", "iso_bunny_position_inject"):
         assert morph_params(s4.experiment_config(name)) == morph_params(s.experiment_config(name)), name
