@@ -367,9 +367,9 @@ class MorphRun:
             self.solver.keep_control()
             return frame
         scratch = self.run.dir / "settle"  # removed with the partial run
-        scratch.mkdir(exist_ok=True)
+        frame = frame.spill(scratch)  # makes the directory
         self.solver.keep_control(spill=scratch / "control.bin")
-        return frame.spill(scratch)
+        return frame
 
     def steer(self, k: int, scal: dict, per_view: np.ndarray, m: dict, frame_step: float):
         """The frame judged: the settle gate may undo it (the body holds still at the last accepted
