@@ -8,6 +8,10 @@ bytes changed afterwards (zero-filled blocks, a torn copy, an edit) is refused w
 
 The checksum (``content_sha256``) is the SHA-256 of every attribute and dataset in a fixed order
 (names, dtypes, shapes and bytes), computed from the file as stored; it leaves out only itself.
+Beside it, ``data_sha256`` is the same digest without the root attributes that say how the file
+was made (wall time, peak memory, commit, package versions): the identity of what the file holds,
+so a stage rerun that writes the same data keeps it, and a run made from the first file resumes
+from, and exports against, the second. Readers verify both.
 """
 
 from __future__ import annotations
@@ -29,8 +33,12 @@ import numpy as np
 from physmorph.provenance import git_state, method_settings, method_sha
 
 CHECKSUM_ATTR = "content_sha256"
+DATA_ATTR = "data_sha256"
 # Attributes a checksum never covers (the checksums themselves).
-_CHECKSUM_ATTRS = frozenset({CHECKSUM_ATTR, "metrics_sha256"})
+_CHECKSUM_ATTRS = frozenset({CHECKSUM_ATTR, DATA_ATTR, "metrics_sha256"})
+# Root attributes that record how a file was made, not what it holds: the data digest leaves them out.
+EXECUTION_ATTRS = frozenset({"wall_time_s", "peak_rss_mb", "git_commit", "git_dirty", "package_versions",
+                             "physmorph_version"})
 _HASH_BLOCK_BYTES = 1 << 26  # datasets are hashed in row blocks of about this size
 
 PROVENANCE_PACKAGES = ("numpy", "scipy", "torch", "taichi", "trimesh", "h5py", "scikit-image", "pymeshfix")
@@ -101,13 +109,26 @@ def _hash_value(h: "hashlib._Hash", value) -> None:
     h.update(data)
 
 
-def _hash_attrs(h: "hashlib._Hash", name: str, attrs: h5py.AttributeManager) -> None:
+class _Both:
+    """Feeds the content and the data digest at once (one pass over the datasets' bytes)."""
+
+    def __init__(self) -> None:
+        self.content, self.data = hashlib.sha256(), hashlib.sha256()
+
+    def update(self, data) -> None:
+        self.content.update(data)
+        self.data.update(data)
+
+
+def _hash_attrs(h: _Both, name: str, attrs: h5py.AttributeManager) -> None:
     for key in sorted(k for k in attrs.keys() if k not in _CHECKSUM_ATTRS):
-        _hash_value(h, f"attr {name}@{key}")
-        _hash_value(h, attrs[key])
+        execution = name == "/" and key in EXECUTION_ATTRS
+        for sink in ((h.content,) if execution else (h,)):
+            _hash_value(sink, f"attr {name}@{key}")
+            _hash_value(sink, attrs[key])
 
 
-def _hash_dataset(h: "hashlib._Hash", ds: h5py.Dataset, written: np.ndarray | None = None) -> None:
+def _hash_dataset(h: _Both, ds: h5py.Dataset, written: np.ndarray | None = None) -> None:
     """Feed ``ds`` into ``h``: its dtype, shape and C-order bytes. ``written``: the array ``ds`` was
     just written from, hashed in its place (no read back) where its dtype and shape are the
     dataset's, so its bytes are the stored ones."""
@@ -124,15 +145,10 @@ def _hash_dataset(h: "hashlib._Hash", ds: h5py.Dataset, written: np.ndarray | No
         h.update(np.ascontiguousarray(ds[i:i + step]).reshape(-1).view(np.uint8))
 
 
-def content_checksum(f: h5py.File | h5py.Group, only: str | None = None,
-                     written: Mapping[str, np.ndarray] | None = None) -> str:
-    """SHA-256 of the attributes and datasets under ``f`` (see the module docstring).
-
-    ``only``: hash the root attributes and just the objects under this member (e.g. "metrics"),
-    for a cheap check of the part a reader uses. ``written``: dataset name -> the array it was
-    written from in this process (hashed from memory, see _hash_dataset; the same checksum).
-    """
-    h = hashlib.sha256()
+def _digests(f: h5py.File | h5py.Group, only: str | None = None,
+             written: Mapping[str, np.ndarray] | None = None) -> tuple[str, str]:
+    """(content, data) SHA-256 of the attributes and datasets under ``f`` (the module docstring)."""
+    h = _Both()
     _hash_attrs(h, "/", f.attrs)
     names: list[str] = []
     f.visit(names.append)
@@ -144,16 +160,29 @@ def content_checksum(f: h5py.File | h5py.Group, only: str | None = None,
         _hash_attrs(h, name, obj.attrs)
         if isinstance(obj, h5py.Dataset):
             _hash_dataset(h, obj, None if written is None else written.get(name))
-    return h.hexdigest()
+    return h.content.hexdigest(), h.data.hexdigest()
+
+
+def content_checksum(f: h5py.File | h5py.Group, only: str | None = None,
+                     written: Mapping[str, np.ndarray] | None = None) -> str:
+    """SHA-256 of the attributes and datasets under ``f`` (see the module docstring).
+
+    ``only``: hash the root attributes and just the objects under this member (e.g. "metrics"),
+    for a cheap check of the part a reader uses. ``written``: dataset name -> the array it was
+    written from in this process (hashed from memory, see _hash_dataset; the same checksum).
+    """
+    return _digests(f, only, written)[0]
 
 
 def stamp_checksum(f: h5py.File, written: Mapping[str, np.ndarray] | None = None) -> str:
-    """Write ``content_sha256`` of everything already in ``f``; call it last. ``written``: as in
-    content_checksum (the arrays the datasets were just written from: nothing is read back)."""
+    """Write ``content_sha256`` and ``data_sha256`` of everything already in ``f``; call it last.
+    ``written``: as in content_checksum (the arrays the datasets were just written from: nothing is
+    read back). Returns the content checksum."""
     f.flush()
-    digest = content_checksum(f, written=written)
-    f.attrs[CHECKSUM_ATTR] = digest
-    return digest
+    content, data = _digests(f, written=written)
+    f.attrs[CHECKSUM_ATTR] = content
+    f.attrs[DATA_ATTR] = data
+    return content
 
 
 def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete it and rerun the stage that writes it") -> str | None:
@@ -170,19 +199,34 @@ def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete i
                                   f"or damaged; {remedy}")
         return None
     try:
-        actual = content_checksum(f)
+        actual, data = _digests(f)
+        stored_data = f.attrs.get(DATA_ATTR)  # absent in files written before it existed
     except (OSError, RuntimeError, KeyError, ValueError) as exc:
         raise StageInputError(f"{path}: unreadable content ({exc}); the file is damaged (torn or overwritten): {remedy}") from exc
-    if actual != str(stored):
-        raise StageInputError(f"{path}: content does not match its checksum (stored {str(stored)[:12]}..., computed "
-                              f"{actual[:12]}...): the file changed after it was written (zero-filled, torn or edited); {remedy}")
+    for what, kept, computed in (("checksum", stored, actual), ("data digest", stored_data, data)):
+        if kept is not None and computed != str(kept):
+            raise StageInputError(f"{path}: content does not match its {what} (stored {str(kept)[:12]}..., computed "
+                                  f"{computed[:12]}...): the file changed after it was written (zero-filled, torn or "
+                                  f"edited); {remedy}")
     return actual
 
 
 def stored_checksum(path: str | os.PathLike) -> str:
-    """The verified content checksum of a stage output (identity of its content, for run keys)."""
+    """The verified content checksum of a stage output."""
     with open_h5(path) as f:
         return str(f.attrs[CHECKSUM_ATTR])
+
+
+def data_identity(f: h5py.File) -> str:
+    """What a file holds, for run keys: its data digest, or, in a file written before the digest
+    existed, its content checksum (so a run keyed on that file still resumes)."""
+    return str(f.attrs.get(DATA_ATTR, f.attrs[CHECKSUM_ATTR]))
+
+
+def stored_identity(path: str | os.PathLike) -> str:
+    """The verified data identity of a stage output (data_identity)."""
+    with open_h5(path) as f:
+        return data_identity(f)
 
 
 def fsync_path(path: str | os.PathLike) -> None:

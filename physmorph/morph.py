@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from physmorph.frame_measures import DeformationMeasures, deformation_measures, frame_strain, grid_mass
 from physmorph.frame_state import FrameState, asdict_state
-from physmorph.h5io import stored_checksum
+from physmorph.h5io import stored_identity
 from physmorph.injection import calibrate_injection
 from physmorph.memory import release_free_memory
 from physmorph.meshes.fit import volume_mismatch
@@ -69,7 +69,7 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     out_h5.parent.mkdir(parents=True, exist_ok=True)
     record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
     # A partial run resumes only with the same settings and the same input content.
-    key = RunKey(record, (("particles", stored_checksum(particles_h5)), ("target", stored_checksum(target_h5))))
+    key = RunKey(record, (("particles", stored_identity(particles_h5)), ("target", stored_identity(target_h5))))
     with RunWriter(out_h5, key, started) as run:  # one writer per run: a second one is refused
         MorphRun(particles_h5, target_h5, cfg, name, log, run, target_size).run_frames(record)
     return summarize_run(out_h5)

@@ -102,6 +102,15 @@ def fetch_or_skip(dest: Path, sources: dict | None = None) -> Path:
                     f"network ({exc}); set PHYSMORPH_MESH_DIR to a directory holding them")
 
 
+@pytest.fixture
+def checkpoint_every_frame(monkeypatch):
+    """A checkpoint every frame: the tests that kill a run or read its checkpoint commit frames
+    faster than the checkpoints' wall-time cadence (the cadence's own test sets it)."""
+    import physmorph.runfile as runfile
+
+    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
+
+
 @pytest.fixture(scope="session")
 def mesh_dir() -> Path:
     found = find_mesh_dir()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -13,7 +14,7 @@ from scipy.spatial import cKDTree
 from physmorph.export import (SH_C0, covariances_from_F, domain_to_input, frame_state, particle_surface,
                               quaternion_to_rotation, read_splat_covariances, rotation_to_quaternion, saved_frames,
                               taubin_smooth, write_glb, write_ply, write_splats)
-from physmorph.h5io import stored_checksum
+from physmorph.h5io import stored_checksum, stored_identity
 from physmorph.meshes import load_mesh, prepare_mesh
 from physmorph.meshes.shapes import ShapeSpec
 from physmorph.particles import sample_particles
@@ -52,7 +53,7 @@ def tiny_run(tmp_path_factory):
     with h5py.File(d / "p_iso.h5", "r") as f:
         x0 = f["x"][()]
     n = len(x0)
-    key = RunKey(json.dumps({"frames": 4}), (("particles", stored_checksum(d / "p_iso.h5")), ("target", "bb" * 32)))
+    key = RunKey(json.dumps({"frames": 4}), (("particles", stored_identity(d / "p_iso.h5")), ("target", "bb" * 32)))
     with RunWriter(d / "run.h5", key) as w:
         w.set_meta({"experiment": "iso_test", "sigma0": SIGMA0, "n_particles": n})
         for k in range(5):
@@ -86,6 +87,30 @@ def test_frame_state_refuses_another_particle_file(tiny_run, tmp_path):
     sample_particles(tiny_run / "iso.h5", other, grid_res=32, ppc_surface=2, ppc_interior=1, density=75.0, seed=1)
     with pytest.raises(RunFileError, match="not the particle file"):
         frame_state(tiny_run / "run.h5", 4, other)
+
+
+def test_frame_state_accepts_the_particle_file_made_again(tiny_run, tmp_path):
+    """The same particles sampled again (another wall time and peak memory, so another content
+    checksum) hold the same data: the run exports against them; a run made before the data digest
+    existed, which names its particle file by content checksum, exports against that file."""
+    again = tmp_path / "p_again.h5"
+    sample_particles(tiny_run / "iso.h5", again, grid_res=32, ppc_surface=2, ppc_interior=1, density=75.0)
+    first = tiny_run / "p_iso.h5"
+    assert stored_checksum(again) != stored_checksum(first)
+    assert stored_identity(again) == stored_identity(first) != stored_checksum(first)
+    np.testing.assert_array_equal(frame_state(tiny_run / "run.h5", 4, again)["volume"],
+                                  frame_state(tiny_run / "run.h5", 4, first)["volume"])
+    old_key = RunKey(json.dumps({"frames": 0}), (("particles", stored_checksum(first)), ("target", "bb" * 32)))
+    with h5py.File(first, "r") as f:
+        x0 = f["x"][()]
+    eye = np.tile(np.eye(3), (len(x0), 1, 1))
+    with RunWriter(tmp_path / "old.h5", old_key) as w:
+        w.set_meta({"experiment": "iso_test", "sigma0": SIGMA0, "n_particles": len(x0)})
+        w.commit(0, {"alpha_mse": 1.0}, np.zeros(2), {"x": x0, "F": eye, "Fp": eye}, [], {"x": x0}, last=True)
+        w.finish("complete", {}, {"frames": 0})
+    assert frame_state(tmp_path / "old.h5", 0, first)["volume"].shape == (len(x0),)
+    with pytest.raises(RunFileError, match="not the particle file"):
+        frame_state(tmp_path / "old.h5", 0, again)  # that run's key names the first file's bytes only
 
 
 def test_final_surface_is_closed_with_the_particles_volume(tiny_run, tmp_path):

@@ -22,11 +22,7 @@ KEY = RunKey(json.dumps({"frames": 3}), (("particles", "aa" * 32), ("target", "b
 N, V = 5, 2
 
 
-@pytest.fixture(autouse=True)
-def checkpoint_every_frame(monkeypatch):
-    """These tests commit frames faster than the checkpoints' cadence: one checkpoint a frame,
-    unless a test sets the cadence itself."""
-    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
+pytestmark = pytest.mark.usefixtures("checkpoint_every_frame")  # conftest
 
 
 def _state(frame: int) -> dict:  # a recognisable loop state for each frame
@@ -161,6 +157,36 @@ def test_checksums_hashed_from_memory_equal_the_stored_bytes(tmp_path):
         f.create_dataset("a", data=a.astype(np.float32))
         stamp_checksum(f, written={"a": a})  # float64 given for a float32 dataset: read back
         assert f.attrs[CHECKSUM_ATTR] == content_checksum(f)
+
+
+def test_the_data_digest_leaves_out_how_a_file_was_made_and_is_verified(tmp_path):
+    """Two files with the same data written at other times, commits and package versions: other
+    content checksums, one data digest; any other attribute or byte changes the digest, and a file
+    whose stored digest was altered is refused like one whose content was."""
+    from physmorph.h5io import (DATA_ATTR, EXECUTION_ATTRS, StageInputError, atomic_h5, open_h5, stamp_checksum,
+                                stored_checksum, stored_identity)
+
+    def write(name: str, made: dict, value: float = 1.0, dx: float = 0.5):
+        with atomic_h5(tmp_path / name, {"stage": "t"}) as f:
+            f.create_dataset("x", data=np.full((4, 3), value))
+            f.attrs["dx"] = dx
+        with h5py.File(tmp_path / name, "r+") as f:  # as another machine, commit and time would have made it
+            for key, v in made.items():
+                f.attrs[key] = v
+            stamp_checksum(f)
+        return tmp_path / name
+
+    a = write("a.h5", {"wall_time_s": 1.0, "peak_rss_mb": 10.0, "git_commit": "aaaa", "git_dirty": "no"})
+    b = write("b.h5", {"wall_time_s": 2.0, "peak_rss_mb": 20.0, "git_commit": "bbbb", "git_dirty": "yes",
+                       "package_versions": "{}", "physmorph_version": "0"})
+    assert {"wall_time_s", "peak_rss_mb", "git_commit", "git_dirty"} <= EXECUTION_ATTRS
+    assert stored_checksum(a) != stored_checksum(b) and stored_identity(a) == stored_identity(b)
+    assert stored_identity(write("c.h5", {}, value=2.0)) != stored_identity(a)
+    assert stored_identity(write("d.h5", {}, dx=0.25)) != stored_identity(a)
+    with h5py.File(a, "r+") as f:
+        f.attrs[DATA_ATTR] = "0" * 64
+    with pytest.raises(StageInputError, match=r"a\.h5: content does not match its data digest"):
+        open_h5(a).close()
 
 
 def test_frames_written_before_a_metric_existed_resume_with_it_as_nan(tmp_path, monkeypatch):

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 import physmorph.morph as morph
-import physmorph.runfile as runfile
 from physmorph.config import load_settings
 from physmorph.meshes.fit import VOLUME_MISMATCH, volume_mismatch
 from physmorph.metrics import REST_SWING_PERCENT, at_rest, sign_changes, swing_percent
@@ -23,9 +22,7 @@ TEST_RESOLUTION = {"sampling": {"ppc_surface": 1}, "target": {"width": 48, "heig
                    "surface": {"voxels": 32}}
 
 
-@pytest.fixture(autouse=True)
-def checkpoint_every_frame(monkeypatch):
-    monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
+pytestmark = pytest.mark.usefixtures("checkpoint_every_frame")  # conftest
 
 
 def shipped(frames: int, **changes) -> MorphConfig:

@@ -4,7 +4,8 @@ A run file keeps the state of the frames it saved (every ``morph.save_every`` fr
 and the last) as ``/states/frame_XXXX/{x, F, Fp}`` (float32), and the Gaussians' rest size
 ``sigma0`` among its attributes. The particles' rest volumes V_p are not in the run file: they
 are the particle file's ``/volume`` (physmorph.particles, constant over a run), which the run
-names by content checksum (attribute ``input_checksums``, role "particles"); the grid spacing dx
+names by its data identity (attribute ``input_checksums``, role "particles": physmorph.h5io's data
+digest, or the content checksum of a file written before the digest existed); the grid spacing dx
 is the particle file's too.
 """
 
@@ -45,12 +46,13 @@ def saved_frames(run_h5: str | os.PathLike) -> list[int]:
 
 def _rest_particles(particles_h5: str | os.PathLike, run_checksum: str | None, n: int, run_h5) -> dict:
     """volume [N], is_surface [N], dx of the particle file, checked to be the one the run was made from."""
-    from physmorph.h5io import CHECKSUM_ATTR, open_h5, read_attr, read_field
+    from physmorph.h5io import CHECKSUM_ATTR, data_identity, open_h5, read_attr, read_field
 
-    with open_h5(particles_h5) as f:  # verifies its content checksum
-        if run_checksum is not None and str(f.attrs[CHECKSUM_ATTR]) != run_checksum:
-            raise RunFileError(f"{particles_h5}: not the particle file {run_h5} was made from (content checksum "
-                               f"{str(f.attrs[CHECKSUM_ATTR])[:12]}..., the run's {run_checksum[:12]}...)")
+    with open_h5(particles_h5) as f:  # verifies its checksums
+        known = {data_identity(f), str(f.attrs[CHECKSUM_ATTR])}  # a run made before the data digest names the latter
+        if run_checksum is not None and run_checksum not in known:
+            raise RunFileError(f"{particles_h5}: not the particle file {run_h5} was made from (data identity "
+                               f"{data_identity(f)[:12]}..., the run's {run_checksum[:12]}...)")
         volume = read_field(f, "volume").astype(np.float64)
         is_surface = read_field(f, "is_surface").astype(bool)
         dx = float(read_attr(f, "dx"))
