@@ -58,13 +58,14 @@ class ResultTree:
 
     def table_inputs(self):
         s = self.settings
-        shapes = set(s.tables.shapes)
+        sources, targets = set(s.tables.shapes), set(s.tables.shapes)  # the listed shapes: both, for the previews
         for name in s.tables.experiments:
             exp = s.experiment(name)
-            shapes.update([exp.source, exp.target])
+            sources.add(exp.source)
+            targets.add(exp.target)
         runs = [f"{self.root}/runs/{name}.h5" for name in s.tables.experiments]
         tables = [f"{self.root}/tables/{t}.md" for t in TABLE_NAMES] if runs else []
-        data = [p for shape in sorted(shapes) for p in (self.particles_path(shape), self.target_path(shape))]
+        data = [self.particles_path(shape) for shape in sorted(sources)] + [self.target_path(shape) for shape in sorted(targets)]
         return data + runs + tables
 
     def figure_outputs(self):
