@@ -52,7 +52,7 @@ from physmorph.render import RenderTarget, render_and_grad, render_views
 from physmorph.stability import MorphDivergenceError, StabilityMonitor, check_state
 from physmorph.settle import AcceptedFrame, settle_gate
 from physmorph.runfile import RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (read_metrics re-exported)
-from physmorph.steering import ControlDecay, MomentumRestart, OverfillOnset, StepSchedule, StrayPull, stray_pull_anchors  # noqa: F401
+from physmorph.steering import ControlDecay, MomentumRestart, OverfillOnset, StepSchedule, StrayPull
 from physmorph.surface import update_surface_mask
 from physmorph.taichi_runtime import resolve_device
 from physmorph.targets import load_target

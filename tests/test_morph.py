@@ -14,6 +14,7 @@ from physmorph.config import load_settings
 from physmorph.morph import MorphConfig, morph_config, read_metrics, run_morph
 from physmorph.metrics import rebound_percent, release_rebound_percent
 from physmorph.quality import GAP_REL_TOL
+from physmorph.steering import stray_pull_anchors
 from physmorph.stages import rasterize_target_stage, sample_particles_stage
 
 
@@ -459,7 +460,7 @@ def _strays(tiny, run_h5) -> list[int]:
         for k in sorted(f["states"].keys()):
             x = f["states"][k]["x"][()]
             near_d, near_i = tree.query(x)
-            anchor, w = morph.stray_pull_anchors(x, np.ones(len(x)), near_d, near_i, target, mc)
+            anchor, w = stray_pull_anchors(x, np.ones(len(x)), near_d, near_i, target, mc)
             np.testing.assert_array_equal(anchor, target.surface_points[near_i])
             counts.append(int((w > 0).sum()))
     return counts
@@ -504,7 +505,7 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     x += np.array([[0.4, -0.4, 0.4], [-0.4, 0.4, -0.4], [0.4, 0.4, -0.4]]) * g.dx
     mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), stray_pull=2.0, stray_pull_onset=1.0)
     near_d = np.array([5.0, 5.0, 0.5]) * g.dx  # the third is outside but within the onset
-    anchor, w = morph.stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, mc)
+    anchor, w = stray_pull_anchors(x, np.full(3, 0.5), near_d, np.zeros(3, int), target, mc)
     np.testing.assert_allclose(w, [0.0, 2.0 * 0.5 / (mc.mpm.density * g.dx ** 3) / g.dx ** 2, 0.0])
     np.testing.assert_array_equal(anchor, target.surface_points[[0, 0, 0]])
 
@@ -525,10 +526,10 @@ def test_stray_pull_density_counts_the_target_splats_rim_as_outside(tiny):
     near_d = np.array([2.0, 2.0]) * g.dx
     by_node = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), stray_pull=1.0, stray_pull_onset=1.0)
     assert by_node.stray_pull_density == 0.0  # the default: the node test
-    _, w_node = morph.stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_node)
+    _, w_node = stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_node)
     np.testing.assert_array_equal(w_node, [0.0, 0.0])
     by_density = dataclasses.replace(by_node, stray_pull_density=0.1)
-    _, w = morph.stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_density)
+    _, w = stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_density)
     assert w[0] == 1.0 / (cfg.mpm.density * g.dx ** 3) / g.dx ** 2 and w[1] == 0.0
 
 
