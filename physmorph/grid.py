@@ -76,26 +76,6 @@ def splat_mass(x: np.ndarray, mass: np.ndarray, grid: Grid) -> np.ndarray:
     return out
 
 
-def grid_average(x: np.ndarray,  # [N, 3]
-                 mass: np.ndarray,  # [N]
-                 values: np.ndarray,  # [N]
-                 grid: Grid) -> np.ndarray:  # [N]
-    """A per-particle scalar averaged over the grid's cells and read back at each particle (a P2G
-    of q by mass, then a G2P): a_I = sum_p w_Ip m_p q_p / sum_p w_Ip m_p, qbar_p = sum_I w_Ip a_I.
-    What varies from particle to particle within a cell is averaged away, what the grid's nodes
-    resolve stays, and the mass-weighted sum is kept: sum_p m_p qbar_p = sum_p m_p q_p."""
-    x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
-    mass = np.asarray(mass, dtype=np.float64).reshape(-1)
-    m_I = splat_mass(x, mass, grid)
-    mq_I = splat_mass(x, mass * np.asarray(values, dtype=np.float64).reshape(-1), grid)
-    a_I = np.divide(mq_I, m_I, out=np.zeros_like(mq_I), where=m_I > 0)
-    base, w = bspline_weights(x, grid)
-    wt = w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]  # [N, 3, 3, 3]
-    off = np.stack(np.meshgrid(*(np.arange(3),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)  # [27, 3]
-    node = base[:, None, :] + off[None]  # [N, 27, 3]
-    return (wt.reshape(len(x), 27) * a_I[node[..., 0], node[..., 1], node[..., 2]]).sum(axis=1)
-
-
 def scatter_add(out: np.ndarray,  # [R0, R1, R2], added to in place
                 base: np.ndarray,  # [M, 3] the node of offset (0, 0, 0)
                 weights: np.ndarray) -> None:  # [M, S, S, S]: weights[m, a, b, c] goes to base[m] + (a, b, c)

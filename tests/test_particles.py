@@ -160,29 +160,3 @@ def test_scatter_add_is_np_add_at():
                     np.add.at(ref, tuple(idx[ok].T), w[ok, a, b, c])
         assert (dropped > 0) == (lo < 0)
         np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
-
-
-def test_grid_average_is_a_dense_p2g_then_g2p_and_keeps_the_mass_weighted_sum():
-    """grid.grid_average against the transfer written out node by node (the quadratic B-spline
-    N(r) = 3/4 - r^2 for r < 1/2, (3/2 - r)^2 / 2 for r < 3/2, of each axis' distance in cells):
-    a_I = sum_p w_Ip m_p q_p / sum_p w_Ip m_p, qbar_p = sum_I w_Ip a_I. A constant comes back
-    unchanged and sum_p m_p qbar_p = sum_p m_p q_p (the weights of a particle sum to one)."""
-    from physmorph.grid import grid_average
-
-    def spline(r):
-        r = np.abs(r)
-        return np.where(r < 0.5, 0.75 - r ** 2, np.where(r < 1.5, 0.5 * (1.5 - r) ** 2, 0.0))
-
-    grid = Grid(res=10, lo=-2.0, hi=3.0)
-    rng = np.random.default_rng(5)
-    x = rng.uniform(-0.4, 1.4, size=(60, 3))  # inside the grid's interior, several per cell
-    m = rng.uniform(0.5, 2.0, size=60)
-    q = rng.uniform(0.4, 1.6, size=60)
-    nodes = grid.node_positions()
-    Xi = np.stack(np.meshgrid(nodes, nodes, nodes, indexing="ij"), axis=-1).reshape(-1, 3)  # [R^3, 3]
-    W = np.prod(spline((x[:, None, :] - Xi[None]) / grid.dx), axis=-1)  # [N, R^3]
-    mI = W.T @ m
-    aI = np.divide(W.T @ (m * q), mI, out=np.zeros_like(mI), where=mI > 0)
-    np.testing.assert_allclose(grid_average(x, m, q, grid), W @ aI, rtol=1e-12)
-    np.testing.assert_allclose(grid_average(x, m, np.full(60, 0.7), grid), 0.7, rtol=1e-12)
-    np.testing.assert_allclose((m * grid_average(x, m, q, grid)).sum(), (m * q).sum(), rtol=1e-12)
