@@ -1,8 +1,10 @@
-"""The workflow passes `snakemake --lint` with no finding, and its conda environment
-(workflow/envs/physmorph.yaml, named by every rule) is the one environment.lock gives."""
+"""The workflow passes `snakemake --lint` with no finding, and its conda environments
+(workflow/envs/physmorph.yaml, named by every rule, and physmorph_cuda.yaml where the config says
+`device: cuda`) are the ones environment.lock and environment.cuda.lock give."""
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -39,6 +41,26 @@ def test_conda_env_is_generated_from_the_lock():
     python, pip, pip_lines = env["dependencies"]
     assert python == f"python={make_env.lock_python(lock)}" and pip == "pip"
     assert pip_lines["pip"][1:] == make_env.lock_pins(lock) and "torch==2.13.0+cpu" in pip_lines["pip"]
+    cuda_lock = (REPO / "environment.cuda.lock").read_text()
+    assert make_env.CUDA_ENV_FILE.read_text() == make_env.conda_env_text(
+        cuda_lock, "environment.cuda.lock", index=None, when=" with `device: cuda`"), \
+        "workflow/envs/physmorph_cuda.yaml is out of date with environment.cuda.lock: run `make conda-env`"
+    python, pip, pip_lines = yaml.safe_load(make_env.CUDA_ENV_FILE.read_text())["dependencies"]
+    assert pip_lines["pip"] == make_env.lock_pins(cuda_lock)  # torch's CUDA build from PyPI: no CPU index
+    assert "torch===2.13.0" in pip_lines["pip"] and any(p.startswith("nvidia-") for p in pip_lines["pip"])
+
+
+def test_every_rule_takes_the_environment_of_its_device():
+    """Each rule's `conda:` is CONDA_ENV, which common.smk sets to the CUDA environment for
+    `device: cuda` and to the CPU one otherwise; each environment has the post-deploy script that
+    installs this checkout (the CUDA one's a link to the CPU one's)."""
+    rules = sorted((REPO / "workflow" / "rules").glob("*.smk"))
+    named = [m for f in rules for m in re.findall(r"^\s+conda:\n\s+(.*)$", f.read_text(), re.M)]
+    assert len(named) >= 15 and set(named) == {"CONDA_ENV"}, named
+    common = (REPO / "workflow" / "rules" / "common.smk").read_text()
+    assert 'CONDA_ENV = "../envs/physmorph_cuda.yaml" if S.device == "cuda" else "../envs/physmorph.yaml"' in common
+    envs = REPO / "workflow" / "envs"
+    assert (envs / "physmorph_cuda.post-deploy.sh").resolve() == (envs / "physmorph.post-deploy.sh").resolve()
 
 
 def test_lock_parsing_reads_the_pins_and_the_python_version():
@@ -50,7 +72,8 @@ def test_lock_parsing_reads_the_pins_and_the_python_version():
         make_env.lock_python("numpy==2.4.6\n")
 
 
-@pytest.mark.parametrize("args", [(), ("--configfile", "config/test.yaml")], ids=["default", "test"])
+@pytest.mark.parametrize("args", [(), ("--configfile", "config/test.yaml"), ("--config", "device=cuda")],
+                         ids=["default", "test", "cuda"])
 def test_snakemake_lint_finds_nothing(args):
     out = _lint(REPO, *args)
     text = out.stdout + out.stderr

@@ -24,6 +24,8 @@ except WorkflowError:
     Settings.from_mapping(config)
     raise
 S = Settings.from_mapping(config)
+# every rule's conda environment under --use-conda (workflow/envs/make_env.py writes both from the locks)
+CONDA_ENV = "../envs/physmorph_cuda.yaml" if S.device == "cuda" else "../envs/physmorph.yaml"
 POINTS = tradeoff_points(S) if S.tradeoff is not None else {}
 RESULTS = ResultTree(S, POINTS)
 R = RESULTS.root  # this profile's result tree, results/{profile}

@@ -29,7 +29,7 @@ rule export_video:
         mem_mb=4000,
         runtime=30,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/export_video.py"
 
@@ -55,7 +55,7 @@ rule export_meshes:
         mem_mb=4000,
         runtime=30,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/export_meshes.py"
 
@@ -77,7 +77,7 @@ rule export_splats:
         mem_mb=4000,
         runtime=20,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/export_splats.py"
 
@@ -103,6 +103,6 @@ rule export_viewer:
         mem_mb=2000,
         runtime=10,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/export_viewer.py"

@@ -18,6 +18,6 @@ rule fetch_mesh:
         mem_mb=1000,
         runtime=10,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/fetch_mesh.py"

@@ -22,7 +22,7 @@ rule make_figures:
         mem_mb=4000,
         runtime=20,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/make_figures.py"
 
@@ -52,6 +52,6 @@ rule make_main_figures:
         mem_mb=4000,
         runtime=20,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/make_figures.py"

@@ -31,6 +31,6 @@ rule morph:
             S.experiment_config(wc.experiment).frames),
         gpu=S.morph_gpus,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/morph.py"

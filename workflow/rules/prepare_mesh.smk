@@ -19,6 +19,6 @@ rule prepare_mesh:
         mem_mb=4000,
         runtime=20,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/prepare_mesh.py"

@@ -20,6 +20,6 @@ rule rasterize_target:
         mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
         runtime=30,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/rasterize_target.py"

@@ -19,6 +19,6 @@ rule results_doc:
         mem_mb=1000,
         runtime=5,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/results_doc.py"

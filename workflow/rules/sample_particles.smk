@@ -17,6 +17,6 @@ rule sample_particles:
         mem_mb=lambda wc: mb(sampling_memory(S.shape(wc.shape), S.sampling.with_tag(wc.res), S.domain, "")),
         runtime=30,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/sample_particles.py"

@@ -33,7 +33,7 @@ rule stability_cell:
         mem_mb=STABILITY.mem_mb,
         runtime=STABILITY.runtime_min,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/stability_cell.py"
 
@@ -57,6 +57,6 @@ rule make_stability_map:
         mem_mb=2000,
         runtime=10,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/make_stability_map.py"

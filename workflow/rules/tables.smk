@@ -25,7 +25,7 @@ rule make_tables:
         mem_mb=2000,
         runtime=10,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/make_tables.py"
 
@@ -54,6 +54,6 @@ rule make_main_tables:
         mem_mb=2000,
         runtime=10,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/make_tables.py"

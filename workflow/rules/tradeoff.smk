@@ -23,7 +23,7 @@ rule rasterize_target_image:
         mem_mb=lambda wc: mb(target_memory(S.sampling.with_tag(wc.res), S.target, "")),
         runtime=30,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/rasterize_target.py"
 
@@ -53,7 +53,7 @@ rule tradeoff_point:
                                                                point_settings(wc.point)[0], S.domain), POINTS[wc.point].frames),
         gpu=S.morph_gpus,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/morph.py"
 
@@ -79,6 +79,6 @@ rule make_tradeoff:
         mem_mb=2000,
         runtime=10,
     conda:
-        "../envs/physmorph.yaml"
+        CONDA_ENV
     script:
         "../scripts/make_tradeoff.py"

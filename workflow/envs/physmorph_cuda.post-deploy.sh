@@ -1,0 +1,1 @@
+physmorph.post-deploy.sh
