@@ -110,14 +110,15 @@ def _hash_value(h: "hashlib._Hash", value) -> None:
 
 
 class _Both:
-    """Feeds the content and the data digest at once (one pass over the datasets' bytes)."""
+    """Feeds the content and (``data``) the data digest at once (one pass over the datasets' bytes)."""
 
-    def __init__(self) -> None:
-        self.content, self.data = hashlib.sha256(), hashlib.sha256()
+    def __init__(self, data: bool = True) -> None:
+        self.content, self.data = hashlib.sha256(), (hashlib.sha256() if data else None)
 
     def update(self, data) -> None:
         self.content.update(data)
-        self.data.update(data)
+        if self.data is not None:
+            self.data.update(data)
 
 
 def _hash_attrs(h: _Both, name: str, attrs: h5py.AttributeManager) -> None:
@@ -146,9 +147,10 @@ def _hash_dataset(h: _Both, ds: h5py.Dataset, written: np.ndarray | None = None)
 
 
 def _digests(f: h5py.File | h5py.Group, only: str | None = None,
-             written: Mapping[str, np.ndarray] | None = None) -> tuple[str, str]:
-    """(content, data) SHA-256 of the attributes and datasets under ``f`` (the module docstring)."""
-    h = _Both()
+             written: Mapping[str, np.ndarray] | None = None, data: bool = True) -> tuple[str, str | None]:
+    """(content, data) SHA-256 of the attributes and datasets under ``f`` (the module docstring);
+    the data digest None unless ``data``."""
+    h = _Both(data)
     _hash_attrs(h, "/", f.attrs)
     names: list[str] = []
     f.visit(names.append)
@@ -160,7 +162,7 @@ def _digests(f: h5py.File | h5py.Group, only: str | None = None,
         _hash_attrs(h, name, obj.attrs)
         if isinstance(obj, h5py.Dataset):
             _hash_dataset(h, obj, None if written is None else written.get(name))
-    return h.content.hexdigest(), h.data.hexdigest()
+    return h.content.hexdigest(), (None if h.data is None else h.data.hexdigest())
 
 
 def content_checksum(f: h5py.File | h5py.Group, only: str | None = None,
@@ -171,17 +173,19 @@ def content_checksum(f: h5py.File | h5py.Group, only: str | None = None,
     for a cheap check of the part a reader uses. ``written``: dataset name -> the array it was
     written from in this process (hashed from memory, see _hash_dataset; the same checksum).
     """
-    return _digests(f, only, written)[0]
+    return _digests(f, only, written, data=False)[0]
 
 
-def stamp_checksum(f: h5py.File, written: Mapping[str, np.ndarray] | None = None) -> str:
-    """Write ``content_sha256`` and ``data_sha256`` of everything already in ``f``; call it last.
-    ``written``: as in content_checksum (the arrays the datasets were just written from: nothing is
-    read back). Returns the content checksum."""
+def stamp_checksum(f: h5py.File, written: Mapping[str, np.ndarray] | None = None, data: bool = True) -> str:
+    """Write ``content_sha256`` and (``data``) ``data_sha256`` of everything already in ``f``; call
+    it last. ``written``: as in content_checksum (the arrays the datasets were just written from:
+    nothing is read back). A file no run names as its input (a run's frame, checkpoint or finished
+    file) needs no data digest. Returns the content checksum."""
     f.flush()
-    content, data = _digests(f, written=written)
+    content, digest = _digests(f, written=written, data=data)
     f.attrs[CHECKSUM_ATTR] = content
-    f.attrs[DATA_ATTR] = data
+    if digest is not None:
+        f.attrs[DATA_ATTR] = digest
     return content
 
 
@@ -199,8 +203,8 @@ def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete i
                                   f"or damaged; {remedy}")
         return None
     try:
-        actual, data = _digests(f)
-        stored_data = f.attrs.get(DATA_ATTR)  # absent in files written before it existed
+        stored_data = f.attrs.get(DATA_ATTR)  # absent in run files and in files written before it existed
+        actual, data = _digests(f, data=stored_data is not None)
     except (OSError, RuntimeError, KeyError, ValueError) as exc:
         raise StageInputError(f"{path}: unreadable content ({exc}); the file is damaged (torn or overwritten): {remedy}") from exc
     for what, kept, computed in (("checksum", stored, actual), ("data digest", stored_data, data)):
