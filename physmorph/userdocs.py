@@ -35,6 +35,8 @@ from physmorph.markdown import markdown_table
 from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
 from physmorph.page_meta import PageProvenance, block, check_pages, from_checkout, from_runs, jobs_wall_time_s, \
     results_summary, update_readme
+from physmorph.results_sections import ablation_sections, convergence_section, fmt, md_table, \
+    paper_sections, read_table
 from physmorph.stability_map import FAILURES, MAP_EXPERIMENT, OUTCOMES
 
 FIGURE_TITLES = {
@@ -55,115 +57,6 @@ FIGURE_TITLES = {
 # docs/results.md
 # --------------------------------------------------------------------------------------------
 
-def _fmt(v, digits: int = 4) -> str:
-    if v is None or isinstance(v, float) and not np.isfinite(v):
-        return ""
-    if isinstance(v, (float, np.floating)):
-        return f"{v:.{digits}g}"
-    return str(v)
-
-
-def _pct(v) -> str:
-    return "" if v is None or not np.isfinite(float(v)) else f"{float(v):.1f} %"
-
-
-def _table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
-def _read(tables_dir: Path, name: str) -> pd.DataFrame:
-    path = tables_dir / f"{name}.csv"
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: missing; build the tables first (snakemake --cores 2 tables)")
-    try:
-        return pd.read_csv(path)
-    except pd.errors.EmptyDataError:
-        return pd.DataFrame()
-
-
-def _with_data(df: pd.DataFrame, column: str) -> pd.DataFrame:
-    """The rows of ``df`` with a number in ``column`` (a table lists the paper's cases whether or not
-    this profile ran them; their measured columns are empty, or absent when none was run)."""
-    if column not in df:
-        return df.iloc[0:0]
-    return df[pd.to_numeric(df[column], errors="coerce").notna()]
-
-
-def _convergence_section(conv: pd.DataFrame) -> list[str]:
-    """The results page's "How far each run got": one row per run of the convergence table."""
-    out: list[str] = []
-    out.append("## How far each run got\n")
-    out.append("Share of the reachable gap closed at the best and the last frame (100 % = the target's own "
-               "particles rendered at rest), the drop between them (points), how still the last 10 frames are "
-               "(swing: the median frame-to-frame change of the alpha MSE; sign changes: how often it turned), "
-               "the volume IoU at the first and last frame (1 = the target's own "
-               "sampling), the share of the mass packed above twice the target's density at the end, and, for "
-               "the exported full runs, the last surface's stray share (mass more than 2 cells outside the "
-               "target) and its distance to the target mesh (cells).\n")
-    rows = []
-    for _, r in conv.iterrows():
-        rows.append([str(r["experiment"]), str(r["method"]), f"{_pct(r['closed_best_%'])} (frame {int(r['best_frame'])})",
-                     _pct(r["closed_final_%"]), _pct(r.get("drop_points", np.nan)).replace(" %", ""),
-                     _pct(r.get("swing_%", np.nan)), _pct(r.get("sign_changes", np.nan)).replace(".0 %", ""),
-                     f"{_fmt(r['volume_iou_0'], 2)} -> {_fmt(r['volume_iou_final'], 2)}",
-                     _pct(100 * r["overfilled_mass_final"]) if np.isfinite(r["overfilled_mass_final"]) else "",
-                     _pct(r.get("stray_%", np.nan)), _fmt(r.get("surface_dx", np.nan), 2)])
-    out.append(_table(["experiment", "method", "closed, best (frame)", "closed, last", "drop", "swing",
-                       "sign changes", "volume IoU", "overfilled", "stray", "surface (cells)"], rows))
-    return out
-
-
-def _paper_sections(direc: pd.DataFrame, main: pd.DataFrame, source: pd.DataFrame,
-                    plast: pd.DataFrame) -> list[str]:
-    """The results page's sections beside the paper's: its three directions, its main table, source
-    invariance and persistence. Rows whose runs this profile does not have are left out, and a
-    section with none."""
-    out: list[str] = []
-    direc = _with_data(direc, "ours")
-    if len(direc):
-        out.append("## The paper's three directions\n")
-        noisy = "noise" in direc and direc["noise"].notna().any()
-        out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, the margin is "
-                   "baseline minus ours, and `holds` is yes when ours is lower"
-                   + (" by more than the noise: the same measure's spread between two runs of one experiment "
-                      "from two particle samples (`tables.noise`), `within noise` where the margin is smaller.\n"
-                      if noisy else " (no noise measured: `tables.noise` names no pair of runs here).\n"))
-        rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), _fmt(r["ours"]), _fmt(r["baseline"]),
-                 _pct(r["ours_vs_baseline_%"])]
-                + ([_fmt(r.get("margin", np.nan)), _fmt(r.get("noise", np.nan))] if noisy else [])
-                + [_fmt(r["holds"]) if isinstance(r["holds"], str) else "",
-                   _fmt(r["paper"]) if isinstance(r["paper"], str) else ""] for _, r in direc.iterrows()]
-        out.append(_table(["direction", "case", "measure", "ours", "baseline", "gain"]
-                          + (["margin", "noise"] if noisy else []) + ["holds", "paper"], rows))
-
-    main, source, plast = _with_data(main, "ours"), _with_data(source, "best"), _with_data(plast, "rebound_%")
-    if len(main):
-        out.append("## Main table: full vs physics-only at the matched frame\n")
-        rows = [[str(r["target"]), _fmt(r.get("frame"), 3), _fmt(r.get("physics_only")), _fmt(r.get("ours")),
-                 _pct(r.get("improvement_%", np.nan)), f"{r['paper_improvement_%']:+g} %"]
-                for _, r in main.iterrows()]
-        out.append(_table(["target", "matched frame", "physics-only", "full", "improvement", "paper"], rows))
-
-    if len(source):
-        out.append("## Source invariance\n")
-        rows = [[str(r["experiment"]), _fmt(r["best"]), _fmt(r["paper_best"]), _pct(r["closed_best_%"])]
-                for _, r in source.iterrows() if r["experiment"] not in ("mean", "std")]
-        out.append(_table(["source -> bunny", "best alpha MSE", "paper", "closed, best"], rows))
-
-    if len(plast):
-        out.append("## Does the morph persist?\n")
-        rows = []
-        for _, r in plast.iterrows():
-            rows.append([str(r["experiment"]), str(r["variant"]), _pct(r.get("rebound_%", np.nan)),
-                         _pct(r.get("release_rebound_%", np.nan)),
-                         _fmt(r.get("release_frames", np.nan), 3)])
-        out.append(_table(["experiment", "variant", "rebound in the run", "rebound released", "release frames"],
-                          rows))
-    return out
-
-
 def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, str] | None = None,
                      date: str | None = None, command: str | None = None, outputs_link: str = "outputs.md",
                      provenance: PageProvenance | None = None, title: str | None = None) -> str:
@@ -172,12 +65,12 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     were made (default: the convergence table's modification date); ``provenance``: the code and
     method settings of the runs (default: this checkout's, with the shipped method)."""
     tables_dir = Path(tables_dir)
-    conv = _read(tables_dir, "convergence")
-    direc = _read(tables_dir, "directions")
-    source = _read(tables_dir, "source_invariance")
-    plast = _read(tables_dir, "plasticity")
-    timing = _read(tables_dir, "timing")
-    main = _read(tables_dir, "main")
+    conv = read_table(tables_dir, "convergence")
+    direc = read_table(tables_dir, "directions")
+    source = read_table(tables_dir, "source_invariance")
+    plast = read_table(tables_dir, "plasticity")
+    timing = read_table(tables_dir, "timing")
+    main = read_table(tables_dir, "main")
     if date is None:
         date = _dt.date.fromtimestamp((tables_dir / "convergence.csv").stat().st_mtime).isoformat()
     command = command or f"python -m physmorph.userdocs results {profile}"
@@ -198,17 +91,18 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
             out[-1] += f"; the jobs' wall times add up to {wall / 60:.1f} min (results/{profile}/benchmarks/)"
         out[-1] += ".\n"
 
-    out += _convergence_section(conv)
+    out += convergence_section(conv)
 
-    out += _paper_sections(direc, main, source, plast)
+    out += paper_sections(direc, main, source, plast)
+    out += ablation_sections(tables_dir, conv)
 
     if len(timing):
         out.append("## Time per frame (seconds, median over runs, each run's mean after frame 0) and memory\n")
         cols = ["physics_s", "render_s", "plasticity_s", "mask_s", "frame_s"]
         full = timing[[c for c in cols if c in timing]]
-        out.append(_table([c[:-2] for c in full.columns] + ["peak RSS, largest run (MB)"],
-                          [[_fmt(float(np.nanmedian(full[c])), 3) for c in full.columns]
-                           + [_fmt(float(np.nanmax(timing["peak_rss_mb"])), 4)]]))
+        out.append(md_table([c[:-2] for c in full.columns] + ["peak RSS, largest run (MB)"],
+                          [[fmt(float(np.nanmedian(full[c])), 3) for c in full.columns]
+                           + [fmt(float(np.nanmax(timing["peak_rss_mb"])), 4)]]))
 
     if figures:
         out.append("## Figures\n")
@@ -456,7 +350,7 @@ def write_captions(outputs_md: str | Path, out_dir: str | Path) -> list[Path]:
 
 def runs_provenance(tables_dir: str | Path, runs_dir: str | Path) -> PageProvenance | None:
     """The provenance of the runs behind ``tables_dir`` (its timing table's experiments in ``runs_dir``)."""
-    return from_runs(Path(runs_dir) / f"{exp}.h5" for exp in _read(Path(tables_dir), "timing").get("experiment", []))
+    return from_runs(Path(runs_dir) / f"{exp}.h5" for exp in read_table(Path(tables_dir), "timing").get("experiment", []))
 
 
 def profile_provenance(config_files: list[str | Path], experiment: str) -> PageProvenance:

@@ -137,6 +137,30 @@ def test_each_profile_regenerates_its_own_page(tmp_path):
     assert (docs / "images" / "mid" / "sequences_main.png").read_bytes() == b"mid"
 
 
+def test_results_page_has_the_ablations_and_the_shapes(tmp_path):
+    """The component and drag ablations and the cross-shape morphs reach the page beside the paper's
+    numbers and each run's share of the gap; a row the profile did not run is left out, and a page
+    whose tables predate them has none of these sections."""
+    tables = tmp_path / "tables"
+    _fake_tables(tables)
+    text = results_markdown(tables, "paper", date="2026-11-29")
+    assert "## Component ablation" not in text and "## Drag ablation" not in text and "## Cross-shape" not in text
+    pd.DataFrame([{"experiment": "iso_bunny_f_inject_d05", "paper_alpha_mse": 0.1043, "paper_delta_E_%": 95.8,
+                   "alpha_mse": 0.00995, "delta_E_%": 94.02},
+                  {"experiment": "iso_bunny_full_d05", "paper_alpha_mse": 0.104, "paper_delta_E_%": 95.9}]
+                 ).to_csv(tables / "ablation_components.csv", index=False)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "paper_best": 0.0546, "paper_final": 0.0637, "best": 0.011,
+                   "final": 0.0112}, {"experiment": "iso_bunny_full_d05", "paper_best": 0.0735, "paper_final": 0.0786}]
+                 ).to_csv(tables / "ablation_drag.csv", index=False)
+    pd.DataFrame([{"experiment": "iso_bunny_full", "best": 0.011, "final": 0.0112, "volume_change_%": -8.23},
+                  {"experiment": "cow_S_full"}]).to_csv(tables / "shapes.csv", index=False)
+    text = results_markdown(tables, "paper", date="2026-11-29")
+    assert "| iso_bunny_f_inject_d05 | 0.00995 | 0.1043 | 94.0 % | 95.8 % |  |" in text
+    assert "| iso_bunny_full | 0.011 | 0.0112 | 0.0546 | 0.0637 | 98.0 % | 97.6 % |" in text
+    assert "| iso_bunny_full | 0.011 | 0.0112 | 98.0 % | 97.6 % | -8.2 % |" in text
+    assert "iso_bunny_full_d05 |" not in text and "cow_S_full" not in text
+
+
 def test_main_table_page_names_its_tables_and_title(tmp_path):
     """The paper-scale page (python -m physmorph.userdocs paper_main) is the results page of the main
     table's own tables: its title, and the tables directory it was made from."""
