@@ -52,6 +52,9 @@ def method_settings(config: dict) -> dict[str, Any]:
     return dict(sorted(keep.items()))
 
 
+ABSENT = "(absent)"  # merge_settings' value of a key some runs' records lack
+
+
 def method_sha(settings: dict[str, Any]) -> str:
     """12 hex digits of the SHA-256 of ``settings`` (:func:`method_settings`) as canonical JSON."""
     text = json.dumps(settings, sort_keys=True, separators=(",", ":"), default=str)
@@ -77,6 +80,10 @@ def differing_keys(settings: dict[str, Any], reference: dict[str, Any]) -> list[
             expected = reference[key]
         value = settings[key]
         values = value["values"] if isinstance(value, dict) and "values" in value else [value]
+        # a page of runs from either side of a setting's removal or addition merges the records
+        # that lack it as ABSENT: those ran as the retired / added setting's value does
+        if key in RETIRED_METHOD_SETTINGS or key in ADDED_METHOD_SETTINGS:
+            values = [expected if v == ABSENT else v for v in values]
         if any(json.dumps(v, default=str) != json.dumps(expected, default=str) for v in values):
             out.append(key)
     return out
@@ -90,7 +97,7 @@ def merge_settings(many: list[dict[str, Any]]) -> dict[str, Any]:
     for key in keys:
         seen: list = []
         for s in many:
-            v = s.get(key, "(absent)")
+            v = s.get(key, ABSENT)
             if all(json.dumps(v, default=str) != json.dumps(w, default=str) for w in seen):
                 seen.append(v)
         out[key] = seen[0] if len(seen) == 1 else {"values": seen}

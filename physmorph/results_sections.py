@@ -85,7 +85,9 @@ def paper_sections(direc: pd.DataFrame, main: pd.DataFrame, source: pd.DataFrame
         out.append("Each row compares the paper's choice (ours) with its baseline; lower is better, the margin is "
                    "baseline minus ours, and `holds` is yes when ours is lower"
                    + (" by more than the noise: the same measure's spread between two runs of one experiment "
-                      "from two particle samples (`tables.noise`), `within noise` where the margin is smaller.\n"
+                      "from two particle samples (`tables.noise`), `within noise` where the margin is smaller; a row "
+                      "with no noise (the rebound after the release: the two runs are not released) says yes "
+                      "where ours is lower.\n"
                       if noisy else " (no noise measured: `tables.noise` names no pair of runs here).\n"))
         rows = [[str(r["direction"]), str(r["case"]), str(r["measure"]), fmt(r["ours"]), fmt(r["baseline"]),
                  pct(r["ours_vs_baseline_%"])]

@@ -14,7 +14,7 @@ from physmorph import h5io, page_meta
 from physmorph.config import load_settings, to_plain
 from physmorph.page_meta import (PageProvenance, check_pages, from_runs, read_block, readme_table,
                                  shipped_method_settings)
-from physmorph.provenance import differing_keys, git_state, method_settings, method_sha
+from physmorph.provenance import ABSENT, differing_keys, git_state, merge_settings, method_settings, method_sha
 from physmorph.settings.retired import ADDED_METHOD_SETTINGS, RETIRED_METHOD_SETTINGS
 from physmorph.userdocs import results_markdown
 from test_userdocs import _fake_tables
@@ -161,6 +161,16 @@ def test_a_retired_setting_counts_as_shipped_only_at_the_value_the_method_ran_wi
     before = {k: v for k, v in shipped.items() if k not in ADDED_METHOD_SETTINGS}
     assert differing_keys(before, shipped) == []
     assert differing_keys(before, {**shipped, "stray_pull_density": 0.2}) == ["stray_pull_density"]
+    # a page of runs from before and after the removal / the addition: those without the key ran as its value
+    mixed = merge_settings([old, shipped])
+    assert mixed["mpm.control_in_F"] == {"values": [False, ABSENT]}
+    assert differing_keys(mixed, shipped) == []
+    assert differing_keys(merge_settings([{**old, "mpm.control_in_F": True}, shipped]), shipped) == ["mpm.control_in_F"]
+    assert differing_keys(merge_settings([before, shipped]), shipped) == []
+    assert differing_keys(merge_settings([before, {**shipped, "stray_pull_density": 0.2}]), shipped) == \
+        ["stray_pull_density"]
+    assert differing_keys(merge_settings([{k: v for k, v in shipped.items() if k != "gamma"}, shipped]),
+                          shipped) == ["gamma"]
     # the pages the repository holds were made before: the check reads them as the shipped method
     lines, default_differs = check_pages(ROOT / "docs")
     assert not default_differs, lines
