@@ -56,6 +56,66 @@ def config_files(profile: str | None) -> list[Path]:
     return [REPO / "config" / "config.yaml"] + [Path(p) for p in (profile or "").split(",") if p]
 
 
+def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float) -> dict:
+    """One row of runs.csv from a finished run file (its reachable-gap numbers), printed as well."""
+    m = read_metrics(run_h5)
+    # The ceiling stored by the target stage (the target's own particles at rest, its sigma0);
+    # rows before 2026-11-22 used the source's sigma0 here (a ~3 % lower gap, see the doc).
+    ceil = {"alpha_mse": float(m["attrs"]["ceiling_alpha_mse"]), "iou": float(m["attrs"]["ceiling_iou"])}
+    a = m["alpha_mse"]
+    k = int(np.nanargmin(a))
+    iou = m.get("iou", np.full_like(a, np.nan))
+    row = {"tag": tag, "experiment": name, "frames": len(a) - 1, "overrides": json.dumps(recorded, sort_keys=True),
+           "a0": a[0], "a_best": a[k], "best_frame": k, "a_final": a[-1], "ceiling": ceil["alpha_mse"],
+           "closed_best": gap_closed(a[0], a[k], ceil["alpha_mse"]),
+           "closed_final": gap_closed(a[0], a[-1], ceil["alpha_mse"]),
+           "iou0": iou[0], "iou_best": np.nanmax(iou), "iou_final": iou[-1], "ceiling_iou": ceil["iou"],
+           "chamfer0": m["chamfer"][0], "chamfer_final": m["chamfer"][-1],
+           "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall,
+           "volume_iou0": m["volume_iou"][0], "volume_iou_final": m["volume_iou"][-1],
+           "overfilled_final": m["overfilled_mass"][-1],
+           # how still the last frames are (physmorph.metrics)
+           "swing_percent": swing_percent(a), "sign_changes": sign_changes(a),
+           "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"]))}
+    row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
+    print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
+    curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])
+    print(f"  alpha curve: {curve}", flush=True)
+    return row
+
+
+def append_rows(csv_path: Path, rows: list[dict]) -> None:
+    """Append ``rows`` to the record, refusing one whose header is not COLUMNS."""
+    new = not csv_path.exists()
+    if not new:
+        with csv_path.open(newline="") as fh:
+            header = next(csv.reader(fh), [])
+        if header != COLUMNS:
+            raise SystemExit(f"{csv_path}: its header {header} is not this driver's columns {COLUMNS}; "
+                             "add the missing columns (empty for the older rows) or pass --csv")
+    with csv_path.open("a", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        if new:
+            w.writeheader()
+        w.writerows(rows)
+
+
+def record_runs(runs_dir: Path, names: list[str], tag: str, recorded: dict, csv_path: Path | None) -> list[dict]:
+    """Rows for finished runs a workflow made (``runs_dir/{name}.h5``), without running them again:
+    the wall time is each run's own over all its sittings (its ``wall_time_s``)."""
+    import h5py
+
+    rows = []
+    for name in names:
+        path = runs_dir / f"{name}.h5"
+        with h5py.File(path, "r") as f:
+            wall = float(f.attrs.get("wall_time_s", np.nan))
+        rows.append(study_row(tag, name, recorded, path, wall))
+    if csv_path is not None:
+        append_rows(csv_path, rows)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     """Run each named experiment once; returns the rows (also printed and, unless --no-csv, appended)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -73,6 +133,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--no-release", action="store_true", help="no release frames after the run (the experiment's release_frames set to 0)")
     ap.add_argument("--resume", action="store_true",
                     help="continue a killed call's run from its last committed frame instead of starting again")
+    ap.add_argument("--record", metavar="RUNS_DIR", default=None,
+                    help="record the finished runs RUNS_DIR/{experiment}.h5 a workflow made, without running them")
     args = ap.parse_args(argv)
     csv_path = Path(args.csv)
     overrides = parse_set(args.set)
@@ -80,6 +142,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         overrides.setdefault("morph", {})["frames"] = args.frames
     # the row names the profile file too, so it says how to rerun it
     recorded = {**({"--profile": args.profile} if args.profile else {}), **overrides}
+    if args.record:
+        return record_runs(Path(args.record), args.experiments, args.tag, recorded,
+                           None if args.no_csv else csv_path)
     files = config_files(args.profile)
     cfg = load_settings(*files, overrides=overrides)
     res = cfg.sampling.tag
@@ -99,43 +164,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True),
                   target_size=cfg.shape(exp.target).size)
         wall = time.time() - t0
-        m = read_metrics(out)
-        # The ceiling stored by the target stage (the target's own particles at rest, its sigma0);
-        # rows before 2026-11-22 used the source's sigma0 here (a ~3 % lower gap, see the doc).
-        ceil = {"alpha_mse": float(m["attrs"]["ceiling_alpha_mse"]), "iou": float(m["attrs"]["ceiling_iou"])}
-        a = m["alpha_mse"]
-        k = int(np.nanargmin(a))
-        iou = m.get("iou", np.full_like(a, np.nan))
-        row = {"tag": args.tag, "experiment": name, "frames": len(a) - 1, "overrides": json.dumps(recorded, sort_keys=True),
-               "a0": a[0], "a_best": a[k], "best_frame": k, "a_final": a[-1], "ceiling": ceil["alpha_mse"],
-               "closed_best": gap_closed(a[0], a[k], ceil["alpha_mse"]),
-               "closed_final": gap_closed(a[0], a[-1], ceil["alpha_mse"]),
-               "iou0": iou[0], "iou_best": np.nanmax(iou), "iou_final": iou[-1], "ceiling_iou": ceil["iou"],
-               "chamfer0": m["chamfer"][0], "chamfer_final": m["chamfer"][-1],
-               "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall,
-               "volume_iou0": m["volume_iou"][0], "volume_iou_final": m["volume_iou"][-1],
-               "overfilled_final": m["overfilled_mass"][-1],
-               # how still the last frames are (physmorph.metrics)
-               "swing_percent": swing_percent(a), "sign_changes": sign_changes(a),
-               "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"]))}
-        row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
-        print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
-        curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])
-        print(f"  alpha curve: {curve}", flush=True)
+        row = study_row(args.tag, name, recorded, out, wall)
         rows.append(row)
         if not args.no_csv:
-            new = not csv_path.exists()
-            if not new:
-                with csv_path.open(newline="") as fh:
-                    header = next(csv.reader(fh), [])
-                if header != COLUMNS:
-                    raise SystemExit(f"{csv_path}: its header {header} is not this driver's columns {COLUMNS}; "
-                                     "add the missing columns (empty for the older rows) or pass --csv")
-            with csv_path.open("a", newline="") as fh:
-                w = csv.DictWriter(fh, fieldnames=COLUMNS)
-                if new:
-                    w.writeheader()
-                w.writerow(row)
+            append_rows(csv_path, [row])
     return rows
 
 

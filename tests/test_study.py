@@ -92,6 +92,15 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     assert int(written[1]["frames"]) == 3 and written[1]["experiment"] == "iso_bunny_physics_only"
     assert float(row["volume_iou_final"]) == pytest.approx(m["volume_iou"][-1], rel=1e-3)
     assert float(row["overfilled_final"]) == pytest.approx(m["overfilled_mass"][-1], rel=1e-3, abs=1e-4)
+    # --record: the same numbers from the finished run file, not run again; its wall time is the run's own
+    recorded = study.main(["iso_bunny_full", "--tag", "r1", "--record", str(run.parent), "--csv", str(record),
+                           "--profile", "config/test.yaml"])
+    with record.open() as fh:
+        assert [r["tag"] for r in csv.DictReader(fh)] == ["t1", "t2", "r1"]
+    same = {k: v for k, v in row.items() if k not in ("tag", "overrides", "wall_s")}
+    assert {k: str(v) for k, v in recorded[0].items() if k in same} == same
+    assert float(recorded[0]["wall_s"]) == pytest.approx(float(m["attrs"]["wall_time_s"]), rel=1e-3)
+    assert json.loads(recorded[0]["overrides"]) == {"--profile": "config/test.yaml"}
     # The 3D checks recomputed from the saved states (the study tool for older run files)
     # equals the one the run recorded at those frames (states are stored as float32).
     import h5py
