@@ -28,6 +28,7 @@ import yaml
 from physmorph.config import load_settings
 from physmorph.metrics import sign_changes, swing_percent
 from physmorph.morph import morph_config, read_metrics, run_morph
+from physmorph.page_meta import run_wall_time_s
 from physmorph.quality import gap_closed
 from physmorph.runfile import partial_dir
 
@@ -103,14 +104,8 @@ def append_rows(csv_path: Path, rows: list[dict]) -> None:
 def record_runs(runs_dir: Path, names: list[str], tag: str, recorded: dict, csv_path: Path | None) -> list[dict]:
     """Rows for finished runs a workflow made (``runs_dir/{name}.h5``), without running them again:
     the wall time is each run's own over all its sittings (its ``wall_time_s``)."""
-    import h5py
-
-    rows = []
-    for name in names:
-        path = runs_dir / f"{name}.h5"
-        with h5py.File(path, "r") as f:
-            wall = float(f.attrs.get("wall_time_s", np.nan))
-        rows.append(study_row(tag, name, recorded, path, wall))
+    rows = [study_row(tag, name, recorded, runs_dir / f"{name}.h5", run_wall_time_s(runs_dir / f"{name}.h5"))
+            for name in names]
     if csv_path is not None:
         append_rows(csv_path, rows)
     return rows

@@ -262,7 +262,7 @@ def update_readme(readme: Path, docs_dir: Path) -> None:
     readme.write_text(text)
 
 
-def _run_wall_time_s(run_h5: Path) -> float:
+def run_wall_time_s(run_h5: Path) -> float:
     """A finished run's wall time over all its sittings (its ``wall_time_s``; NaN without one)."""
     if not run_h5.exists():
         return float("nan")
@@ -286,7 +286,7 @@ def jobs_wall_time_s(results_dir: Path) -> float:
         if "s" in df and len(df):
             job = float(df["s"].iloc[-1])
             if tsv.parent.name == "morph":
-                job = np.nanmax([job, _run_wall_time_s(results_dir / "runs" / f"{tsv.stem}.h5")])
+                job = np.nanmax([job, run_wall_time_s(results_dir / "runs" / f"{tsv.stem}.h5")])
             total += job
             found = True
     return total if found else float("nan")

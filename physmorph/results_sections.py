@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from physmorph.markdown import markdown_table
+
 
 def fmt(v, digits: int = 4) -> str:
     if v is None or isinstance(v, float) and not np.isfinite(v):
@@ -25,9 +27,8 @@ def pct(v) -> str:
 
 
 def md_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
+    """A GitHub table of cells already formatted as text."""
+    return markdown_table(pd.DataFrame(rows, columns=header))
 
 
 def read_table(tables_dir: Path, name: str) -> pd.DataFrame:
@@ -68,7 +69,7 @@ def convergence_section(conv: pd.DataFrame) -> list[str]:
                      pct(100 * r["overfilled_mass_final"]) if np.isfinite(r["overfilled_mass_final"]) else "",
                      pct(r.get("stray_%", np.nan)), fmt(r.get("surface_dx", np.nan), 2)])
     out.append(md_table(["experiment", "method", "closed, best (frame)", "closed, last", "drop", "swing",
-                       "sign changes", "volume IoU", "overfilled", "stray", "surface (cells)"], rows))
+                         "sign changes", "volume IoU", "overfilled", "stray", "surface (cells)"], rows))
     return out
 
 
@@ -121,7 +122,6 @@ def paper_sections(direc: pd.DataFrame, main: pd.DataFrame, source: pd.DataFrame
         out.append(md_table(["experiment", "variant", "rebound in the run", "rebound released", "release frames"],
                             rows))
     return out
-
 
 
 def optional_table(tables_dir: Path, name: str) -> pd.DataFrame:
