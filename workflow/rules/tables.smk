@@ -31,7 +31,7 @@ rule make_tables:
 
 
 # The same tables from the main table's runs alone (`snakemake paper_main`): at the paper's scale
-# the six runs are a night on a CPU, the eighteen several.
+# the six runs take a few hours on 2 cores (each run's time: docs/paper_scale.md).
 rule make_main_tables:
     input:
         runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=MAIN_EXPERIMENTS),
