@@ -38,7 +38,7 @@ ARGS ?=
 venv: $(STAMP)
 
 # workflow/envs/physmorph.yaml, the conda environment of every rule (snakemake --use-conda), from
-# environment.lock: rerun after the lock changed (tests/test_workflow_lint.py checks they agree).
+# environment.lock: rerun after the lock changed (tests/workflow/test_workflow_lint.py checks they agree).
 conda-env:
 	$(PYTHON) workflow/envs/make_env.py
 
@@ -69,7 +69,7 @@ gpu-check: $(STAMP)
 # The SLURM profile on a one-node SLURM cluster brought up on this machine (root, Debian; docs/cluster.md).
 slurm-check: $(STAMP)
 	bash tests/cluster/slurm-up.sh
-	$(VENV)/bin/python -m pytest -m slurm -n 0 -rs tests/test_slurm.py
+	$(VENV)/bin/python -m pytest -m slurm -n 0 -rs tests/workflow/test_slurm.py
 
 dag: $(STAMP)
 	$(VENV)/bin/snakemake -n --cores $(CORES) tables $(ARGS)

@@ -29,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from physmorph.config import load_settings
-from physmorph.morph import morph_config, read_metrics, run_morph
-from physmorph.runfile import partial_dir
+from physmorph.settings.workflow import load_settings
+from physmorph.morph.loop import morph_config, run_morph
+from physmorph.records.runfile import read_metrics
+from physmorph.records.runfile import partial_dir
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
 REPO = Path(__file__).resolve().parent.parent

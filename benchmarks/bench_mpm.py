@@ -42,8 +42,10 @@ def lattice_ball(n: int, radius: float = BALL_RADIUS) -> np.ndarray:  # [n, 3]
 
 
 def run_case(n: int, res: int, T: int, reps: int, precision: str, smoothing_mode: str) -> dict:
-    from physmorph.grid import Grid, splat_mass
-    from physmorph.mpm import MPMConfig, MPMSolver, ParticleState
+    from physmorph.base.grid import Grid, splat_mass
+    from physmorph.settings.mpm import MPMConfig
+    from physmorph.mpm.solver import MPMSolver
+    from physmorph.mpm.state import ParticleState
 
     cfg = MPMConfig(grid_res=res, substeps=T, precision=precision, smoothing_mode=smoothing_mode)
     x = lattice_ball(n)

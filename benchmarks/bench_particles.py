@@ -14,8 +14,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from physmorph.meshes import ShapeSpec, prepare_mesh
-from physmorph.particles import sample_particles
+from physmorph.meshes.shapes import ShapeSpec
+from physmorph.meshes.prepare import prepare_mesh
+from physmorph.meshes.particles import sample_particles
 
 SHAPES = [
     ShapeSpec("iso", "isosphere", size=14.0),

@@ -33,8 +33,8 @@ RADIUS = 8.0  # sphere shell radius (world units; the ring cameras sit at distan
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0):
-    from physmorph.cameras import ring_cameras
-    from physmorph.render import RenderTarget
+    from physmorph.base.cameras import ring_cameras
+    from physmorph.render.containers import RenderTarget
 
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
@@ -65,7 +65,8 @@ def _rss_mb() -> float:
 def run_fast(n: int, res: str, reps: int) -> dict:
     import torch
 
-    from physmorph.render import RenderConfig, render_and_grad, render_views
+    from physmorph.settings.render import RenderConfig
+    from physmorph.render.api import render_and_grad, render_views
     from physmorph.render.api import _to_tensors, splat
 
     width, height = RESOLUTIONS[res]
@@ -91,7 +92,7 @@ def run_fast(n: int, res: str, reps: int) -> dict:
 def run_dense(n: int, res: str, chunk: int, chunks: int) -> dict:
     import torch
 
-    from physmorph.render import RenderConfig
+    from physmorph.settings.render import RenderConfig
     from physmorph.render.api import _to_tensors
     from physmorph.render.dense import _dense_pixels
     from physmorph.render.projection import covariance_from_F, project_gaussians
@@ -123,7 +124,7 @@ def child(args) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    from physmorph.taichi_runtime import init_taichi
+    from physmorph.base.taichi_runtime import init_taichi
 
     init_taichi("cpu", args.threads)
     out = run_dense(args.n, args.res, args.chunk, args.chunks) if args.dense else run_fast(args.n, args.res, args.reps)

@@ -24,8 +24,8 @@ from pathlib import Path
 import trimesh
 
 from bench_morph import REPO, bench
-from physmorph.config import load_settings
-from physmorph.grid import BOUNDARY_CELLS
+from physmorph.settings.workflow import load_settings
+from physmorph.base.grid import BOUNDARY_CELLS
 
 DOMAIN_SHARES = (0.01, 0.04, 0.10, 0.25)
 

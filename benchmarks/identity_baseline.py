@@ -26,10 +26,11 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_morph import prepare  # noqa: E402
 
-from physmorph.config import load_settings  # noqa: E402
-from physmorph.morph import morph_config, read_metrics, run_morph  # noqa: E402
-from physmorph.provenance import git_state  # noqa: E402
-from physmorph.runfile import partial_dir  # noqa: E402
+from physmorph.settings.workflow import load_settings  # noqa: E402
+from physmorph.morph.loop import morph_config, run_morph
+from physmorph.records.runfile import read_metrics
+from physmorph.records.provenance import git_state  # noqa: E402
+from physmorph.records.runfile import partial_dir  # noqa: E402
 from physmorph.stages import set_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent

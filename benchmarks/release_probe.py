@@ -19,13 +19,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from physmorph.config import load_settings
-from physmorph.morph import morph_config
-from physmorph.mpm import MPMSolver, ParticleState
-from physmorph.particles import load_particles
-from physmorph.render import render_views
-from physmorph.runfile import read_metrics
-from physmorph.targets import load_target
+from physmorph.settings.workflow import load_settings
+from physmorph.morph.loop import morph_config
+from physmorph.mpm.solver import MPMSolver
+from physmorph.mpm.state import ParticleState
+from physmorph.meshes.particles import load_particles
+from physmorph.render.api import render_views
+from physmorph.records.runfile import read_metrics
+from physmorph.morph.targets import load_target
 
 REPO = Path(__file__).resolve().parent.parent
 

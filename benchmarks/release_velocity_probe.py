@@ -18,11 +18,12 @@ import shutil
 from pathlib import Path
 
 
-from physmorph import morph
-from physmorph.config import load_settings
-from physmorph.metrics import release_rebound_percent
-from physmorph.morph import morph_config, read_metrics, run_morph
-from physmorph.runfile import partial_dir
+from physmorph.morph import loop as morph
+from physmorph.settings.workflow import load_settings
+from physmorph.reports.metrics import release_rebound_percent
+from physmorph.morph.loop import morph_config, run_morph
+from physmorph.records.runfile import read_metrics
+from physmorph.records.runfile import partial_dir
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from physmorph.export import measures  # noqa: E402
-from physmorph.export.runs import frame_state, saved_frames  # noqa: E402
+from physmorph.reports.export import measures  # noqa: E402
+from physmorph.reports.export.runs import frame_state, saved_frames  # noqa: E402
 
 
 def loose_fraction(x: np.ndarray,  # [N, 3] positions

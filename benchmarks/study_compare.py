@@ -16,9 +16,9 @@ import sys
 
 import numpy as np
 
-from physmorph.metrics import improvement_percent, matched_convergence_frame, rebound_percent, release_rebound_percent
-from physmorph.quality import gap_closed
-from physmorph.runfile import read_metrics
+from physmorph.reports.metrics import improvement_percent, matched_convergence_frame, rebound_percent, release_rebound_percent
+from physmorph.morph.quality import gap_closed
+from physmorph.records.runfile import read_metrics
 
 
 def main(paths: list[str]) -> None:

@@ -25,12 +25,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from physmorph.config import load_settings
-from physmorph.metrics import sign_changes, swing_percent
-from physmorph.morph import morph_config, read_metrics, run_morph
-from physmorph.page_meta import run_wall_time_s
-from physmorph.quality import gap_closed
-from physmorph.runfile import partial_dir
+from physmorph.settings.workflow import load_settings
+from physmorph.reports.metrics import sign_changes, swing_percent
+from physmorph.morph.loop import morph_config, run_morph
+from physmorph.records.runfile import read_metrics
+from physmorph.reports.page_meta import run_wall_time_s
+from physmorph.morph.quality import gap_closed
+from physmorph.records.runfile import partial_dir
 
 REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "study" / "runs.csv"
@@ -75,7 +76,7 @@ def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float) ->
            "fp_det_min": np.nanmin(m["fp_det_min"]), "status": m["attrs"].get("status", ""), "wall_s": wall,
            "volume_iou0": m["volume_iou"][0], "volume_iou_final": m["volume_iou"][-1],
            "overfilled_final": m["overfilled_mass"][-1],
-           # how still the last frames are (physmorph.metrics)
+           # how still the last frames are (physmorph.reports.metrics)
            "swing_percent": swing_percent(a), "sign_changes": sign_changes(a),
            "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"]))}
     row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}

@@ -18,10 +18,10 @@ import argparse
 import h5py
 import numpy as np
 
-from physmorph.config import load_settings
-from physmorph.particles import load_particles
-from physmorph.render import render_views
-from physmorph.targets import load_target
+from physmorph.settings.workflow import load_settings
+from physmorph.meshes.particles import load_particles
+from physmorph.render.api import render_views
+from physmorph.morph.targets import load_target
 
 
 def main() -> None:

@@ -1,4 +1,4 @@
-"""The 3D checks (physmorph.quality.volume_metrics: volume IoU, overfilled mass) at the saved frames of run files, for runs written
+"""The 3D checks (physmorph.morph.quality.volume_metrics: volume IoU, overfilled mass) at the saved frames of run files, for runs written
 before the metric was recorded per frame (docs/study/log.md, part 11).
 
     python benchmarks/study_volume_iou.py --particles results/default/particles/iso_32x2x1.h5 \\
@@ -14,8 +14,8 @@ import argparse
 import h5py
 import numpy as np
 
-from physmorph.quality import volume_metrics
-from physmorph.targets import load_target
+from physmorph.morph.quality import volume_metrics
+from physmorph.morph.targets import load_target
 
 
 def saved_volume_metrics(run_h5: str, mass: np.ndarray, target) -> dict[int, dict[str, float]]:  # mass [N]

@@ -1,6 +1,6 @@
 """Stage entry points: what the workflow scripts call, one function per rule.
 
-Settings arrive as the typed dataclasses of :mod:`physmorph.config` or as their canonical JSON
+Settings arrive as the typed dataclasses of :mod:`physmorph.settings.workflow` or as their canonical JSON
 (the rules' ``params``, which is what makes Snakemake rerun a job when they change); never as
 the raw config dict. ``log``: a file that gets the stage's progress and warnings (the morph
 also echoes them to the terminal). Every stage can be run and tested from plain Python.
@@ -15,9 +15,10 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-from physmorph.config import (RawMesh, SamplingConfig, ShapeSettings, TargetConfig, build, canonical_json,
-                              morph_params)
-from physmorph.grid import DOMAIN_HI, DOMAIN_LO
+from physmorph.settings.sections import RawMesh, SamplingConfig, ShapeSettings, TargetConfig
+from physmorph.settings.build import build
+from physmorph.settings.params import canonical_json, morph_params
+from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO
 
 
 def typed(cls, value, where: str):
@@ -62,7 +63,7 @@ def stage_log(log: str | Path | None, echo: bool = False):
 
 
 def set_threads(threads: int | None) -> None:
-    """The job's threads for torch and for Taichi (physmorph.taichi_runtime reads
+    """The job's threads for torch and for Taichi (physmorph.base.taichi_runtime reads
     PHYSMORPH_THREADS when it initialises without an explicit count, e.g. for the renderer)."""
     if threads:
         import torch
@@ -72,7 +73,7 @@ def set_threads(threads: int | None) -> None:
 
 
 def fetch_mesh_stage(output: str, source, mesh_dir: str | None = None, log=None) -> Path:
-    from physmorph.meshes import fetch_mesh
+    from physmorph.meshes.fetch import fetch_mesh
 
     src = typed(RawMesh, source, "raw_meshes")
     out = Path(output)
@@ -82,7 +83,7 @@ def fetch_mesh_stage(output: str, source, mesh_dir: str | None = None, log=None)
 
 def shape_spec(name: str, entry):
     """The library's ShapeSpec of a ``shapes:`` entry (ShapeSettings, its JSON or a mapping)."""
-    from physmorph.meshes import ShapeSpec
+    from physmorph.meshes.shapes import ShapeSpec
 
     e = typed(ShapeSettings, entry, f"shapes.{name}")
     file = e.file if e.file is not None else (Path(e.path).name if e.path else None)
@@ -93,7 +94,7 @@ def prepare_mesh_stage(shape: str, entry, raw: str | None, output: str,
                        domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI), log=None,
                        raw_sha256: str | None = None) -> dict:
     """``raw_sha256``: the raw mesh's checksum from the config (verified again before preparation)."""
-    from physmorph.meshes import prepare_mesh
+    from physmorph.meshes.prepare import prepare_mesh
 
     with stage_log(log):
         return prepare_mesh(shape_spec(shape, entry), Path(raw) if raw else None, Path(output),
@@ -101,7 +102,7 @@ def prepare_mesh_stage(shape: str, entry, raw: str | None, output: str,
 
 
 def sample_particles_stage(mesh_h5: str, output: str, preview: str, sampling, seed: int, log=None) -> dict:
-    from physmorph.particles import sample_particles
+    from physmorph.meshes.particles import sample_particles
 
     s = typed(SamplingConfig, sampling, "sampling")
     with stage_log(log):
@@ -113,8 +114,8 @@ def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling, ta
                            render=None, log=None, threads: int | None = None) -> dict:
     """``render``: the renderer of the ceiling (the target's own particles rendered at rest),
     always on the CPU."""
-    from physmorph.render import RenderConfig
-    from physmorph.targets import rasterize_target
+    from physmorph.settings.render import RenderConfig
+    from physmorph.morph.targets import rasterize_target
 
     s = typed(SamplingConfig, sampling, "sampling")
     t = typed(TargetConfig, target, "target")
@@ -130,9 +131,10 @@ def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling, ta
 def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: str, threads: int | None = None,
                 log=None, experiment: dict | None = None, target_size: float | None = None) -> dict:
     """One morph run. ``settings``: its MorphConfig or that config's params JSON
-    (physmorph.config.morph_params); ``experiment``: what the run file records about it;
+    (physmorph.settings.workflow.morph_params); ``experiment``: what the run file records about it;
     ``target_size``: the target shape's configured size (named by a volume warning)."""
-    from physmorph.morph import MorphConfig, run_morph
+    from physmorph.settings.morph import MorphConfig
+    from physmorph.morph.loop import run_morph
 
     mcfg = typed(MorphConfig, settings, "morph")
     experiment = json.loads(experiment) if isinstance(experiment, str) else experiment

@@ -22,7 +22,7 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 # The suite builds dozens of small solvers with different settings, each compiling its kernels:
-# with Taichi's IR optimisation off they compile in about 60 % of the time (physmorph.taichi_runtime).
+# with Taichi's IR optimisation off they compile in about 60 % of the time (physmorph.base.taichi_runtime).
 # The workflow jobs the tests start inherit it; CI's end-to-end run after the suite does not.
 os.environ.setdefault("PHYSMORPH_QUICK_COMPILE", "1")
 
@@ -48,10 +48,10 @@ def find_mesh_dir() -> Path | None:
 
 
 def fetch_raw_meshes(dest: Path, sources: dict | None = None) -> Path:
-    """Download the four raw meshes into ``dest`` (sources: file name -> physmorph.config.RawMesh,
+    """Download the four raw meshes into ``dest`` (sources: file name -> physmorph.settings.workflow.RawMesh,
     default config/config.yaml's raw_meshes), each checked against its published SHA-256."""
-    from physmorph.config import load_settings
-    from physmorph.meshes import fetch_mesh
+    from physmorph.settings.workflow import load_settings
+    from physmorph.meshes.fetch import fetch_mesh
 
     if sources is None:
         sources = load_settings(REPO_ROOT / "config" / "config.yaml").raw_meshes
@@ -70,7 +70,7 @@ _LOCAL_ERRORS = (FileNotFoundError, PermissionError, IsADirectoryError, NotADire
 
 def is_network_failure(exc: BaseException) -> bool:
     """Whether ``exc`` says the network failed: the exception or one it was raised from (``raise ...
-    from``, as physmorph.meshes.fetch_mesh wraps a failed download in its FetchError) is a URLError
+    from``, as physmorph.meshes.fetch.fetch_mesh wraps a failed download in its FetchError) is a URLError
     (an HTTP error included: a proxy's refusal, a moved URL) that is not a local file error, a socket
     or DNS error, a timeout, a dropped connection (ConnectionError, http.client's errors) or an
     OSError with a network errno. A checksum mismatch (a FetchError raised from nothing), a
@@ -106,7 +106,7 @@ def fetch_or_skip(dest: Path, sources: dict | None = None) -> Path:
 def checkpoint_every_frame(monkeypatch):
     """A checkpoint every frame: the tests that kill a run or read its checkpoint commit frames
     faster than the checkpoints' wall-time cadence (the cadence's own test sets it)."""
-    import physmorph.runfile as runfile
+    import physmorph.records.runfile as runfile
 
     monkeypatch.setattr(runfile, "CHECKPOINT_WALL_SHARE", None)
 
@@ -128,7 +128,7 @@ def raw_mesh_sha256() -> dict[str, str]:
 def tiny(tmp_path_factory, mesh_dir):
     """iso particles and a bunny target at the test profile's resolution (config/test.yaml), with
     that profile's settings: (settings, the folder holding p_iso.h5 and t_bunny.h5)."""
-    from physmorph.config import load_settings
+    from physmorph.settings.workflow import load_settings
     from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
     d = tmp_path_factory.mktemp("tiny")

@@ -11,7 +11,7 @@ kernel gives. Skips, saying why, where no CUDA device is usable.
 
 The plasticity's and the mask's nearest-point searches, the transport plan (torch on CUDA) and the
 neighbourhood kernels (Taichi on arch=cuda) are also compared piece by piece with their CPU
-references, to the tolerances of tests/test_plasticity_device.py.
+references, to the tolerances of tests/plasticity/test_plasticity_device.py.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ import h5py
 import numpy as np
 import pytest
 
-from physmorph.config import load_settings
-from physmorph.runfile import read_metrics
+from physmorph.settings.workflow import load_settings
+from physmorph.records.runfile import read_metrics
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
 pytestmark = pytest.mark.gpu
@@ -46,10 +46,10 @@ print(torch.cuda.get_device_name(0))
 
 RUN = """
 import dataclasses, json, sys
-from physmorph.config import load_settings
-from physmorph.morph import morph_config, run_morph
+from physmorph.settings.workflow import load_settings
+from physmorph.morph.loop import morph_config, run_morph
 from physmorph.render.api import torch_device
-from physmorph.taichi_runtime import taichi_state
+from physmorph.base.taichi_runtime import taichi_state
 device, d = sys.argv[1], sys.argv[2]
 cfg = load_settings("config/config.yaml", "config/test.yaml", overrides={"device": device})
 mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False)
@@ -60,9 +60,9 @@ print(json.dumps({"taichi": taichi_state()["arch"], "torch": str(torch_device(mc
 
 DEVICE_CHECK = """
 import json, sys
-sys.path.insert(0, "tests")
+sys.path.insert(0, "tests/plasticity")
 import taichi as ti
-from physmorph.taichi_runtime import init_taichi
+from physmorph.base.taichi_runtime import init_taichi
 from test_plasticity_device import check_deviations, device_deviations
 init_taichi("cuda")
 arch = str(ti.lang.impl.current_cfg().arch)

@@ -28,17 +28,8 @@ where the raw surface overlaps itself. A refusal (MeshError) names the file or s
 check that failed; the fit helper and the prepare_mesh job end on it in one line, exit status 2.
 
 Modules: ``fetch`` (stage 1), ``shapes`` (specs, procedural shapes), ``repair`` (loading and
-repair), ``prepare`` (stage 2: normalise, write, read).
+repair), ``prepare`` (stage 2: normalise, write, read), ``fit`` (the size helper: ``python -m
+physmorph.meshes.fit MESH``), ``particles`` (stage 3: particle sampling).
+
+May import physmorph.records, physmorph.settings and physmorph.base.
 """
-
-from .errors import FetchError, MeshError
-from .fetch import fetch_mesh, sha256_of
-from .prepare import load_mesh, normalize_mesh, prepare_mesh
-from .repair import (DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, ray_crossings, ray_winding_vote, remesh_winding_number,
-                     repair_mesh, solid_problem, winding_number)
-from .shapes import DEFAULT_LETTER_DEPTH_FRACTION, LETTER_GLYPHS, SHAPE_KINDS, ShapeSpec, isosphere, letter_mesh
-
-__all__ = ["DEFAULT_LETTER_DEPTH_FRACTION", "DEFAULT_VOLUME_TOLERANCE", "FetchError", "LETTER_GLYPHS", "MeshError",
-           "SHAPE_KINDS", "ShapeSpec", "fetch_mesh", "isosphere", "letter_mesh", "load_mesh", "load_raw_mesh",
-           "normalize_mesh", "prepare_mesh", "ray_crossings", "ray_winding_vote", "remesh_winding_number",
-           "repair_mesh", "sha256_of", "solid_problem", "winding_number"]

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from physmorph.grid import DOMAIN_HI, DOMAIN_LO, Grid
+from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
 from .errors import REFUSED_STATUS, MeshError, exit_on_refusal, refusal_line
 from .prepare import normalize_mesh
@@ -42,7 +42,7 @@ SIZE_STEP = 0.1
 # is inside what the morph's mass loss already forgives: the repair tolerance is the same 3 %).
 VOLUME_SLACK = 0.03
 # The silhouette keeps this many pixels from the image edge, so the edge pixels stay empty and the
-# target stage's crop warning (physmorph.targets.cropped_views) stays silent at the advised size.
+# target stage's crop warning (physmorph.morph.targets.cropped_views) stays silent at the advised size.
 VIEW_MARGIN_PX = 1.0
 
 
@@ -111,7 +111,7 @@ def volume_mismatch(experiment: str, source_volume: float, target_volume: float,
 
 def shape_volume(spec, prepared_h5: str | os.PathLike | None = None,
                  raw_path: str | os.PathLike | None = None) -> float | None:
-    """A shape's volume at its configured size (``spec``: physmorph.config.ShapeSettings) before any
+    """A shape's volume at its configured size (``spec``: physmorph.settings.workflow.ShapeSettings) before any
     job: the prepared mesh's when ``prepared_h5`` exists and was made at that size, an isosphere's
     or a letter's from its formula and mesh, a raw mesh's when ``raw_path`` is on disk and closed
     (before the repair prepare_mesh applies; None when it is not, or not there yet)."""
@@ -234,7 +234,7 @@ def advise_size(
     cameras=None,
 ) -> SizeAdvice:
     """Size advice for a watertight ``mesh`` (any scale): see :class:`SizeAdvice`. With ``cameras``
-    (physmorph.cameras.Cameras: the target's views) the size is also kept inside every view, so
+    (physmorph.base.cameras.Cameras: the target's views) the size is also kept inside every view, so
     the render loss sees the whole target."""
     if not volume > 0:
         raise ValueError(f"volume must be > 0, got {volume!r}")
@@ -313,7 +313,8 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from physmorph.config import ConfigError, load_settings
+    from physmorph.settings.errors import ConfigError
+    from physmorph.settings.workflow import load_settings
 
     ap = argparse.ArgumentParser(prog="python -m physmorph.meshes.fit", description=__doc__.split("\n\n")[0])
     ap.add_argument("mesh", help="the mesh file (anything trimesh reads)")
@@ -337,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
                  "does not fit)")
     volume = isosphere_volume(src.size)
     name = args.name or shape_name(Path(args.mesh).stem)
-    from physmorph.cameras import ring_cameras
+    from physmorph.base.cameras import ring_cameras
 
     t = settings.target
     cameras = ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from physmorph.grid import DOMAIN_HI, DOMAIN_LO
-from physmorph.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
+from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO
+from physmorph.records.h5io import StageInputError, atomic_h5, open_h5, read_attr, read_field
 
 from .errors import MeshError
 from .fetch import sha256_of

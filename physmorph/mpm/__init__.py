@@ -2,8 +2,8 @@
 
 Design decisions (documented here and in the docstrings they refer to):
 
-* Transfer: MLS-MPM / APIC with the quadratic B-spline of physmorph.grid (the paper's code uses
-  cubic); node i at lo + i dx. The end-layer grid mass equals physmorph.grid.splat_mass exactly.
+* Transfer: MLS-MPM / APIC with the quadratic B-spline of physmorph.base.grid (the paper's code uses
+  cubic); node i at lo + i dx. The end-layer grid mass equals physmorph.base.grid.splat_mass exactly.
 * Constitutive model: fixed corotated on Fe = (F + dFc) Fp^-1; Kirchhoff stress P(Fe) Fe^T in
   the MLS-MPM affine term. dFc enters the stress only; F is advected by the grid velocity,
   F <- (I + dt C) F, then smoothed F <- (1 - s) F + s F_prev. Drag scales the P2G momentum by
@@ -32,21 +32,6 @@ Design decisions (documented here and in the docstrings they refer to):
 * Stability: the config refuses dt > cfl dx / c (c = P-wave speed, cfl = 0.5 by default) and
   warns above 80 % of it; a non-finite or exploding (|.| > 1e8) x, v or F after a rollout raises
   MPMDivergenceError naming the quantity, substep and particle.
+
+May import physmorph.settings and physmorph.base; not the renderer, the plasticity or the morph loop.
 """
-
-from physmorph.settings.mpm import (CFLWarning, MPMConfig, MPMConfigError, MPMDivergenceError, MPMError,
-                     MPMStateError)
-from .state import ParticleState, elastic_energy, kinetic_energy, fixed_corotated_energy_density, total_volume
-
-
-def __getattr__(name):
-    # The solver imports Taichi: loaded on first use, so reading configs and run files stays light.
-    if name in ("MPMSolver", "solver_for"):
-        from . import solver
-
-        return getattr(solver, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-__all__ = ["CFLWarning", "MPMConfig", "MPMConfigError", "MPMDivergenceError", "MPMError",
-           "MPMStateError", "MPMSolver", "solver_for", "ParticleState", "elastic_energy", "kinetic_energy",
-           "fixed_corotated_energy_density", "total_volume"]

@@ -71,7 +71,7 @@ class ControlField:
 
     @ti.kernel
     def _rebase_ctrl(self, F: ti.types.ndarray(), M: ti.types.ndarray()):
-        """dFc_t <- (F + dFc_t) M - F for every slot t (physmorph.plasticity.rebase_control), in
+        """dFc_t <- (F + dFc_t) M - F for every slot t (physmorph.plasticity.step.rebase_control), in
         float64 as the NumPy formula, stored in the solver's precision."""
         for s, p in self.ctrl:
             Fp = ti.Matrix.zero(ti.f64, 3, 3)
@@ -121,7 +121,7 @@ class ControlField:
 
     def rebase_control(self, F: np.ndarray,  # [N, 3, 3]
                        M: np.ndarray) -> None:  # [N, 3, 3]
-        """dFc_t <- (F + dFc_t) M - F for every slot, in place (physmorph.plasticity.rebase_control
+        """dFc_t <- (F + dFc_t) M - F for every slot, in place (physmorph.plasticity.step.rebase_control
         with M = Fp_old^-1 Fp_new; no [Tc, N, 3, 3] copy of the control)."""
         F = np.ascontiguousarray(F, dtype=np.float64)
         M = np.ascontiguousarray(M, dtype=np.float64)

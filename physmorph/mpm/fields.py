@@ -10,7 +10,7 @@ velocity and their adjoints; the target's grid mass and the loss's levels.
 import numpy as np
 import taichi as ti
 
-from ..grid import blur_weights
+from physmorph.base.grid import blur_weights
 
 
 class SolverFields:

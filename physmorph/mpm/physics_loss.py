@@ -17,7 +17,7 @@ class PhysicsLoss:
 
     @ti.kernel
     def _splat_mass(self, t: ti.i32):
-        """m_I += sum_p w_Ip m_p of x_t (the physmorph.grid.splat_mass transfer)."""
+        """m_I += sum_p w_Ip m_p of x_t (the physmorph.base.grid.splat_mass transfer)."""
         for p in range(self.n):
             base, fx, w, dw = self._stencil(self.x[t, p])
             for i, j, k in ti.ndrange(3, 3, 3):
@@ -148,7 +148,7 @@ class PhysicsLoss:
             xa[p] += g
 
     def set_target_grid_mass(self, m: np.ndarray) -> None:  # m: [res, res, res]
-        """Target grid mass (physmorph.grid.splat_mass convention)."""
+        """Target grid mass (physmorph.base.grid.splat_mass convention)."""
         m = np.asarray(m, dtype=np.float64)
         R = self.cfg.grid_res
         if m.shape != (R, R, R):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..grid import BOUNDARY_CELLS, blur_weights
+from physmorph.base.grid import BOUNDARY_CELLS, blur_weights
 from physmorph.settings.mpm import MPMConfig
 
 _OFFSETS = torch.tensor([[i, j, k] for i in range(3) for j in range(3) for k in range(3)],

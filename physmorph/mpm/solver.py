@@ -15,7 +15,7 @@ One substep t (state s_t = (x, v, C, F), control dFc_t, constants Fp, m, V0):
 P = 2 mu (Fe - R) + lam (J - 1) cof(Fe), with cof(Fe) = J Fe^-T written with cross products
 so it stays finite for singular Fe. The control dFc enters the stress only (it acts like an
 actuation); F itself is advected by the grid velocity. The end-layer mass loss compares the
-grid mass of x_T (same quadratic B-spline as physmorph.grid.splat_mass) with the target.
+grid mass of x_T (same quadratic B-spline as physmorph.base.grid.splat_mass) with the target.
 
 Backward: the adjoint of each substep is written by hand (reverse of G2P, grid update, P2G);
 the per-substep particle state (x, v, C, F), the rotation of Fe with its smallest pair sum, and
@@ -26,8 +26,8 @@ hand-written differential, the rotation derivative included, are in physmorph.mp
 import numpy as np
 import taichi as ti
 
-from ..grid import BOUNDARY_CELLS, Grid
-from ..taichi_runtime import init_taichi
+from physmorph.base.grid import BOUNDARY_CELLS, Grid
+from physmorph.base.taichi_runtime import init_taichi
 from physmorph.settings.mpm import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
 from .control import ControlField
 from .currency import Currency

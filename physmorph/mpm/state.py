@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from physmorph.settings.mpm import MPMConfig, MPMStateError
-from physmorph.linalg3 import det3, signed_singular_values
+from physmorph.base.linalg3 import det3, signed_singular_values
 
 _SHAPES = {"x": (3,), "v": (3,), "F": (3, 3), "C": (3, 3), "Fp": (3, 3), "mass": (), "volume": ()}
 

@@ -19,7 +19,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from ..taichi_runtime import init_taichi
+from physmorph.base.taichi_runtime import init_taichi
 
 # Floor of s_i + s_j in the rotation derivative, relative to the largest singular value: keeps
 # dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
@@ -292,6 +292,6 @@ def evaluate_polar(Fe: np.ndarray,  # [N, 3, 3]
 
 
 def _runtime_ready() -> bool:
-    from ..taichi_runtime import taichi_state
+    from physmorph.base.taichi_runtime import taichi_state
 
     return bool(taichi_state())

@@ -17,27 +17,7 @@ Each surface particle is a 3D Gaussian with mean x_i and covariance Sigma_i = si
 - api.py: render_and_grad (losses + dL/dF [+ dL/dx]), render_views (forward), shade (Phong).
 
 Runs on CPU, or CUDA with ``RenderConfig(device="cuda"|"auto")``; the Taichi runtime is shared
-with the MPM solver through :func:`physmorph.taichi_runtime.init_taichi` (one arch per process).
+with the MPM solver through :func:`physmorph.base.taichi_runtime.init_taichi` (one arch per process).
+
+May import physmorph.settings and physmorph.base; not the solver, the plasticity or the morph loop.
 """
-
-from importlib import import_module
-
-from .config import RenderConfig, RenderResult, RenderTarget
-
-# The renderer imports torch: its functions load on first use, so reading configs stays light.
-_LAZY = {"render_and_grad": "api", "render_views": "api", "shade": "api", "splat": "api",
-         "dense_composite": "dense", "alpha_mse": "losses", "match_gradients": "losses",
-         "render_losses": "losses", "CameraTensors": "projection", "covariance_from_F": "projection",
-         "project_gaussians": "projection", "composite": "rasterizer"}
-
-
-def __getattr__(name):
-    if name in _LAZY:
-        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-__all__ = [
-    "RenderConfig", "RenderTarget", "RenderResult", "render_and_grad", "render_views", "shade", "splat",
-    "composite", "dense_composite", "covariance_from_F", "project_gaussians", "CameraTensors",
-    "render_losses", "match_gradients", "alpha_mse",
-]

@@ -15,11 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physmorph.cameras import Cameras
-from physmorph.memory import release_free_memory
-from physmorph.taichi_runtime import resolve_device
+from physmorph.base.cameras import Cameras
+from physmorph.base.memory import release_free_memory
+from physmorph.base.taichi_runtime import resolve_device
 
-from .config import RenderConfig, RenderResult, RenderTarget
+from physmorph.settings.render import RenderConfig
+from .containers import RenderResult, RenderTarget
 from .losses import alpha_mse, expected_depth, match_gradients, render_losses
 from .projection import CameraTensors, ProjectedGaussians
 from .projection_kernels import project_backward, project_forward
@@ -135,7 +136,7 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     del losses  # frees the loss graph's pixel-sized buffers before the rasterizer backward
     # ... and hands them back to the system: under glibc's mmap threshold they stay resident
     # under the backward's [C, V*N, 6] gradients otherwise (the paper frame's peak: 0.92-1.03 GB
-    # above the render's start without this, 0.70-0.76 GB with it; physmorph.memory)
+    # above the render's start without this, 0.70-0.76 GB with it; physmorph.base.memory)
     release_free_memory()
     g_params = composite_backward(sp.params, sp.bins, t_final, last, g_alpha, g_depth, cfg)
     del g_alpha, g_depth, sp

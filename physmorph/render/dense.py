@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from .config import RenderConfig
+from physmorph.settings.render import RenderConfig
 
 
 def dense_composite(params: torch.Tensor, visible: torch.Tensor, height: int, width: int,

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .config import RenderConfig
+from physmorph.settings.render import RenderConfig
 
 # Smoothing of the soft IoU ratio in pixel units: an empty render against an empty target scores 0.
 _IOU_EPS = 1e-6

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physmorph.cameras import Cameras
+from physmorph.base.cameras import Cameras
 
-from .config import RenderConfig
+from physmorph.settings.render import RenderConfig
 
 # How far off-screen (as a fraction of the image size) the EWA Jacobian is still evaluated at the
 # true position; beyond it the Jacobian uses the clamped direction, as 3DGS does (1.3 x fov),

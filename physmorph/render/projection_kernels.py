@@ -34,9 +34,9 @@ took ~1 s for the forward and ~0.5 s for the reverse of a render.
 import taichi as ti
 import torch
 
-from physmorph.taichi_runtime import ensure_taichi
+from physmorph.base.taichi_runtime import ensure_taichi
 
-from .config import RenderConfig
+from physmorph.settings.render import RenderConfig
 from .projection import _JACOBIAN_MARGIN, CameraTensors
 from .rasterizer import _ti_dtype
 

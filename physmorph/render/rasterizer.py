@@ -25,9 +25,9 @@ gradient matching costs a single pass over the pixel lists. Memory: O(pixels + p
 import taichi as ti
 import torch
 
-from physmorph.taichi_runtime import init_taichi, resolve_device
+from physmorph.base.taichi_runtime import init_taichi, resolve_device
 
-from .config import RenderConfig
+from physmorph.settings.render import RenderConfig
 from .tiles import TileBins
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import taichi as ti
 import torch
 
-from physmorph.taichi_runtime import ensure_taichi
+from physmorph.base.taichi_runtime import ensure_taichi
 
 
 @dataclass

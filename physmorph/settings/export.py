@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from physmorph.settings_base import Float, Int, Refused, setting, settings_dataclass
+from physmorph.settings.base import Float, Int, Refused, setting, settings_dataclass
 
 VIDEO_KEYS = ("width", "height", "fps", "orbit_deg", "max_particles", "crf")
 MESH_KEYS = ("refine", "smooth_iterations", "frame")

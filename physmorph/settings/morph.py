@@ -1,6 +1,6 @@
 """The configuration of one morph run (:class:`MorphConfig`): the method, frames and injection
 gains, with the MPM, render, plasticity and surface sections. Kept apart from the loop
-(physmorph.morph, which imports Taichi and torch) so reading and checking settings stays light:
+(physmorph.morph.loop, which imports Taichi and torch) so reading and checking settings stays light:
 the workflow builds every experiment's MorphConfig when it parses its config.
 """
 
@@ -12,7 +12,7 @@ from typing import Annotated, ClassVar, Literal
 from physmorph.settings.mpm import MPMConfig
 from physmorph.settings.plasticity import PlasticityConfig
 from physmorph.settings.render import RenderConfig
-from physmorph.settings_base import Bool, Float, Int, setting, settings_dataclass
+from physmorph.settings.base import Bool, Float, Int, setting, settings_dataclass
 from physmorph.settings.surface import SurfaceMaskConfig
 
 METHODS = ("physics_only", "f_inject", "full", "position_inject")
@@ -22,7 +22,7 @@ METHODS = ("physics_only", "f_inject", "full", "position_inject")
 class MorphConfig:
     """The frame loop of one run."""
 
-    # always in a run's params (physmorph.config_params.without_defaults), so its record names the method
+    # always in a run's params (physmorph.settings.params.without_defaults), so its record names the method
     # (and, for control_decay, because its default changed since runs were first made)
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
                                                               "stray_pull", "settle"})
@@ -82,7 +82,7 @@ class MorphConfig:
     overfill_onset: Annotated[Literal["start", "first_restart"], setting(
         "when mpm.overfill_weight's packing term starts: start, or first_restart (the frame after the objective "
         "first rose, the first momentum restart)")] = "first_restart"  # history: docs/study/CHANGELOG.md
-    # physmorph.settle; not in the paper
+    # physmorph.morph.settle; not in the paper
     settle: Annotated[Literal["off", "after_cycle", "after_first_rise"], setting(
         "the last phase: from the frame after the objective first rose (after_first_rise) or after the restart "
         "fired twice one frame apart (after_cycle) every frame starts at rest, and one whose settle_objective "

@@ -11,8 +11,8 @@ import warnings
 from dataclasses import fields
 from typing import Annotated, ClassVar, Literal
 
-from physmorph.grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
-from physmorph.settings_base import Bool, Float, Int, Refused, setting, settings_dataclass
+from physmorph.base.grid import BOUNDARY_CELLS, DOMAIN_HI, DOMAIN_LO
+from physmorph.settings.base import Bool, Float, Int, Refused, setting, settings_dataclass
 
 
 class MPMError(RuntimeError):
@@ -46,7 +46,7 @@ class CFLWarning(UserWarning):
 STEP_VOLUME_MODES = ("full", "particle")
 # Fields only the Python driver reads (the optimiser loop, load_state, the config checks): no
 # kernel bakes them in, so a built solver takes new values without compiling again
-# (MPMSolver.configure, solver_for). tests/test_mpm_solver.py checks no kernel reads them.
+# (MPMSolver.configure, solver_for). tests/mpm/test_mpm_solver.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume", "step_volume_share", "grad_iters",
                            "log_mass_eps", "cfl", "cfl_warn_fraction"})
@@ -132,7 +132,7 @@ class MPMConfig:
     """
 
     # Fields whose default changed after runs were made with the old one: always in a run's params
-    # (physmorph.config_params.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
+    # (physmorph.settings.params.without_defaults), so those runs rerun (workflow/schemas/first_defaults.json).
     # step_scales_with_dx: a new field that changes, at its default, every run whose dx is not 1.
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
                                                              "step_scales_with_dx", "step_per_volume",

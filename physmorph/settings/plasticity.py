@@ -1,17 +1,17 @@
-"""The Chamfer-guided plasticity's settings (physmorph.plasticity, paper section 3.4)."""
+"""The Chamfer-guided plasticity's settings (physmorph.plasticity.step, paper section 3.4)."""
 
 from __future__ import annotations
 
 from typing import Annotated, ClassVar, Literal
 
-from physmorph.settings_base import Bool, Float, Int, Refused, setting, settings_dataclass
+from physmorph.settings.base import Bool, Float, Int, Refused, setting, settings_dataclass
 
 
 @settings_dataclass
 class PlasticityConfig:
     """Chamfer-guided plasticity: each particle's rest state pulled toward its destination."""
 
-    # defaults changed since runs were first made (physmorph.config_params.without_defaults): always in a
+    # defaults changed since runs were first made (physmorph.settings.params.without_defaults): always in a
     # run's params, so runs made with the old default rerun
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
                                                              "eta", "correspondence", "start_frame"})
@@ -39,7 +39,7 @@ class PlasticityConfig:
     neighbour_ppc: Annotated[Int, setting(
         "the neighbours are drawn from at most this many particles per cell per axis, so k_neighbors spans the "
         "same cells at every sampling density (0 = every particle)", ge=0)] = 2
-    # "transport" the default since 2026-11-24; its plan is computed once per run (physmorph.transport)
+    # "transport" the default since 2026-11-24; its plan is computed once per run (physmorph.plasticity.transport)
     correspondence: Annotated[Literal["nearest", "transport"], setting(
         "where each particle is pulled: nearest, the nearest target surface point (the paper); transport, its "
         "optimal-transport destination in the target's mass")] = "transport"

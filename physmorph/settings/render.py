@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from physmorph.settings_base import Float, Int, Refused, setting, settings_dataclass
+from physmorph.settings.base import Float, Int, Refused, setting, settings_dataclass
 
 
 @settings_dataclass

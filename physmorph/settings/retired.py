@@ -2,12 +2,12 @@
 
 These were off by default, set by no profile and of no use in the study (docs/study/runs.csv
 keeps the rows that tried them; docs/study/log.md says what each did). A run file or a generated
-page made before they went records them; :func:`physmorph.provenance.differing_keys` counts such
+page made before they went records them; :func:`physmorph.records.provenance.differing_keys` counts such
 a key as the shipped method's where it holds the value below, and as a difference otherwise (a
 page made with one switched on ran a method this code cannot run). A config that sets one is
 refused like any unknown key.
 
-Keys are dotted as in physmorph.provenance.method_settings: MorphConfig's own fields bare, the
+Keys are dotted as in physmorph.records.provenance.method_settings: MorphConfig's own fields bare, the
 solver's under ``mpm.``, the plasticity's under ``plasticity.``.
 """
 
@@ -44,7 +44,7 @@ RETIRED_METHOD_SETTINGS: dict[str, object] = {
 
 # Settings added since some pages and run files were made, each with the value at which the method
 # runs as it did before the setting existed: a record without the key counts as holding that value
-# (physmorph.provenance.differing_keys), so adding a setting off by default marks no page as made
+# (physmorph.records.provenance.differing_keys), so adding a setting off by default marks no page as made
 # with other settings.
 ADDED_METHOD_SETTINGS: dict[str, object] = {
     "stray_pull_density": 0.0,  # the stray pull's outside test: the nearest grid node's target mass

@@ -1,10 +1,10 @@
-"""The surface mask's settings (physmorph.surface, paper section 3.6)."""
+"""The surface mask's settings (physmorph.morph.surface_mask, paper section 3.6)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from physmorph.settings_base import Bool, Float, Int, setting, settings_dataclass
+from physmorph.settings.base import Bool, Float, Int, setting, settings_dataclass
 
 
 @settings_dataclass

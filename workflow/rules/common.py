@@ -11,26 +11,27 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 from snakemake.logging import logger
 
-from physmorph.cluster import ClusterError, JobRequest, cap_threads, check_account, check_job, check_status
-from physmorph.cluster import job_threads_here, read_cluster
-from physmorph.config import SECONDS_PER_PARTICLE_FRAME, particle_estimate
-from physmorph.extremes import MAP_EXPERIMENT, cell_mapping, cell_timeout_s, check_cell
-from physmorph.metrics import FIGURE_NAMES, TABLE_NAMES
+from physmorph.base.cluster import ClusterError, JobRequest, cap_threads, check_account, check_job, check_status
+from physmorph.base.cluster import job_threads_here, read_cluster
+from physmorph.settings.memory_model import SECONDS_PER_PARTICLE_FRAME, particle_estimate
+from physmorph.studies.stability_map import MAP_EXPERIMENT
+from physmorph.studies.extremes import cell_mapping, cell_timeout_s, check_cell
+from physmorph.reports.metrics import FIGURE_NAMES, TABLE_NAMES
 
 
 def mb(estimate):
-    """A memory estimate (physmorph.config's MemoryEstimate) as a rule's whole mem_mb."""
+    """A memory estimate (physmorph.settings.workflow's MemoryEstimate) as a rule's whole mem_mb."""
     return int(estimate.mb) + 1
 
 
 def morph_runtime_min(n_particles, frames):
-    """Minutes for a morph: physmorph.config.SECONDS_PER_PARTICLE_FRAME on a CPU, x2 margin."""
+    """Minutes for a morph: physmorph.settings.workflow.SECONDS_PER_PARTICLE_FRAME on a CPU, x2 margin."""
     return int(10 + 2 * frames * n_particles * SECONDS_PER_PARTICLE_FRAME / 60)
 
 
 class ResultTree:
     """The files of one profile, results/{profile}/ (``root``), and the shapes and experiments
-    behind them (``settings``: physmorph.config.Settings; ``points``: the tradeoff study's points)."""
+    behind them (``settings``: physmorph.settings.workflow.Settings; ``points``: the tradeoff study's points)."""
 
     def __init__(self, settings, points):
         self.settings = settings
@@ -196,7 +197,7 @@ class SlurmGuard:
         return default
 
     def _request(self, job):
-        """The job's request (physmorph.cluster.JobRequest), each resource with the setting it comes from."""
+        """The job's request (physmorph.base.cluster.JobRequest), each resource with the setting it comes from."""
         rname, res = job.rule.name, job.resources
         overwrite_threads = self.workflow.resource_settings.overwrite_threads
         label = f"{rname} ({', '.join(f'{v}' for v in job.wildcards_dict.values())})" if job.wildcards_dict else rname
@@ -243,7 +244,7 @@ def _known(value):
 
 class StabilityCells:
     """The cells of the stability map (workflow/rules/stability_map.smk): ``cells`` name -> Cell
-    (physmorph.extremes.map_cells) around the merged ``config``; ``root`` the profile's result tree."""
+    (physmorph.studies.extremes.map_cells) around the merged ``config``; ``root`` the profile's result tree."""
 
     def __init__(self, config, settings, root, cells, slurm: SlurmGuard):
         self.config = config
@@ -254,7 +255,7 @@ class StabilityCells:
         self._checks = {}
 
     def check(self, cell):
-        """The cell's config check (physmorph.extremes.CellCheck), made once per cell."""
+        """The cell's config check (physmorph.studies.extremes.CellCheck), made once per cell."""
         if cell not in self._checks:
             self._checks[cell] = check_cell(cell_mapping(self.config, self.cells[cell]))
         return self._checks[cell]

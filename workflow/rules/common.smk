@@ -1,22 +1,24 @@
-# Shared settings and helpers. The merged config is turned into typed, frozen settings once (physmorph.config:
+# Shared settings and helpers. The merged config is turned into typed, frozen settings once (physmorph.settings.workflow:
 # the one validator; every experiment resolved and a memory estimate checked before any job
 # runs). Rules get what they depend on as `params` (canonical JSON without the fields at their
-# defaults: physmorph.config.params_json), so changing a setting reruns
+# defaults: physmorph.settings.workflow.params_json), so changing a setting reruns
 # exactly the jobs that use it. Every output lives under results/{profile}/.
 # The helper functions are in common.py beside this file (Snakemake puts this folder on sys.path).
 from common import ResultTree, SlurmGuard, VolumeWarnings, folder_of_first_output, folder_of_input, mb
 from common import morph_runtime_min
-from physmorph.config import Settings, morph_params, params_json, particle_estimate, without_defaults
-from physmorph.config import morph_memory, sampling_memory, target_memory
-from physmorph.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
-from physmorph.layout import load_layout
+from physmorph.settings.workflow import Settings
+from physmorph.settings.params import morph_params, params_json, without_defaults
+from physmorph.settings.memory_model import particle_estimate
+from physmorph.settings.memory_model import morph_memory, sampling_memory, target_memory
+from physmorph.reports.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
+from physmorph.reports.layout import load_layout
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
-from physmorph.particles import stored_particle_count
-from physmorph.tradeoff import tradeoff_points
+from physmorph.meshes.particles import stored_particle_count
+from physmorph.settings.study_points import tradeoff_points
 
 # The merged config is checked against the schema generated from the settings' declarations
-# (python -m physmorph.config --schema); where it refuses, the settings say why in their own words,
+# (python -m physmorph.settings --schema); where it refuses, the settings say why in their own words,
 # naming the key and the allowed values.
 try:
     validate(config, "../schemas/config.schema.yaml", set_default=False)

@@ -1,4 +1,4 @@
-# Stage 8: what a user takes away from a run (physmorph.export, docs/outputs.md "Exports"): for
+# Stage 8: what a user takes away from a run (physmorph.reports.export, docs/outputs.md "Exports"): for
 # every full-method run of the profile a video of every frame (MP4 and WebM), the body's closed
 # surface at each saved frame (PLY, the last also GLB) with what it shows measured, its Gaussians
 # as 3D Gaussian splatting PLY files, and one viewer page over them all. `snakemake --cores 2 export`.

@@ -1,5 +1,5 @@
 # Stage 8: the profile's results page, results/{profile}/results.md, from its tables and figures
-# (physmorph.userdocs; docs/results.md is the default profile's, `python -m physmorph.userdocs results`).
+# (physmorph.reports.userdocs; docs/results.md is the default profile's, `python -m physmorph.reports.userdocs results`).
 rule results_doc:
     input:
         tables=expand(f"{R}/tables/{{table}}.csv", table=TABLES),

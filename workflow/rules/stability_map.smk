@@ -1,12 +1,13 @@
-# The stability map of the extremes (physmorph.extremes, docs/stability.md): the base experiment
+# The stability map of the extremes (physmorph.studies.extremes, docs/stability.md): the base experiment
 # with one setting at a time at its limit, each cell run in its own process under a wall-clock
 # limit and classified (converged, not converged, warned, refused, stopped; never a crash or a hang).
 # A cell's config is checked as the workflow checks any config: a refused cell needs no inputs and
 # its job only records the refusal; an accepted one samples, rasterizes and morphs in its own files
 # (runs/{cell}/), so a stage's refusal or failure is recorded as the cell's outcome. `snakemake --cores 2 stability_map --configfile config/test.yaml`.
 from common import StabilityCells
-from physmorph.config import canonical_json
-from physmorph.extremes import MAP_EXPERIMENT, cell_mapping, map_cells
+from physmorph.settings.params import canonical_json
+from physmorph.studies.stability_map import MAP_EXPERIMENT
+from physmorph.studies.extremes import cell_mapping, map_cells
 
 STABILITY_CELLS = map_cells(config) if MAP_EXPERIMENT in S.experiments else {}
 STABILITY_DIR = f"{R}/stability_map"

@@ -1,4 +1,4 @@
-# The speed/accuracy study: the base experiment with one knob changed at a time (physmorph.tradeoff).
+# The speed/accuracy study: the base experiment with one knob changed at a time (physmorph.studies.tradeoff).
 rule rasterize_target_image:
     # A target at another image size than the profile's (for the image-size knob).
     input:

@@ -1,4 +1,4 @@
-from physmorph.report_stages import results_doc_stage
+from physmorph.reports.stages import results_doc_stage
 
 results_doc_stage(snakemake.params.tables_dir, snakemake.params.figures_dir, snakemake.output[0],
                   snakemake.params.profile, log=snakemake.log[0])

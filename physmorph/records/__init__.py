@@ -1,0 +1,6 @@
+"""The files the stages write and read back: HDF5 helpers with atomic writes and checksums
+(``h5io``), what made a file (``provenance``) and the morph's run files, committed one frame at a
+time (``runfile``: ``python -m physmorph.records.runfile RUN.h5`` describes one).
+
+May import physmorph.base and physmorph.settings.
+"""

@@ -1,0 +1,57 @@
+"""Freed heap memory goes back to the system before a frame's render and its commit (physmorph.base.memory),
+and the morph's memory estimate asks the solver what it stores (physmorph.settings.solver_memory)."""
+
+import os
+import platform
+
+import numpy as np
+import pytest
+
+from physmorph.base.memory import release_free_memory
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's malloc_trim")
+def test_freed_heap_blocks_leave_the_resident_set():
+    """200 MB of 100 KB arrays (under glibc's mmap threshold, so on the heap) freed below a block
+    still in use stay resident until released; released, at least half of them leave."""
+    blocks = [np.ones(12_800) for _ in range(2_000)]  # 100 KB each
+    keep = blocks[-1]  # the heap's top stays in use: glibc cannot shrink the heap by itself
+    before = _rss_mb()
+    del blocks
+    freed = _rss_mb()
+    assert release_free_memory()
+    after = _rss_mb()
+    assert freed - after > 100, (before, freed, after)
+    assert keep.sum() == 12_800
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_the_solver_stores_what_the_memory_module_says(precision):
+    from physmorph.settings.mpm import MPMConfig
+    from physmorph.mpm.solver import MPMSolver
+    from physmorph.settings.solver_memory import bytes_per_particle_substep
+
+    cfg = MPMConfig(grid_res=16, precision=precision, device="cpu")
+    assert MPMSolver(cfg, 8).bytes_per_particle_substep() == bytes_per_particle_substep(cfg)
+
+
+def test_the_morph_estimate_asks_the_solvers_storage(monkeypatch):
+    """physmorph.settings.memory_model.morph_memory takes its bytes per particle-substep from
+    physmorph.settings.solver_memory: what that says more, the estimate holds more, for every
+    particle and substep."""
+    from physmorph.settings import memory_model
+    from physmorph.settings import workflow as config
+    from physmorph.settings.solver_memory import bytes_per_particle_substep
+
+    s = config.load_settings("config/config.yaml")
+    n, extra = 10_000, 1000
+    args = (s.shape("iso"), s.sampling, s.target, s.mpm, s.domain, "")
+    before = memory_model.morph_memory(*args, n_particles=n).mb
+    monkeypatch.setattr(memory_model, "bytes_per_particle_substep", lambda cfg: bytes_per_particle_substep(cfg) + extra)
+    after = memory_model.morph_memory(*args, n_particles=n).mb
+    assert after - before == pytest.approx(n * s.mpm.substeps * extra / 2**20)
