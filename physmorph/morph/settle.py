@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from physmorph.mpm.state import ParticleState
+from physmorph.settings.render import LOSS_SCALARS
 
 # MorphConfig.settle_objective -> the frame's scalar the gate compares
-OBJECTIVES = {"render": "loss_render", "alpha_mse": "alpha_mse", "physics": "physics_loss"}
+OBJECTIVES = {"render": LOSS_SCALARS["total"], "alpha_mse": "alpha_mse", "physics": "physics_loss"}
 
 
 # the accepted frame's per-particle arrays written by AcceptedFrame.spill (mass and volume stay:

@@ -30,8 +30,8 @@ it is ~0.2 GB: written every frame it cost ~8 % of the run). A resume continues 
 checkpoint's frame: the frame files beyond it are removed and computed again (the same frames: a
 run is deterministic given its checkpoint).
 A run resumes only when its key (settings and input checksums) equals the checkpoint's; otherwise
-it restarts and says what changed. A damaged or foreign file is refused with its name, the reason
-and what to delete.
+it restarts and says what changed. A damaged or foreign file of a run is refused with its name, the
+reason and what to delete; a path that is no run (physmorph.records.runfile_cli) is named as such.
 """
 
 from __future__ import annotations
@@ -51,15 +51,18 @@ from typing import Callable
 import h5py
 import numpy as np
 
+from physmorph.settings.render import LOSS_SCALARS
 from physmorph.records.h5io import (StageInputError, code_state, content_checksum, fsync_path, peak_rss_mb, stamp_checksum, verify_checksum,
                             write_provenance)
+from physmorph.records.runfile_cli import CHECKPOINT_NAME, LOCK_NAME, METRICS_CHECKSUM_ATTR, not_a_run  # the names a run leaves on disk
 
-# Per-frame scalar metrics, in the order they appear in the run file's /metrics group.
+# Per-frame scalar metrics, in the order they appear in the run file's /metrics group: the one
+# declaration of their names (RunWriter.commit refuses any other; the render loss's from its terms).
 # physics_loss: the loss the frame's control minimised, at its end (the mass loss with the packing
 # term, for the full method plus the stray pull's term); mass_loss: the same without the pull's term.
 SCALARS = (
-    "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", "loss_dt", "loss_iou",
-    "loss_depth", "loss_render", "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
+    "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", *LOSS_SCALARS.values(),
+    "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "mask_size",
     "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
@@ -71,18 +74,15 @@ STATE_COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": Tr
 
 FRAME_FORMAT = "physmorph-run-frame/1"
 CHECKPOINT_FORMAT = "physmorph-checkpoint/2"
-CHECKPOINT_NAME = "checkpoint.h5"
 # The most of a run's wall time its checkpoints take: a checkpoint that took c seconds to write is
 # followed by the next once c / CHECKPOINT_WALL_SHARE seconds have passed, so a kill loses at most
 # that much computing (None: a checkpoint every frame).
 CHECKPOINT_WALL_SHARE: float | None = 0.02
-LOCK_NAME = "LOCK"
-METRICS_CHECKSUM_ATTR = "metrics_sha256"
 
 
 class RunFileError(RuntimeError):
-    """A run file or checkpoint is damaged, foreign or unwritable; the message names the file, the
-    reason and what to delete or rerun."""
+    """A path is no run, or a run's file is damaged, foreign or unwritable; the message names the
+    file, the reason and, for a run's own file only, what to delete or rerun."""
 
 
 class RunLockedError(RunFileError):
@@ -382,6 +382,9 @@ class RunWriter:
         returning it (called only when the checkpoint is written).
         """
         self._require_lock()
+        unknown = sorted(set(scalars) - set(SCALARS))
+        if unknown:  # a misspelt name would be written nowhere: SCALARS declares every one
+            raise ValueError(f"frame {frame}: scalars not declared in physmorph.records.runfile.SCALARS: {unknown}")
         segments = self.segments_now()
 
         def fill_frame(f: h5py.File) -> dict:
@@ -526,11 +529,12 @@ def read_metrics(path: str | os.PathLike) -> dict[str, np.ndarray]:
     run directory ``<out>.partial`` (its committed frames).
     """
     path = Path(path)
+    foreign = not_a_run(path)  # a mesh, another HDF5 file, a directory, a missing path: no remedy
+    if foreign:
+        raise RunFileError(foreign)
     if path.is_dir():
         return _partial_metrics(path)
-    remedy = "delete it and rerun the morph that writes it"
-    if not path.exists():
-        raise RunFileError(f"{path}: run file not found")
+    remedy = "it is a physmorph run file (it carries a run file's metrics or attribute names): delete it and rerun the morph that writes it"
     with _open_run_h5(path, remedy) as f:
         try:
             stored = f.attrs.get(METRICS_CHECKSUM_ATTR)
@@ -538,7 +542,7 @@ def read_metrics(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 raise RunFileError(f"{path}: its metrics do not match their checksum: the file changed after it "
                                    f"was written (zero-filled, torn or edited); {remedy}")
             if "metrics" not in f:
-                raise RunFileError(f"{path}: no group 'metrics' (not a run file); {remedy}")
+                raise RunFileError(f"{path}: a run file's attributes but no group 'metrics' (torn or edited); {remedy}")
             out = {k: f["metrics"][k][()] for k in f["metrics"]}
             out["attrs"] = dict(f.attrs)
         except (OSError, KeyError, ValueError) as exc:
@@ -573,17 +577,6 @@ def describe_run(path: str | os.PathLike) -> str:
             f"wall time {s['wall_time_s']:.1f} s, peak RSS {s['peak_rss_mb']:.0f} MB")
 
 
-if __name__ == "__main__":  # python -m physmorph.records.runfile RUN [RUN ...]
-    code = 0
-    for arg in sys.argv[1:]:
-        try:
-            print(describe_run(arg))
-        except (RunFileError, OSError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            code = 1
-    sys.exit(code)
-
-
 def frame_motion(f: h5py.File, frame: int) -> tuple[np.ndarray, np.ndarray]:  # x [N, 3], F [N, 3, 3]
     """Positions and deformation gradients of any frame of a finished run (float64): the saved
     state where the frame has one, else its motion (F at half precision: MOTION)."""
@@ -594,3 +587,8 @@ def frame_motion(f: h5py.File, frame: int) -> tuple[np.ndarray, np.ndarray]:  # 
             return g["x"][()].astype(np.float64), g["F"][()].astype(np.float64)
     raise RunFileError(f"{f.filename}: frame {frame} has no positions (a run made before every frame's "
                        f"motion was kept has them every save_every frames only: rerun it)")
+
+
+if __name__ == "__main__":  # python -m physmorph.records.runfile RUN [RUN ...] (--help: the command line)
+    from physmorph.records.runfile_cli import main
+    sys.exit(main(describe_run))

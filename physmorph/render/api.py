@@ -19,16 +19,13 @@ from physmorph.base.cameras import Cameras
 from physmorph.base.memory import release_free_memory
 from physmorph.base.taichi_runtime import resolve_device
 
-from physmorph.settings.render import RenderConfig
+from physmorph.settings.render import LOSS_TERMS, RenderConfig
 from .containers import RenderResult, RenderTarget
 from .losses import alpha_mse, expected_depth, match_gradients, render_losses
 from .projection import CameraTensors, ProjectedGaussians
 from .projection_kernels import project_backward, project_forward
 from .rasterizer import composite_backward, composite_forward
 from .tiles import TileBins, bin_gaussians
-
-LOSS_NAMES = ("dt", "iou", "depth")
-
 
 def torch_device(cfg: RenderConfig) -> torch.device:
     return torch.device(resolve_device(cfg.device))
@@ -122,11 +119,11 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     losses = render_losses(alpha_leaf, depth_leaf, t_alpha, t_depth, t_sdt, cfg)
 
     # dL_c / d(alpha, D) for each loss c, then one rasterizer backward with a channel per loss.
-    g_alpha = torch.zeros((len(LOSS_NAMES),) + tuple(alpha_leaf.shape), dtype=dt, device=dev)
+    g_alpha = torch.zeros((len(LOSS_TERMS),) + tuple(alpha_leaf.shape), dtype=dt, device=dev)
     g_depth = torch.zeros_like(g_alpha)
-    for c, name in enumerate(LOSS_NAMES):
+    for c, name in enumerate(LOSS_TERMS):
         ga, gd = torch.autograd.grad(losses[name], (alpha_leaf, depth_leaf), allow_unused=True,
-                                     retain_graph=c + 1 < len(LOSS_NAMES))
+                                     retain_graph=c + 1 < len(LOSS_TERMS))
         if ga is not None:
             g_alpha[c] = ga
         if gd is not None:
@@ -142,12 +139,12 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     del g_alpha, g_depth, sp
 
     # the projection's reverse, all losses at once, view by view
-    n_losses = len(LOSS_NAMES)
+    n_losses = len(LOSS_TERMS)
     g_x, g_F = project_backward(xt, Ft, st, cams, cfg, g_params.reshape(n_losses, n_views, x.shape[0], 6),
                                 want_grad_x)
     del g_params
-    per_loss_F = {name: g_F[c] for c, name in enumerate(LOSS_NAMES)}
-    per_loss_x = {name: g_x[c] for c, name in enumerate(LOSS_NAMES)} if want_grad_x else {}
+    per_loss_F = {name: g_F[c] for c, name in enumerate(LOSS_TERMS)}
+    per_loss_x = {name: g_x[c] for c, name in enumerate(LOSS_TERMS)} if want_grad_x else {}
     grad_F, weights = match_gradients(per_loss_F, cfg)
     grad_x = None
     all_weights = {f"F_{k}": v for k, v in weights.items()}

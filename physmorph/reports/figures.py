@@ -20,6 +20,7 @@ from physmorph.settings.sections import TargetConfig
 from physmorph.reports.layout import PaperLayout
 from physmorph.reports.metrics import FIGURE_NAMES
 from physmorph.records.runfile import read_metrics
+from physmorph.settings.render import LOSS_SCALARS
 
 
 
@@ -287,7 +288,7 @@ def build_figures(runs: dict[str, Path], targets: dict[str, Path], target_cfg: d
             "Chamfer plasticity: with (full) and without (f_inject)", logy=("physics_loss",)),
         "optimization_traces": lambda png: curves_figure(
             sel["optimization_traces"], [("alpha_mse", "alpha MSE"), ("grad_F_norm", "|dL/dF|"),
-                                         ("loss_render", "render loss"), ("physics_loss", "physics loss")],
+                                         (LOSS_SCALARS["total"], "render loss"), ("physics_loss", "physics loss")],
             png, "optimization traces: iso -> bunny (full)", logy=("grad_F_norm", "physics_loss")),
         "gradient_coverage": coverage,
     }

@@ -76,11 +76,18 @@ Int = Annotated[int, BeforeValidator(_as_integer)]
 Bool = Annotated[bool, BeforeValidator(_as_bool)]
 
 
-def setting(meaning: str, unit: str = "", range_note: str = "", **bounds) -> Any:
+def setting(meaning: str, unit: str = "", range_note: str = "", job: str = "", **bounds) -> Any:
     """A field's declaration: its meaning (the description), unit, bounds (ge, gt, le, lt) and,
-    for a range no bound can say (a check across fields), ``range_note`` in words."""
-    extra = {k: v for k, v in (("unit", unit), ("range", range_note)) if v}
+    for a range no bound can say (a check across fields), ``range_note`` in words; ``job``: the
+    one workflow job that reads it, where a section serves several (fields_of_job)."""
+    extra = {k: v for k, v in (("unit", unit), ("range", range_note), ("job", job)) if v}
     return Field(description=meaning, json_schema_extra=extra or None, **bounds)
+
+
+def fields_of_job(cls: type, job: str) -> tuple[str, ...]:
+    """The fields of the config class ``cls`` declared with ``setting(..., job=job)``, in order."""
+    return tuple(name for name, info in cls.__pydantic_fields__.items()
+                 if isinstance(info.json_schema_extra, dict) and info.json_schema_extra.get("job") == job)
 
 
 def settings_dataclass(cls=None, *, error: type[ValueError] = ConfigError):

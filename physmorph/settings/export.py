@@ -6,10 +6,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from physmorph.settings.base import Float, Int, Refused, setting, settings_dataclass
-
-VIDEO_KEYS = ("width", "height", "fps", "orbit_deg", "max_particles", "crf")
-MESH_KEYS = ("refine", "smooth_iterations", "frame")
+from physmorph.settings.base import Float, Int, Refused, fields_of_job, setting, settings_dataclass
 
 
 @settings_dataclass
@@ -17,22 +14,23 @@ class ExportConfig:
     """Videos, surface meshes and Gaussian-splat files of the full-method runs (snakemake export)."""
 
     width: Annotated[Int, setting("width of each video panel (the body's, then the target's)", "pixels",
-                                  "even, >= 16", ge=16)] = 384
-    height: Annotated[Int, setting("height of the video", "pixels", "even, >= 16", ge=16)] = 288
-    fps: Annotated[Int, setting("video frames per second (one per morph frame)", "1/s", ge=1, le=120)] = 10
+                                  "even, >= 16", ge=16, job="video")] = 384
+    height: Annotated[Int, setting("height of the video", "pixels", "even, >= 16", ge=16, job="video")] = 288
+    fps: Annotated[Int, setting("video frames per second (one per morph frame)", "1/s", ge=1, le=120,
+                                job="video")] = 10
     orbit_deg: Annotated[Float, setting("how far the video's camera turns around the body over the whole run",
-                                        "degrees")] = 120.0
+                                        "degrees", job="video")] = 120.0
     max_particles: Annotated[Int, setting(
         "above this many particles the video shows the body by an even subsample, each Gaussian widened to keep "
-        "it closed", ge=1000)] = 120_000
-    crf: Annotated[Int, setting("H.264 constant rate factor (lower: better and larger)", ge=0, le=51)] = 23
+        "it closed", ge=1000, job="video")] = 120_000
+    crf: Annotated[Int, setting("H.264 constant rate factor (lower: better and larger)", ge=0, le=51, job="video")] = 23
     refine: Annotated[Float, setting("surface grid cells per MPM cell (the exported meshes' resolution)",
-                                     gt=0)] = 2.0
+                                     gt=0, job="mesh")] = 2.0
     smooth_iterations: Annotated[Int, setting("Taubin smoothing passes of the exported surface (0: none)",
-                                              ge=0)] = 10
+                                              ge=0, job="mesh")] = 10
     frame: Annotated[Literal["domain", "target"], setting(
         "coordinates of the exported meshes and splats: domain (the simulation's) or target (the target's input "
-        "mesh frame and units, to overlay it)")] = "domain"
+        "mesh frame and units, to overlay it)", job="mesh")] = "domain"
 
     def __post_init__(self) -> None:
         """The video encoder takes even sizes only."""
@@ -41,7 +39,9 @@ class ExportConfig:
                 raise Refused(name, f"{name} must be an even number of pixels >= 16, got {getattr(self, name)}")
 
     def video(self) -> dict:
-        return {k: getattr(self, k) for k in VIDEO_KEYS}
+        """What the video and viewer jobs read (the fields declared with job="video")."""
+        return {k: getattr(self, k) for k in fields_of_job(type(self), "video")}
 
     def mesh(self) -> dict:
-        return {k: getattr(self, k) for k in MESH_KEYS}
+        """What the mesh jobs read (the fields declared with job="mesh")."""
+        return {k: getattr(self, k) for k in fields_of_job(type(self), "mesh")}

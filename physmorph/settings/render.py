@@ -6,6 +6,11 @@ from typing import Annotated, Literal
 
 from physmorph.settings.base import Float, Int, Refused, setting, settings_dataclass
 
+# The render loss's terms (paper section 3.5: distance transform, soft IoU, depth) and the run
+# file's scalar each is recorded as, "total" being their weighted sum: declared once, for the
+# renderer that computes them, the run file that stores them and the pages and phases that read them.
+LOSS_TERMS = ("dt", "iou", "depth")
+LOSS_SCALARS = {**{term: f"loss_{term}" for term in LOSS_TERMS}, "total": "loss_render"}
 
 @settings_dataclass
 class RenderConfig:

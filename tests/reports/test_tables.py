@@ -1,6 +1,6 @@
 """Tables from run files (physmorph.reports.tables), on small hand-made run files.
 
-A run file as build_tables reads it (physmorph.morph.loop.read_metrics): per-frame metrics in group
+A run file as build_tables reads it (physmorph.records.runfile.read_metrics): per-frame metrics in group
 /metrics (index 0 = initial state) and the run's attributes (method, ceiling_alpha_mse, ...).
 """
 

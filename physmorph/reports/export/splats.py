@@ -10,11 +10,13 @@ loss draws only its surface mask, which the run does not save (``is_surface`` of
 physmorph.reports.export.runs.frame_state selects the sampled surface shell instead). Positions are in domain
 units with +y up (physmorph.base.cameras); viewers made for COLMAP scenes (y down) show it upside down.
 
-File layout (binary little-endian PLY, one ``vertex`` element, float32 properties, as written by
-Kerbl et al. 2023's training code for SH degree 0):
+File layout (binary little-endian PLY, one ``vertex`` element of 62 float32 properties in this
+order, the full vertex Kerbl et al. 2023's training code writes (SH degree 3): the reference SIBR
+viewer fails on a file without the ``f_rest`` properties and Unity's importer expects all 62):
   x, y, z               mean
   nx, ny, nz            0 (unused by viewers)
   f_dc_0, f_dc_1, f_dc_2  degree-0 SH coefficient of the colour: (rgb - 0.5) / SH_C0
+  f_rest_0..44          0: the degree-1..3 SH coefficients (15 per colour channel); the colour is flat
   opacity               logit of the peak opacity (a viewer applies the sigmoid)
   scale_0..2            log of the standard deviations along the Gaussian's axes
   rot_0..3              unit quaternion (w, x, y, z) of the rotation R whose columns are the axes
@@ -35,8 +37,9 @@ SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt
 DEFAULT_RGB = (0.80, 0.62, 0.45)  # physmorph.render.api.shade's default colour
 RENDER_OPACITY = RenderConfig().opacity  # the renderer's peak opacity of every Gaussian
 _OPACITY_CLIP = 1e-6  # opacity 1 (or 0) has an infinite logit: clipped this far into (0, 1)
-_PROPERTIES = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
-               + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+SH_REST = 45  # f_rest_*: the SH coefficients of degrees 1..3, 15 per colour channel (all 0 here)
+_PROPERTIES = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(SH_REST)]
+               + ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
 
 
 def covariances_from_F(F: np.ndarray,  # [N, 3, 3] deformation gradients
@@ -128,11 +131,12 @@ def write_splats(path: str | os.PathLike,
     log_scale, quat = _factor_covariances(cov)
     colour = np.broadcast_to(np.asarray(rgb, dtype=np.float64), (n, 3))
     p = float(np.clip(opacity, _OPACITY_CLIP, 1.0 - _OPACITY_CLIP))
-    columns = np.concatenate([x, np.zeros((n, 3)), (colour - 0.5) / SH_C0, np.full((n, 1), np.log(p / (1.0 - p))),
-                              log_scale, quat], axis=1)
-    vertex = np.empty(n, dtype=[(name, "<f4") for name in _PROPERTIES])
-    for i, name in enumerate(_PROPERTIES):
-        vertex[name] = columns[:, i]
+    vertex = np.zeros(n, dtype=[(name, "<f4") for name in _PROPERTIES])  # nx, ny, nz and f_rest_* stay 0
+    for names, block in ((["x", "y", "z"], x), ([f"f_dc_{i}" for i in range(3)], (colour - 0.5) / SH_C0),
+                         ([f"scale_{i}" for i in range(3)], log_scale), ([f"rot_{i}" for i in range(4)], quat)):
+        for name, values in zip(names, block.T):  # block: [N, len(names)]
+            vertex[name] = values
+    vertex["opacity"] = np.log(p / (1.0 - p))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
