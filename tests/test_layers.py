@@ -106,3 +106,15 @@ def test_no_module_over_600_lines_and_no_function_over_80():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 80:
                 long_functions.append(f"{path.relative_to(ROOT)}: {node.name} {node.end_lineno - node.lineno + 1} lines")
     assert not long_files and not long_functions, "\n".join(long_files + long_functions)
+
+
+def test_no_class_over_250_lines_in_the_solver_the_morph_and_the_records():
+    """The solver, the morph loop and the run files are split into parts a reader takes in: no
+    class of physmorph/mpm/, physmorph/morph/ or physmorph/records/ over 250 lines."""
+    long_classes = []
+    for package in ("mpm", "morph", "records"):
+        for path in sorted((ROOT / "physmorph" / package).glob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > 250:
+                    long_classes.append(f"{path.relative_to(ROOT)}: {node.name} {node.end_lineno - node.lineno + 1} lines")
+    assert not long_classes, "\n".join(long_classes)

@@ -1,4 +1,5 @@
-"""The render injection's gain (paper section 3.3, eq. 3): gamma relative to the mass gradient."""
+"""The render injection's gain (paper section 3.3, eq. 3): gamma relative to the mass gradient, and
+the morph loop's choice of when to measure it (MorphConfig.injection_calibration)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from physmorph.morph.frame_state import FrameState
 from physmorph.mpm.solver import MPMSolver
+from physmorph.settings.morph import MorphConfig
 
 
 @dataclass(frozen=True)
@@ -35,3 +38,23 @@ def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None,
     n_mass, n_inj = solver.calibration_gradients(g_F, g_x, pair)
     ok = n_inj > 0 and np.isfinite(n_inj) and np.isfinite(n_mass)
     return InjectionCalibration(gamma * n_mass / n_inj if ok else 0.0, n_mass, n_inj)
+
+
+def frame_calibration(cfg: MorphConfig, fs: FrameState, solver: MPMSolver, inject_F: bool, inject_x: bool,
+                      k: int, log) -> InjectionCalibration | None:
+    """Frame k's injection scale into ``fs`` (MorphConfig.injection_calibration); the calibration
+    when one ran (its rollout and gradients are then the optimiser's first). ``log`` takes a line."""
+    if not (inject_F or inject_x):
+        return None
+    if cfg.injection_calibration == "absolute":
+        fs.injection_scale = cfg.gamma if inject_F else cfg.gamma_x
+        return None
+    recalibrate = np.isnan(fs.injection_scale) or cfg.injection_calibration == "every_frame"
+    if not (recalibrate and (np.any(fs.g_F) or np.any(fs.g_x))):
+        return None
+    calibration = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,
+                                      fs.g_F if inject_F else None, fs.g_x if inject_x else None)
+    fs.injection_scale = calibration.scale
+    if cfg.injection_calibration == "first_frame":
+        log(f"injection scale calibrated at frame {k}: {calibration.scale:.4g}")
+    return calibration

@@ -35,30 +35,26 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from physmorph.morph.frame_measures import DeformationMeasures, deformation_measures, frame_strain, grid_mass
+from physmorph.morph.frame_measures import frame_strain
 from physmorph.morph.frame_state import FrameState, asdict_state
+from physmorph.morph.inputs import MorphInputs
 from physmorph.records.h5io import stored_identity
-from physmorph.morph.injection import calibrate_injection
+from physmorph.morph.injection import frame_calibration
+from physmorph.morph.judge import FrameJudge
 from physmorph.base.memory import release_free_memory
-from physmorph.meshes.fit import volume_mismatch
 from physmorph.settings.morph import MorphConfig
 from physmorph.settings.mpm import MPMError
-from physmorph.mpm.solver import MPMSolver, solver_for
-from physmorph.mpm.state import ParticleState, kinetic_energy, total_volume
-from physmorph.meshes.particles import load_particles
-from physmorph.morph.quality import gap_closed, silhouette_iou, volume_metrics
+from physmorph.mpm.solver import MPMSolver
+from physmorph.mpm.state import ParticleState
+from physmorph.morph.quality import gap_closed
 from physmorph.plasticity.step import absorbed_rest, chamfer_plasticity_step, neighbour_pool, rebase_reference
-from physmorph.render.containers import RenderTarget
-from physmorph.render.api import render_and_grad, render_views
+from physmorph.render.api import render_and_grad
+from physmorph.settings.render import LOSS_SCALARS
 from physmorph.morph.stability import MorphDivergenceError, StabilityMonitor, check_state
-from physmorph.morph.settle import AcceptedFrame, settle_gate
-from physmorph.records.runfile import RunKey, RunWriter, read_metrics, summarize_run  # noqa: F401 (read_metrics re-exported)
-from physmorph.morph.steering import ControlDecay, MomentumRestart, OverfillOnset, StepSchedule, StrayPull
+from physmorph.records.runfile import RunKey, RunWriter, summarize_run
+from physmorph.morph.steering import ControlDecay, StrayPull
 from physmorph.morph.surface_mask import update_surface_mask
-from physmorph.base.taichi_runtime import resolve_device
-from physmorph.morph.targets import load_target
 from physmorph.plasticity.transport import destinations_in_grid_mass
 
 
@@ -79,67 +75,21 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
 
 
 class MorphRun:
-    """One run's frame loop: the inputs and policies fixed for the run, the FrameState carried from
-    frame to frame, and each frame's phases (physics, mask, render, plasticity, measure, steer,
-    commit) as methods."""
+    """One run's frame loop: the policies fixed for the run (its inputs: MorphInputs), the
+    FrameState carried from frame to frame, and each frame's phases (physics, mask, render,
+    plasticity, measure, steer, commit) as methods."""
 
     def __init__(self, particles_h5, target_h5, cfg: MorphConfig, name: str, log, run: RunWriter,
                  target_size: float | None = None):
         self.cfg, self.name, self.log, self.run = cfg, name, log, run
-        self.parts = parts = load_particles(particles_h5)
-        self.target = target = load_target(target_h5)
-        if target.grid.res != cfg.mpm.grid_res:
-            raise ValueError(f"{target_h5}: target grid {target.grid.res}^3 does not match mpm.grid_res {cfg.mpm.grid_res}")
-        # The render loss sees `cfg.cameras` views evenly spaced around the ring; the alpha-MSE metric
-        # always uses every target view, so runs with different camera counts stay comparable.
-        self.V = V = target.cameras.count
-        n_loss = V if cfg.cameras is None else min(cfg.cameras, V)
-        self.views = views = sorted(set(np.linspace(0, V, n_loss, endpoint=False).astype(int).tolist()))
-        self.cams = target.cameras.subset(views)
-        self.rtarget = RenderTarget(target.alpha[views], target.depth[views], target.sdt[views])
-        # The best any morph of these particles can render: the target's own sampling at rest.
-        self.ceiling = float(getattr(target, "ceiling_alpha_mse", np.nan))
-        # Sliding-midpoint splits (balanced_tree=False): the surface points lie on a 2D sheet, where the
-        # median-split tree makes each particle's nearest-point query 3.3x slower (471K particles
-        # against 200K points, the paper profile: 5.8 s against 1.75 s a query).
-        self.tree = cKDTree(target.surface_points, balanced_tree=False, compact_nodes=False)
-        self.N = N = len(parts.x)
-        self.solver = solver_for(cfg.mpm, N)  # a reset solver, reused from the previous run of this config and size
-        # the device of the solver's Taichi runtime, and the torch device of the transport plan; on
-        # "cuda" also of the nearest-target and the mask's distance searches (physmorph.plasticity.nearest), the
-        # target points held there; on the CPU those are KD-tree queries (search_device None)
-        self.device = resolve_device(cfg.mpm.device)
-        self.search_device = None if self.device == "cpu" else self.device
-        self.target_on_device = None
-        if self.search_device is not None:
-            from physmorph.plasticity.nearest import DevicePoints
-
-            self.target_on_device = DevicePoints(target.surface_points, self.search_device)
-        # MPM conserves mass, so a target of another total mass cannot be matched: the squared loss
-        # would then be lowered by smearing the excess thinly. The target's mass distribution is
-        # rescaled to the source's total mass (its shape is what is matched).
-        self.mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
-        self.solver.set_target_grid_mass(target.grid_mass * self.mass_ratio)
-        # a target of another volume is named once in the log and in the run file's warnings
-        self.source_volume = parts.mesh_volume if np.isfinite(parts.mesh_volume) else float(parts.volume.sum())
-        self.volume_note = volume_mismatch(name or str(target_h5), self.source_volume, float(target.volume), target_size)
-        if self.volume_note:
-            log(f"[{name}] warning: {self.volume_note}")
-        # The mask is only built where something uses it (a switched-off component costs nothing).
-        self.need_mask = cfg.method != "physics_only" or not cfg.metric_all_particles
-        # The loss render of a frame is the metric's render when it draws the same particles (the
-        # mask) from every view: plasticity and the momentum restart change neither x nor F.
-        self.loss_render_is_metric = not cfg.metric_all_particles and len(views) == V
-        self.inject_F = cfg.method in ("f_inject", "full")
-        self.inject_x = cfg.method == "position_inject"
-        self.want_grad = self.inject_F or self.inject_x
+        self.inputs = MorphInputs(particles_h5, target_h5, cfg, name, log, target_size)
+        self.solver = self.inputs.solver
         self.destination = None  # correspondence="transport": computed at first use (a function of the inputs alone)
         self.pool = None  # the plasticity's neighbour pool, chosen at the first update from the positions at rest
         self.nearest_d = self.nearest_i = None  # the state's nearest target surface points, kept from the last frame's end
         self.monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
-        # MorphConfig.settle: the last phase's gate over frames (physmorph.morph.settle)
-        self.gate = settle_gate(cfg.settle, cfg.settle_objective, self.want_grad, cfg.settle_backoff)
-        self.decay, self.onset, self.stray = ControlDecay(cfg), OverfillOnset(cfg), StrayPull(cfg)
+        self.judge = FrameJudge(cfg, self.solver, self.inputs, run, log=lambda msg: log(f"[{name}] {msg}"))
+        self.decay, self.stray = ControlDecay(cfg), StrayPull(cfg)
 
     # ---------------------------------------------------------------------------- start or resume
     def begin(self) -> int:
@@ -156,88 +106,35 @@ class MorphRun:
             start = checkpoint.frame + 1
             self.log(f"[{self.name}] resuming after frame {checkpoint.frame}/{cfg.frames}")
             self.a0 = run.frame_metric(0, "alpha_mse")
-        self.restart = MomentumRestart(cfg)
-        rise_on = self.restart.rise_on
-        self.restart.previous = run.frame_metric(start - 1, rise_on)
-        self.restart.before_previous = run.frame_metric(start - 2, rise_on) if start >= 2 else float("nan")
-        # the step the next frame takes (backed off by MorphConfig.settle_backoff after an undone frame)
-        self.schedule = StepSchedule(self.fs.next_step)
-        self.onset.begin(solver, self.fs.overfill_weight)
-        if checkpoint is not None:
-            self.gate.restore(checkpoint.data)
-            if self.gate.at_rest_after(start - 1):  # the checkpoint's state is the last accepted frame's
-                fs = self.fs
-                scalars, per_view = run.frame_metrics(start - 1)
-                self.gate.accepted = self.keep_accepted(AcceptedFrame(
-                    fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale, scalars, per_view,
-                    float(scalars.get(self.gate.objective_key, np.nan))))
+        self.judge.begin(start, self.fs, run, checkpoint)
         return start
 
     def frame_zero(self) -> FrameState:
         """The unmoved source committed as frame 0: metrics, no physics step (its losses are NaN)."""
-        cfg, parts, N, target = self.cfg, self.parts, self.N, self.target
+        cfg, parts, N, target = self.cfg, self.inputs.parts, self.inputs.N, self.inputs.target
         st = ParticleState(x=parts.x.copy(), v=np.zeros((N, 3)), F=np.tile(np.eye(3), (N, 1, 1)),
                            C=np.zeros((N, 3, 3)), Fp=np.tile(np.eye(3), (N, 1, 1)),
                            mass=parts.mass.copy(), volume=parts.volume.copy())
-        mask = (update_surface_mask(st.x, st.volume, self.tree, cfg.surface, cfg.mpm.domain_lo, cfg.mpm.domain_hi,
-                                    search_device=self.search_device) if self.need_mask else np.zeros(N, bool))
-        fs = FrameState.at_start(st, mask, cfg.mpm.step_size, self.onset.initial_weight())
-        self.run.set_meta({"experiment": self.name, "method": cfg.method, "target_mass_ratio": self.mass_ratio,
-                           "target_volume_ratio": float(target.volume) / self.source_volume, "n_particles": N,
-                           "sigma0": parts.sigma0, "views": self.V, "loss_views": self.views,
-                           "frames_planned": cfg.frames, "ceiling_alpha_mse": self.ceiling,
+        mask = (update_surface_mask(st.x, st.volume, self.inputs.tree, cfg.surface, cfg.mpm.domain_lo, cfg.mpm.domain_hi,
+                                    search_device=self.inputs.search_device) if self.inputs.need_mask else np.zeros(N, bool))
+        fs = FrameState.at_start(st, mask, cfg.mpm.step_size, self.judge.onset.initial_weight())
+        self.run.set_meta({"experiment": self.name, "method": cfg.method, "target_mass_ratio": self.inputs.mass_ratio,
+                           "target_volume_ratio": float(target.volume) / self.inputs.source_volume, "n_particles": N,
+                           "sigma0": parts.sigma0, "views": self.inputs.V, "loss_views": self.inputs.views,
+                           "frames_planned": cfg.frames, "ceiling_alpha_mse": self.inputs.ceiling,
                            "ceiling_iou": float(getattr(target, "ceiling_iou", np.nan))})
-        m, per_view, _ = self.measure(st, mask)
+        m, per_view, _ = self.inputs.measure(st, mask)
         self.a0 = m["alpha_mse"]
         m["gap_closed"] = 0.0
-        self.run.commit(0, m, per_view, asdict_state(st), [self.volume_note] if self.volume_note else [],
-                        fs.checkpoint(self.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()))
+        self.run.commit(0, m, per_view, asdict_state(st), [self.inputs.volume_note] if self.inputs.volume_note else [],
+                        fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()))
         return fs
-
-    # ---------------------------------------------------------------------------- the phases
-    def measure(self, st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
-                target_distance: np.ndarray | None = None,
-                masked_alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray, DeformationMeasures]:  # per_view [V]
-        """The frame's metrics: α MSE and IoU over every target view, the deformation measures,
-        the energies, the Chamfer distance and the volume metrics."""
-        cfg, target = self.cfg, self.target
-        sel = slice(None) if cfg.metric_all_particles else mask
-        if alpha is None and masked_alpha is not None and cfg.metric_all_particles:
-            # The loss rendered the masked particles from every view; coverage composes, 1 - alpha =
-            # T_mask T_rest (to within the compositing's early stop, transmittance_min), so only the
-            # particles outside the mask (~10 % at the paper's scale) are rendered again.
-            rest = ~mask
-            alpha = masked_alpha if not rest.any() else 1.0 - (1.0 - masked_alpha) * (
-                1.0 - render_views(st.x[rest], st.F[rest], self.parts.sigma0, target.cameras, cfg.render)[0])
-        if alpha is None:
-            alpha, _ = render_views(st.x[sel], st.F[sel], self.parts.sigma0, target.cameras, cfg.render)
-        per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
-        iou = silhouette_iou(alpha, target.alpha)
-        dm = deformation_measures(st.F, st.Fp)
-        d = self.nearest_target(st.x)[0] if target_distance is None else target_distance
-        return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()),
-                "fp_det_min": float(dm.det_plastic.min()), "fp_det_max": float(dm.det_plastic.max()),
-                "fp_anisotropy_max": float(dm.anisotropy_plastic.max()),
-                "elastic_energy": dm.elastic_energy(st.volume, cfg.mpm), "kinetic_energy": kinetic_energy(st),
-                "total_volume": float(total_volume(st)),
-                "mask_size": int(mask.sum()) if self.need_mask else np.nan,
-                "mask_fraction": float(mask.mean()) if self.need_mask else np.nan,
-                "chamfer": float(d.mean()),
-                **volume_metrics(st.x, self.parts.mass, target.grid_mass, target.grid, splat=grid_mass)}, per_view, dm
-
-    def nearest_target(self, x: np.ndarray,  # [N, 3]
-                       ) -> tuple[np.ndarray, np.ndarray]:  # [N] distances, [N] indices
-        """Each x's nearest target surface point: the KD tree on the CPU, the exhaustive search of
-        physmorph.plasticity.nearest on the device."""
-        if self.target_on_device is None:
-            return self.tree.query(x, k=1, workers=-1)
-        return self.target_on_device.query(x)
 
     def transport_destinations(self) -> np.ndarray:  # [N, 3]
         if self.destination is None:
-            self.destination = destinations_in_grid_mass(self.parts.x, self.parts.mass, self.target.grid_mass,
-                                                         self.target.grid, self.cfg.plasticity.transport_blur,
-                                                         device=self.device)
+            self.destination = destinations_in_grid_mass(self.inputs.parts.x, self.inputs.parts.mass, self.inputs.target.grid_mass,
+                                                         self.inputs.target.grid, self.cfg.plasticity.transport_blur,
+                                                         device=self.inputs.device)
         return self.destination
 
     def physics(self, k: int) -> tuple[dict, ParticleState, float] | None:
@@ -248,19 +145,20 @@ class MorphRun:
         solver.load_state(fs.state)
         if self.stray.on:
             if self.nearest_d is None:
-                self.nearest_d, self.nearest_i = self.nearest_target(fs.state.x)
-            self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.target)
+                self.nearest_d, self.nearest_i = self.inputs.nearest_target(fs.state.x)
+            self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.inputs.target)
         self.decay.apply(solver)
         try:
-            calibration = self.calibrate(k)
+            calibration = frame_calibration(cfg, fs, solver, self.inputs.inject_F, self.inputs.inject_x, k,
+                                            lambda msg: self.log(f"[{self.name}] {msg}"))
             c = 0.0 if np.isnan(fs.injection_scale) else fs.injection_scale
-            frame_step = self.schedule.step
+            frame_step = self.judge.schedule.step
             # the calibration's rollout is current and its two gradients sum to the first
             # iteration's: the optimiser skips that forward and backward (a third of a frame)
             if calibration is not None:
                 solver.combine_calibration(c)
-            stats = solver.optimize_control(grad_F_final=c * fs.g_F if self.inject_F else None,
-                                            grad_x_final=c * fs.g_x if self.inject_x else None,
+            stats = solver.optimize_control(grad_F_final=c * fs.g_F if self.inputs.inject_F else None,
+                                            grad_x_final=c * fs.g_x if self.inputs.inject_x else None,
                                             gradient_ready=calibration is not None, learning_rate=frame_step)
             new = solver.state_at(cfg.mpm.substeps)
             check_state(new, k, cfg)
@@ -274,25 +172,6 @@ class MorphRun:
             raise MorphDivergenceError(f"{msg} (completed frames are kept in {self.run.dir})", frame=k) from exc
         return stats, new, frame_step
 
-    def calibrate(self, k: int):
-        """The injection scale for this frame (MorphConfig.injection_calibration); the calibration
-        when one ran (its rollout and gradients are then the optimiser's first)."""
-        cfg, fs = self.cfg, self.fs
-        if not self.want_grad:
-            return None
-        if cfg.injection_calibration == "absolute":
-            fs.injection_scale = cfg.gamma if self.inject_F else cfg.gamma_x
-            return None
-        recalibrate = np.isnan(fs.injection_scale) or cfg.injection_calibration == "every_frame"
-        if not (recalibrate and (np.any(fs.g_F) or np.any(fs.g_x))):
-            return None
-        calibration = calibrate_injection(self.solver, cfg.gamma if self.inject_F else cfg.gamma_x,
-                                          fs.g_F if self.inject_F else None, fs.g_x if self.inject_x else None)
-        fs.injection_scale = calibration.scale
-        if cfg.injection_calibration == "first_frame":
-            self.log(f"[{self.name}] injection scale calibrated at frame {k}: {calibration.scale:.4g}")
-        return calibration
-
     def advance(self, new: ParticleState) -> float:
         """The frame's end state becomes the loop's (Fp, m, V0 carried); returns the frame's strain."""
         st = self.fs.state
@@ -304,11 +183,11 @@ class MorphRun:
         """Each particle's nearest target surface point, shared by the mask, the plasticity's
         nearest-point map and the Chamfer metric (plasticity changes only Fp), and the surface mask."""
         cfg, fs = self.cfg, self.fs
-        self.nearest_d, self.nearest_i = self.nearest_target(fs.state.x)
-        if self.need_mask:
-            fs.mask = update_surface_mask(fs.state.x, fs.state.volume, self.tree, cfg.surface, cfg.mpm.domain_lo,
+        self.nearest_d, self.nearest_i = self.inputs.nearest_target(fs.state.x)
+        if self.inputs.need_mask:
+            fs.mask = update_surface_mask(fs.state.x, fs.state.volume, self.inputs.tree, cfg.surface, cfg.mpm.domain_lo,
                                           cfg.mpm.domain_hi, previous=fs.mask, target_distance=self.nearest_d,
-                                          search_device=self.search_device)
+                                          search_device=self.inputs.search_device)
         # the physics' and the mask's temporaries go back to the system before the render, the
         # frame's largest transient (physmorph.base.memory)
         release_free_memory()
@@ -316,20 +195,19 @@ class MorphRun:
     def render(self, scal: dict):
         """B. The masked particles rendered against the target; their gradient kept for the next
         frame (only where a method uses it). Returns the render's result (None without one)."""
-        if not self.want_grad:
+        if not self.inputs.want_grad:
             return None
-        fs, N = self.fs, self.N
+        fs, N = self.fs, self.inputs.N
         st, mask = fs.state, fs.mask
-        res = render_and_grad(st.x[mask], st.F[mask], self.parts.sigma0, self.cams, self.rtarget, self.cfg.render,
-                              want_grad_x=self.inject_x)
+        res = render_and_grad(st.x[mask], st.F[mask], self.inputs.parts.sigma0, self.inputs.cams, self.inputs.rtarget, self.cfg.render,
+                              want_grad_x=self.inputs.inject_x)
         fs.g_F = np.zeros((N, 3, 3))
         fs.g_F[mask] = res.grad_F
         fs.g_x = np.zeros((N, 3))
-        if self.inject_x and res.grad_x is not None:
+        if self.inputs.inject_x and res.grad_x is not None:
             fs.g_x[mask] = res.grad_x
-        scal.update(loss_dt=res.losses["dt"], loss_iou=res.losses["iou"], loss_depth=res.losses["depth"],
-                    loss_render=res.losses["total"], grad_F_norm=float(np.linalg.norm(fs.g_F)),
-                    grad_x_norm=float(np.linalg.norm(fs.g_x)))
+        scal.update({LOSS_SCALARS[term]: value for term, value in res.losses.items()})
+        scal.update(grad_F_norm=float(np.linalg.norm(fs.g_F)), grad_x_norm=float(np.linalg.norm(fs.g_x)))
         return res
 
     def plasticity(self, k: int) -> None:
@@ -338,19 +216,19 @@ class MorphRun:
         cfg, solver, fs = self.cfg, self.solver, self.fs
         if not (cfg.method == "full" and k >= cfg.plasticity.start_frame):
             return
-        st, N = fs.state, self.N
+        st, N = fs.state, self.inputs.N
         # the control averaged over the substeps: what an absorbing update commits to Fp
         control_mean = solver.control_mean()  # [N, 3, 3]
         absorbing = cfg.plasticity.absorbs_at(k, cfg.frames)
         Fp_from = absorbed_rest(st.F, control_mean, st.Fp, cfg.plasticity) if absorbing else st.Fp
         destination = self.transport_destinations() if cfg.plasticity.correspondence == "transport" else self.destination
         if self.pool is None:
-            pool = neighbour_pool(self.parts.x, self.target.grid.lo, self.target.grid.dx, cfg.plasticity.neighbour_ppc)
+            pool = neighbour_pool(self.inputs.parts.x, self.inputs.target.grid.lo, self.inputs.target.grid.dx, cfg.plasticity.neighbour_ppc)
             self.pool = np.arange(N) if pool is None else pool
-        pl = chamfer_plasticity_step(st.x, Fp_from, self.target.surface_points, cfg.plasticity, self.tree,
+        pl = chamfer_plasticity_step(st.x, Fp_from, self.inputs.target.surface_points, cfg.plasticity, self.inputs.tree,
                                      destination=destination, nearest_index=self.nearest_i,
                                      pool=None if len(self.pool) == N else self.pool,
-                                     search_device=self.search_device)
+                                     search_device=self.inputs.search_device)
         Fp_old = st.Fp
         fs.state = st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
         try:  # before the re-base: a bad Fp is named as such, not as a bad control
@@ -360,58 +238,6 @@ class MorphRun:
         rebase_to = rebase_reference(cfg.plasticity, absorbing, Fp_from, pl.Fp)
         if rebase_to is not None:
             solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
-
-    def keep_accepted(self, frame: AcceptedFrame) -> AcceptedFrame:
-        """The settle gate's last accepted frame, with the solver's control kept beside it. On the CPU
-        both go to files in the partial run (removed with it): in memory they would add ~510 MB to
-        every later frame's peak at the paper's scale (the control 340 MB, the state and gradients
-        170 MB), and the page cache holds them instead; on a GPU the control stays on the device."""
-        if self.device != "cpu":
-            self.solver.keep_control()
-            return frame
-        scratch = self.run.dir / "settle"  # removed with the partial run
-        frame = frame.spill(scratch)  # makes the directory
-        self.solver.keep_control(spill=scratch / "control.bin")
-        return frame
-
-    def steer(self, k: int, scal: dict, per_view: np.ndarray, m: dict, frame_step: float):
-        """The frame judged: the settle gate may undo it (the body holds still at the last accepted
-        frame, and the step backs off), the momentum restart and the packing term's onset act on
-        what the next frame starts from. Returns (scal, per_view, m, undone) to commit."""
-        cfg, solver, gate, fs = self.cfg, self.solver, self.gate, self.fs
-        rejected = gate.rejects(k, scal.get(gate.objective_key, np.nan))
-        if rejected:  # the frame is undone: the body holds still at the last accepted frame
-            back = gate.accepted
-            fs.state, fs.mask, fs.g_F, fs.g_x = back.arrays()
-            fs.injection_scale = back.injection_scale
-            solver.restore_kept_control()
-            scal, per_view, m = dict(back.scalars), back.per_view, back.scalars
-            self.nearest_d = self.nearest_i = None
-            scal["step_size"] = frame_step  # the step the undone frame tried
-            self.schedule.back_off(gate.backoff)
-            if k == cfg.frames and cfg.method == "full" and cfg.plasticity.absorbs_at(k, cfg.frames):
-                fs.state = _absorb_at_rest(fs.state, solver, cfg)  # the last update's absorption, on the accepted body
-        if gate.gates(k):
-            scal["settling"] = 2.0 if rejected else 1.0
-        objective_rose, restart = self.restart.observe(scal[self.restart.rise_on])
-        if self.restart.on:
-            # the objective rose over this frame: the state is moving away from the target, so
-            # the next frame starts with (most of) that momentum removed
-            if gate.note_restart(k, restart):
-                self.log(f"[{self.name}] frame {k}: the restart fired ({cfg.settle}); from frame {k + 1} every "
-                         f"frame starts at rest, and one whose {gate.objective_key} rises is undone")
-            if restart or gate.at_rest_after(k):
-                fs.state = self.restart.at_rest(fs.state)
-                if restart and self.restart.control_keep < 1.0:  # a restart's, not the settle phase's rest
-                    solver.scale_control(self.restart.control_keep)
-            scal["momentum_restart"] = float(restart)
-        if gate.at_rest_after(k) and not rejected:
-            gate.accepted = self.keep_accepted(AcceptedFrame(fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale,
-                                                             dict(scal), per_view, float(scal.get(gate.objective_key, np.nan))))
-        if self.onset.after_frame(solver, objective_rose):
-            self.log(f"[{self.name}] frame {k}: the objective first rose, the packing term acts from frame {k + 1}")
-        fs.next_step, fs.overfill_weight = self.schedule.step, solver.overfill_weight
-        return scal, per_view, m, rejected
 
     def frame(self, k: int) -> bool:
         """Frame k's phases, committed; False where the run stops (a position_inject divergence)."""
@@ -425,7 +251,7 @@ class MorphRun:
         t1 = time.time()
         self.mask()
         t2 = time.time()
-        scal = {"injection_scale": fs.injection_scale if self.want_grad else np.nan,
+        scal = {"injection_scale": fs.injection_scale if self.inputs.want_grad else np.nan,
                 "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
                 "mass_loss": solver.mass_loss(), "frame_strain": strain,
                 "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": frame_step,
@@ -435,12 +261,14 @@ class MorphRun:
         t3 = time.time()
         self.plasticity(k)
         t4 = time.time()
-        every_view = res is not None and len(self.views) == self.V
-        m, per_view, dm = self.measure(fs.state, fs.mask, alpha=res.alpha if res is not None and self.loss_render_is_metric else None,
+        every_view = res is not None and len(self.inputs.views) == self.inputs.V
+        m, per_view, dm = self.inputs.measure(fs.state, fs.mask, alpha=res.alpha if res is not None and self.inputs.loss_render_is_metric else None,
                                        masked_alpha=res.alpha if every_view else None, target_distance=self.nearest_d)
-        m["gap_closed"] = gap_closed(self.a0, m["alpha_mse"], self.ceiling) if np.isfinite(self.ceiling) else np.nan
+        m["gap_closed"] = gap_closed(self.a0, m["alpha_mse"], self.inputs.ceiling) if np.isfinite(self.inputs.ceiling) else np.nan
         scal.update(m)
-        scal, per_view, m, rejected = self.steer(k, scal, per_view, m, frame_step)
+        scal, per_view, m, rejected = self.judge.steer(k, fs, scal, per_view, m, frame_step)
+        if rejected:
+            self.nearest_d = self.nearest_i = None
         new_warnings = [] if rejected else self.monitor.update(k, fs.state.Fp, m["alpha_mse"], det=dm.det_plastic,
                                                                fp_anisotropy=dm.anisotropy_plastic)
         # the render's images and gradient and the metrics' arrays are done with: the frame's freed
@@ -460,7 +288,7 @@ class MorphRun:
         save = k % cfg.save_every == 0 or k == cfg.frames
         # the checkpoint's arrays are gathered only when it is due (physmorph.records.runfile)
         self.run.commit(k, scal, per_view, asdict_state(fs.state) if save else None, new_warnings,
-                        lambda: fs.checkpoint(self.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()),
+                        lambda: fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()),
                         last=k == cfg.frames, motion={"x": fs.state.x, "F": fs.state.F})
 
     def progress(self, k: int, scal: dict, stats: dict, rejected: bool) -> None:
@@ -484,7 +312,7 @@ class MorphRun:
         if self.cfg.release_frames and self.status == "complete":
             mask = self.fs.mask
             extra["release_alpha_mse"] = json.dumps(release_curve(self.solver, self.fs.state, self.cfg.release_frames,
-                                                                  lambda s: self.measure(s, mask)[0]["alpha_mse"],
+                                                                  lambda s: self.inputs.measure(s, mask)[0]["alpha_mse"],
                                                                   self.log, self.name))
         # The file's provenance also keeps every setting resolved (the key leaves defaults out).
         self.run.finish(self.status, extra, {**json.loads(record), "resolved": self.cfg.to_dict()})
@@ -515,16 +343,6 @@ def release_curve(solver: MPMSolver, st: ParticleState, frames: int, alpha_mse, 
     if frames:
         log(f"[{name}] released for {frames} frames: alpha_mse {curve[0]:.4f} -> {curve[-1]:.4f}")
     return curve
-
-
-def _absorb_at_rest(st: ParticleState, solver: MPMSolver, cfg: MorphConfig) -> ParticleState:
-    """The shape absorbed into the rest state (plasticity.absorb_control) without a Chamfer step: the
-    last frame's absorption when that frame was undone, so the run still ends with its shape in Fp."""
-    Fp = absorbed_rest(st.F, solver.control_mean(), st.Fp, cfg.plasticity)
-    rebase_to = rebase_reference(cfg.plasticity, True, Fp, Fp)
-    if rebase_to is not None:
-        solver.rebase_control(st.F, np.linalg.solve(st.Fp, rebase_to))
-    return dataclasses.replace(st, Fp=Fp)
 
 
 def morph_config(settings, experiment_name: str) -> MorphConfig:

@@ -20,6 +20,11 @@ class Currency:
     calibrated_for: int = -1  # the rollout whose calibration gradients the solver holds (-1: none)
     combined_for: int = -1  # the rollout whose combined gradient is in place (-1: none)
 
+    def clear(self) -> None:
+        """Back to a freshly built solver's record (in place: the solver's parts share it)."""
+        for name, value in vars(Currency()).items():
+            setattr(self, name, value)
+
     def stale(self) -> None:
         """The state, dFc or loss changed: the stored trajectory no longer belongs to them."""
         self.trajectory_current = False

@@ -3,26 +3,91 @@ loss L between the grid mass of x_T and the target's), its forms and terms, and 
 
 Forms (MPMConfig.mass_loss): "squared" sum_I (m_I - m*_I)^2, "log" (default) sum_I (log(m_I + e)
 - log(m*_I + e))^2; terms: a blurred level (mass_loss_blur), the packing term (overfill_weight)
-and the stray pull's position anchors w_p |x_T,p - a_p|^2. A mixin of MPMSolver.
+and the stray pull's position anchors w_p |x_T,p - a_p|^2. Steps acting on the model (its target),
+the stored end state and the adjoint; the loss's own settings (weights, anchors) and scratch here.
 """
 
 import numpy as np
 import taichi as ti
 
+from physmorph.base.grid import blur_weights
 from physmorph.settings.mpm import MPMConfigError, MPMStateError
 
+from .adjoint import Adjoint
+from .currency import Currency
+from .model import MPMModel, checked_array
+from .trajectory import Trajectory
 
-class PhysicsLoss:
+
+@ti.data_oriented
+class MassLoss:
     """The mass loss, its terms and its adjoint into the particles' x_T."""
 
+    def __init__(self, model: MPMModel, trajectory: Trajectory, adjoint: Adjoint, current: Currency):
+        self.model, self.trajectory, self.adjoint, self.current = model, trajectory, adjoint, current
+        self.n, self.dtype, self.np_dtype = model.n, model.dtype, model.np_dtype
+        cfg, f, R = model.cfg, model.dtype, model.cfg.grid_res
+        self.loss_acc = ti.field(ti.f64, shape=())
+        # the blurred level of the mass loss (mass_loss_blur > 0): the blurred grid mass, the blurred
+        # target, the level's adjoint and two scratch grids for the separable passes
+        self._blur_radius = int(np.ceil(3.0 * cfg.mass_loss_blur)) if cfg.mass_loss_blur > 0 else 0
+        self.blur_grids = [ti.field(f, shape=(R, R, R)) for _ in range(5)] if cfg.mass_loss_blur > 0 else []
+        if cfg.mass_loss_blur > 0:
+            self.blur_w = ti.field(f, shape=2 * self._blur_radius + 1)
+            self.blur_w.from_numpy(blur_weights(cfg.mass_loss_blur).astype(self.np_dtype))
+        self.anchors = PositionAnchors(model, trajectory)
+        self.reset()
+
+    def reset(self) -> None:
+        """No loss computed yet, the configured packing weight, no anchors."""
+        self._last_loss: float | None = None
+        self._last_mass_loss: float | None = None  # the last forward's loss without the anchors' term
+        self._log_eps = 0.0
+        self._overfill_weight = float(self.model.cfg.overfill_weight)
+        self.anchors.active = False
+
+    def set_particle_mass(self, mass: np.ndarray) -> None:  # [N]
+        """The loaded frame's masses set the log form's e = log_mass_eps * mean particle mass."""
+        self._log_eps = float(self.model.cfg.log_mass_eps * mass.mean())
+
+    def evaluate(self) -> float:
+        """The loss of the stored end state x_T (the grid cleared first by the caller), its adjoint
+        dL/dm_I in the grid's; returns it with the anchors' term (loss()), keeping both."""
+        self.splat_mass(self.model.cfg.substeps)
+        self._loss_with_adjoint()
+        self._last_mass_loss = float(self.loss_acc[None])
+        if self.anchors.active:
+            self.anchors.add_loss(self.loss_acc)
+        self._last_loss = float(self.loss_acc[None])
+        return self._last_loss
+
+    def backward(self, xa) -> None:
+        """x_bar_T += dL/dx_T of the stored end state's loss into the adjoint set ``xa`` (the grid
+        cleared first by the caller; the kept losses stay as they are)."""
+        self.splat_mass(self.model.cfg.substeps)
+        self._loss_with_adjoint()
+        self._loss_backward(xa)
+        if self.anchors.active:
+            self.anchors.backward(xa)
+
+    @property
+    def last_loss(self) -> float | None:
+        """What the last evaluate() returned (None before one)."""
+        return self._last_loss
+
+    def no_target(self) -> float:
+        """A forward without a target: its loss is nan."""
+        self._last_loss = self._last_mass_loss = float("nan")
+        return self._last_loss
+
     @ti.kernel
-    def _splat_mass(self, t: ti.i32):
+    def splat_mass(self, t: ti.i32):
         """m_I += sum_p w_Ip m_p of x_t (the physmorph.base.grid.splat_mass transfer)."""
         for p in range(self.n):
-            base, fx, w, dw = self._stencil(self.x[t, p])
+            base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
             for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self._node(fx, w, i, j, k)
-                self.grid_m[base + off] += wt * self.mass[p]
+                off, dpos, wt = self.model.node(fx, w, i, j, k)
+                self.trajectory.grid_m[base + off] += wt * self.model.mass[p]
 
     @ti.kernel
     def _mass_loss(self, log_eps: ti.f64, overfill_w: ti.f64):
@@ -30,14 +95,14 @@ class PhysicsLoss:
         plus the packing term _overfill_term with weight overfill_w where the configuration has one
         (overfill_weight > 0)."""
         self.loss_acc[None] = 0.0
-        for I in ti.grouped(self.grid_m):
-            r2, adj = self._node_loss(self.grid_m[I], self.target_m[I], log_eps)
-            if ti.static(self.cfg.overfill_weight > 0):
-                o2, oadj = self._overfill_term(self.grid_m[I], self.target_m[I], log_eps, overfill_w)
+        for I in ti.grouped(self.trajectory.grid_m):
+            r2, adj = self._node_loss(self.trajectory.grid_m[I], self.model.target_m[I], log_eps)
+            if ti.static(self.model.cfg.overfill_weight > 0):
+                o2, oadj = self._overfill_term(self.trajectory.grid_m[I], self.model.target_m[I], log_eps, overfill_w)
                 r2 += o2
                 adj += oadj
             self.loss_acc[None] += r2
-            self.grid_m_adj[I] = adj
+            self.adjoint.grid_m_adj[I] = adj
 
     @ti.func
     def _overfill_term(self, m, mt, log_eps: ti.f64, overfill_w: ti.f64):
@@ -45,7 +110,7 @@ class PhysicsLoss:
         log(c + e), c = max(overfill_ratio density dx^3, m*), and its derivative 2 w max(0, r) / (m + e)."""
         e = ti.cast(log_eps, self.dtype)
         w = ti.cast(overfill_w, self.dtype)
-        cap = ti.max(self.dtype(self.cfg.overfill_ratio * self.cfg.density * self.cfg.dx ** 3), mt)
+        cap = ti.max(self.dtype(self.model.cfg.overfill_ratio * self.model.cfg.density * self.model.cfg.dx ** 3), mt)
         r = ti.max(ti.log(m + e) - ti.log(cap + e), 0.0)
         r2, adj = ti.cast(r * r, ti.f64), 2.0 * r / (m + e)
         return ti.cast(w, ti.f64) * r2, w * adj
@@ -57,7 +122,7 @@ class PhysicsLoss:
         r2 = ti.cast(0.0, ti.f64)
         adj = ti.cast(0.0, self.dtype)
         e = ti.cast(log_eps, self.dtype)
-        if ti.static(self.cfg.mass_loss == "squared"):
+        if ti.static(self.model.cfg.mass_loss == "squared"):
             r = m - mt
             r2 = ti.cast(r * r, ti.f64)
             adj = 2.0 * r
@@ -75,7 +140,7 @@ class PhysicsLoss:
     def _blur_axis(self, src: ti.template(), dst: ti.template(), axis: ti.template()):
         """One separable pass of MPMConfig.mass_loss_blur: dst_I = sum_k w_k src_(I + k e_axis) over
         |k| <= r, nodes outside the grid counting as zero (so the pass is a symmetric matrix)."""
-        R = self.cfg.grid_res
+        R = self.model.cfg.grid_res
         r = ti.static(self._blur_radius)
         for I in ti.grouped(dst):
             acc = ti.cast(0.0, self.dtype)
@@ -106,58 +171,43 @@ class PhysicsLoss:
     def _add_to_mass_adjoint(self, a: ti.template()):
         """dL/dm_I += a_I (the blurred level's adjoint brought back to the grid)."""
         for I in ti.grouped(a):
-            self.grid_m_adj[I] += a[I]
+            self.adjoint.grid_m_adj[I] += a[I]
 
     def _loss_with_adjoint(self) -> None:
         """Mass loss of the splatted grid_m into loss_acc, dL/dm_I into grid_m_adj (all levels)."""
         self._mass_loss(self._log_eps, self._overfill_weight)
         if self.blur_grids:
             bm, bt, ba = self.blur_grids[:3]
-            self._blur(self.grid_m, bm)
-            self._blur_level_loss(bm, bt, ba, self._log_eps, self.cfg.mass_loss_blur_weight)
+            self._blur(self.trajectory.grid_m, bm)
+            self._blur_level_loss(bm, bt, ba, self._log_eps, self.model.cfg.mass_loss_blur_weight)
             self._blur(ba, bm)  # B is symmetric: dL/dm = B dL/d(B m)
             self._add_to_mass_adjoint(bm)
 
     @ti.kernel
-    def _anchor_loss(self):
-        """The anchors' term of the loss (set_position_anchors): loss_acc += sum_p w_p |x_T,p - a_p|^2."""
-        T = self.cfg.substeps
-        for p in range(self.n):
-            d = self.x[T, p] - self.anchor[p]
-            self.loss_acc[None] += ti.cast(self.anchor_w[p] * d.dot(d), ti.f64)
-
-    @ti.kernel
-    def _anchor_backward(self, xa: ti.template()):
-        """Reverse of _anchor_loss: x_bar_T,p += 2 w_p (x_T,p - a_p)."""
-        T = self.cfg.substeps
-        for p in range(self.n):
-            xa[p] += 2.0 * self.anchor_w[p] * (self.x[T, p] - self.anchor[p])
-
-    @ti.kernel
     def _loss_backward(self, xa: ti.template()):
-        """Reverse of _splat_mass(T) and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
+        """Reverse of splat_mass(T) and _mass_loss: x_bar_T += sum_I grad(w_Ip) m_p dL/dm_I (on top
         of the injected g^x already there)."""
-        T = self.cfg.substeps
+        T = self.model.cfg.substeps
         for p in range(self.n):
-            base, fx, w, dw = self._stencil(self.x[T, p])
+            base, fx, w, dw = self.model.stencil(self.trajectory.x[T, p])
             g = ti.Vector.zero(self.dtype, 3)
             for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self._node(fx, w, i, j, k)
-                gw = self._node_grad(w, dw, i, j, k)
-                g += gw * (self.mass[p] * self.grid_m_adj[base + off])
+                off, dpos, wt = self.model.node(fx, w, i, j, k)
+                gw = self.model.node_grad(w, dw, i, j, k)
+                g += gw * (self.model.mass[p] * self.adjoint.grid_m_adj[base + off])
             xa[p] += g
 
     def set_target_grid_mass(self, m: np.ndarray) -> None:  # m: [res, res, res]
         """Target grid mass (physmorph.base.grid.splat_mass convention)."""
         m = np.asarray(m, dtype=np.float64)
-        R = self.cfg.grid_res
+        R = self.model.cfg.grid_res
         if m.shape != (R, R, R):
             raise MPMStateError(f"target grid mass must have shape {(R, R, R)}, got {m.shape}")
         if not np.isfinite(m).all() or (m < 0).any():
             raise MPMStateError("target grid mass must be finite and >= 0")
-        self.target_m.from_numpy(m.astype(self.np_dtype))
+        self.model.target_m.from_numpy(m.astype(self.np_dtype))
         if self.blur_grids:
-            self._blur(self.target_m, self.blur_grids[1])
+            self._blur(self.model.target_m, self.blur_grids[1])
         self.current.has_target = True
         self.current.stale()  # the cached loss refers to the old target
 
@@ -167,7 +217,7 @@ class PhysicsLoss:
         overfill_weight > 0, whose kernels carry the term."""
         if not (np.isfinite(weight) and weight >= 0):
             raise ValueError(f"overfill weight must be finite and >= 0, got {weight!r}")
-        if weight > 0 and not self.cfg.overfill_weight > 0:
+        if weight > 0 and not self.model.cfg.overfill_weight > 0:
             raise MPMConfigError("set_overfill_weight > 0 needs a solver built with overfill_weight > 0")
         self._overfill_weight = float(weight)
         self.current.stale()
@@ -175,19 +225,8 @@ class PhysicsLoss:
     def set_position_anchors(self, anchor: np.ndarray | None,  # [N, 3]
                              weight: np.ndarray | None = None) -> None:  # [N]
         """Add sum_p w_p |x_T,p - a_p|^2 to the loss from now on (the morph loop's stray pull,
-        MorphConfig.stray_pull); None removes the term. The fields are allocated on first use."""
-        if anchor is None:
-            self._anchored = False
-            self.current.stale()
-            return
-        a = self._check_adjoint(anchor, (self.n, 3), "anchor")
-        w = np.asarray(weight, dtype=np.float64)
-        if w.shape != (self.n,) or not np.isfinite(w).all() or (w < 0).any():
-            raise MPMStateError(f"anchor weights must be [{self.n}], finite and >= 0")
-        self._ensure_anchors()
-        self.anchor.from_numpy(a.astype(self.np_dtype))
-        self.anchor_w.from_numpy(w.astype(self.np_dtype))
-        self._anchored = bool((w > 0).any())
+        MorphConfig.stray_pull); None removes the term."""
+        self.anchors.set(anchor, weight)
         self.current.stale()
 
     @property
@@ -207,3 +246,47 @@ class PhysicsLoss:
         if self._last_mass_loss is None:
             raise RuntimeError("mass_loss needs a forward first")
         return self._last_mass_loss
+
+
+@ti.data_oriented
+class PositionAnchors:
+    """The loss's anchors' term w_p |x_T,p - a_p|^2 (the morph loop's stray pull), its fields
+    allocated on first use: a_p and the weight w_p."""
+
+    def __init__(self, model: MPMModel, trajectory: Trajectory):
+        self.model, self.trajectory = model, trajectory
+        self.n, self.dtype = model.n, model.dtype
+        self.anchor = self.anchor_w = None
+        self.active = False
+
+    def set(self, anchor: np.ndarray | None,  # [N, 3]
+            weight: np.ndarray | None = None) -> None:  # [N]
+        """The anchors and weights from now on (None: no term)."""
+        if anchor is None:
+            self.active = False
+            return
+        a = checked_array(anchor, (self.n, 3), "anchor")
+        w = np.asarray(weight, dtype=np.float64)
+        if w.shape != (self.n,) or not np.isfinite(w).all() or (w < 0).any():
+            raise MPMStateError(f"anchor weights must be [{self.n}], finite and >= 0")
+        if self.anchor is None:
+            self.anchor = ti.types.vector(3, self.dtype).field(shape=self.n)
+            self.anchor_w = ti.field(self.dtype, shape=self.n)
+        self.anchor.from_numpy(a.astype(self.model.np_dtype))
+        self.anchor_w.from_numpy(w.astype(self.model.np_dtype))
+        self.active = bool((w > 0).any())
+
+    @ti.kernel
+    def add_loss(self, loss_acc: ti.template()):
+        """loss_acc += sum_p w_p |x_T,p - a_p|^2."""
+        T = self.model.cfg.substeps
+        for p in range(self.n):
+            d = self.trajectory.x[T, p] - self.anchor[p]
+            loss_acc[None] += ti.cast(self.anchor_w[p] * d.dot(d), ti.f64)
+
+    @ti.kernel
+    def backward(self, xa: ti.template()):
+        """Reverse of add_loss: x_bar_T,p += 2 w_p (x_T,p - a_p)."""
+        T = self.model.cfg.substeps
+        for p in range(self.n):
+            xa[p] += 2.0 * self.anchor_w[p] * (self.trajectory.x[T, p] - self.anchor[p])

@@ -21,80 +21,83 @@ Backward: the adjoint of each substep is written by hand (reverse of G2P, grid u
 the per-substep particle state (x, v, C, F), the rotation of Fe with its smallest pair sum, and
 the P2G grid are stored in the forward; the backward restores A and Fe from them (no second SVD). The stress model and its
 hand-written differential, the rotation derivative included, are in physmorph.mpm.stress.
+
+The split is warp.sim's: a static model (physmorph.mpm.model: constants, the particles' constants,
+the target, the stencil), the state the substeps write (physmorph.mpm.trajectory), the control
+(physmorph.mpm.control), the reverse sweep's adjoints (physmorph.mpm.adjoint), and steps that
+act on them and hold nothing of their own: the transfers (physmorph.mpm.transfers), their
+adjoints (physmorph.mpm.transfer_adjoints), the mass loss (physmorph.mpm.physics_loss) and the
+control's steps (physmorph.mpm.step_kernels), driven by the optimisers (physmorph.mpm.optimiser).
+MPMSolver assembles them for one frame and keeps the public API.
 """
 
-import numpy as np
-import taichi as ti
+import functools
 
-from physmorph.base.grid import BOUNDARY_CELLS, Grid
-from physmorph.base.taichi_runtime import init_taichi
-from physmorph.settings.mpm import MPMConfig, MPMConfigError, MPMDivergenceError, MPMStateError
+import numpy as np
+
+from physmorph.settings.mpm import MPMConfig, MPMConfigError, MPMDivergenceError
+from physmorph.settings.solver_memory import bytes_per_particle_substep
+
+from .adjoint import Adjoint
 from .control import ControlField
 from .currency import Currency
-from .fields import SolverFields
-from physmorph.settings.solver_memory import bytes_per_particle_substep
-from .optimiser import Adam, NormalizedGD
-from .physics_loss import PhysicsLoss
+from .kept_control import KeptControl
+from .model import MPMModel, checked_array
+from .optimiser import Adam, NormalizedGD, calibration_gradients, combine_calibration, optimize_control
+from .physics_loss import MassLoss
 from .state import ParticleState
-from .step_kernels import StepKernels
-from .stress import evaluate_stress, make_stress_funcs  # noqa: F401 (evaluate_stress re-exported)
+from .step_kernels import ControlSteps
+from .trajectory import Trajectory
+from .transfer_adjoints import TransferAdjoints
 from .transfers import Transfers
 
-# |F| or |v| entries above this are treated as a divergence (Inf follows soon after).
-_BLOWUP = 1e8
-# the injection calibration's backward_pair from this many particle-substeps on (n x substeps;
-# below, its kernels' compilation costs more than it saves in a run: docs/performance.md)
-PAIR_MIN_PARTICLE_STEPS = 1_000_000
+
+def _delegated(part: str, method):
+    """A solver method that calls ``method`` of its component ``part`` (the docstring is its)."""
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        return method(getattr(self, part), *args, **kwargs)
+    return call
 
 
-@ti.data_oriented
-class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels):
+class MPMSolver:
     """Differentiable MPM over one frame of T substeps, with the control field dFc and its optimisers (normalised GD, Adam).
 
-    Built once per (config, particle count); ``load_state`` each frame. The kernels live in the
-    mixins by concern (fields, transfers, physics_loss, control, step_kernels), the optimisers in
-    physmorph.mpm.optimiser, what the stored results belong to in ``self.current``
+    Built once per (config, particle count); ``load_state`` each frame. The model, state, control
+    and adjoint are its parts; the steps (transfers and their adjoints, the mass loss, the
+    control's steps) act on them; what the stored results belong to is ``self.current``
     (physmorph.mpm.currency). See physmorph/mpm/__init__.py for the design decisions.
     """
 
     def __init__(self, cfg: MPMConfig, n_particles: int):
-        if int(n_particles) < 1:
-            raise MPMStateError(f"n_particles must be >= 1, got {n_particles}")
-        init_taichi(cfg.device, cfg.threads)
-        self.cfg = cfg
-        self.n = int(n_particles)
-        self.grid = Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi)
-        self.dtype = ti.f64 if cfg.precision == "float64" else ti.f32
-        self.np_dtype = np.float64 if cfg.precision == "float64" else np.float32
-        self._allocate_fields()
-        self._stress_model = make_stress_funcs(self.dtype, cfg.mu, cfg.lam)
-        # compile-time constants of the kernels
-        self._dx = cfg.dx
-        self._inv_dx = 1.0 / cfg.dx
-        self._lo = cfg.domain_lo
-        self._res = cfg.grid_res
-        self._bound = BOUNDARY_CELLS
-        # positions are clamped so the 3x3x3 stencil never leaves the grid: x_g in [1, res - 2]
-        self._x_min = cfg.domain_lo + 1.0 * cfg.dx
-        self._x_max = cfg.domain_lo + (cfg.grid_res - 2.0) * cfg.dx
+        self.model = MPMModel(cfg, n_particles)
+        self.n, self.grid = self.model.n, self.model.grid
+        self.current = Currency()
+        self.trajectory = Trajectory(self.model)
+        self.control_field = ControlField(self.model, self.current)
+        self.kept_control = KeptControl(self.control_field)
+        self.adjoint = Adjoint(self.model)
+        self.physics_loss = MassLoss(self.model, self.trajectory, self.adjoint, self.current)
+        self.transfers = Transfers(self.model, self.trajectory, self.control_field)
+        self.transfer_adjoints = TransferAdjoints(self.model, self.trajectory, self.control_field, self.adjoint)
+        self.control_steps = ControlSteps(self.model, self.trajectory, self.control_field)
         self.reset()
+
+    @property
+    def cfg(self) -> MPMConfig:
+        return self.model.cfg
 
     def reset(self) -> None:
         """Back to a freshly built solver: no state or target loaded, dFc and the Adam moments
         zero. Every other field is written before it is read (load_state, set_target_grid_mass,
         forward, backward), so a reset solver computes what a new one would."""
-        self.current = Currency()
-        self._grad_norm = float("nan")
-        self._Fp = None
-        self._last_loss: float | None = None
-        self._last_mass_loss: float | None = None  # the last forward's loss without the anchors' term
+        self.current.clear()
+        self.grad_norm = float("nan")  # |dL/d(dFc)| of the last backward
+        self.model.Fp = None
         self.adam, self.normalized_gd = Adam(self), NormalizedGD(self)
-        self._kept = None  # keep_control: its fields (allocated on first use) or its file
-        self._kept_adam_step = (0, False)
-        self._log_eps = 0.0
-        self._overfill_weight = float(self.cfg.overfill_weight)
-        self._anchored = False
-        self.reset_control()
+        self.kept_control.clear()
+        self.physics_loss.reset()
+        self.control_field.reset()
 
     def configure(self, cfg: MPMConfig) -> None:
         """Take cfg's driver settings (DRIVER_FIELDS: learning rate, optimiser, line search, ...)
@@ -103,29 +106,14 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
             changed = [k for (k, a), (_, b) in zip(cfg.kernel_settings(), self.cfg.kernel_settings()) if a != b]
             raise MPMConfigError(f"configure can only change driver settings; {', '.join(changed)} "
                                  "would need a new solver (its kernels bake them in)")
-        self.cfg = cfg
+        self.model.cfg = cfg
 
     def load_state(self, state: ParticleState) -> None:
         """Set the frame's initial state (x, v, F, C at t = 0 and the constants Fp, m, V0)."""
         st = state.validated()
-        if st.n != self.n:
-            raise MPMStateError(f"state has {st.n} particles, solver was built for {self.n}")
-        bad = ((st.x < self._x_min) | (st.x > self._x_max)).any(axis=1)
-        if bad.any():
-            p = int(np.argmax(bad))
-            raise MPMStateError(
-                f"x of particle {p} = {st.x[p].tolist()} is outside the usable domain "
-                f"[{self._x_min}, {self._x_max}] (the B-spline stencil would leave the grid)")
-        dt_ = self.np_dtype
-        self._load_initial(st.x.astype(dt_), st.v.astype(dt_), st.F.astype(dt_), st.C.astype(dt_))
-        self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
-        self.mass.from_numpy(st.mass.astype(dt_))
-        self.vol.from_numpy(st.volume.astype(dt_))
-        weight = st.volume.max() / st.volume if self.cfg.step_per_volume else np.ones(self.n)
-        self.step_weight.from_numpy(weight.astype(dt_))
-        self._weighted_step = bool(self.cfg.step_per_volume and (weight != 1.0).any())
-        self._Fp = st.Fp.copy()
-        self._log_eps = float(self.cfg.log_mass_eps * st.mass.mean())
+        self.model.load_constants(st)
+        self.trajectory.load(st)
+        self.physics_loss.set_particle_mass(st.mass)
         self.current.loaded = True
         self.current.stale()
 
@@ -134,28 +122,20 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         without a target). Raises MPMDivergenceError if the state became non-finite."""
         self._require_loaded()
         self.current.new_rollout()
+        step = self.transfers
         for t in range(self.cfg.substeps):
-            self._clear_grid()
-            self._p2g(t)
-            self._store_grid(t)
-            self._grid_update()
-            self._g2p(t)
+            step.clear_grid()
+            step.p2g(t)
+            step.store_grid(t)
+            step.grid_update()
+            step.g2p(t)
         self.current.stale()
-        self._check_finite_rollout()
+        self.trajectory.check_finite()
         self.current.trajectory_current = True
-        if self.current.has_target:
-            self._clear_grid()
-            self._splat_mass(self.cfg.substeps)
-            self._loss_with_adjoint()
-            self._last_mass_loss = float(self.loss_acc[None])
-            if self._anchored:
-                self._anchor_loss()
-                self._last_loss = float(self.loss_acc[None])
-            else:
-                self._last_loss = self._last_mass_loss
-        else:
-            self._last_loss = self._last_mass_loss = float("nan")
-        return self._last_loss
+        if not self.current.has_target:
+            return self.physics_loss.no_target()
+        step.clear_grid()
+        return self.physics_loss.evaluate()
 
     def backward(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
                  grad_x_final: np.ndarray | None = None,  # [N, 3]
@@ -174,14 +154,15 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         backward(gF, gx, include_mass_loss=False) run one after the other, for the cost of about
         one and a half: the restored forward state, the stencils and the grid loads are shared.
         Returns the two gradients' norms (mass, injected)."""
-        self._ensure_pair()
+        self.adjoint.ensure_pair()
         self._reverse(grad_F_final, grad_x_final, include_mass_loss=False, pair=True)
-        self._norm_sq(self.ctrl_base)
-        n_mass = float(self.norm_acc[None])
+        control = self.control_field
+        control.norm_sq(control.ctrl_base)
+        n_mass = float(control.norm_acc[None])
         if not np.isfinite(n_mass):
             raise MPMDivergenceError("the mass loss's dFc gradient became non-finite (NaN/Inf) in the backward pass",
                                       quantity="mass loss's dFc gradient")
-        return float(np.sqrt(n_mass)), self._grad_norm
+        return float(np.sqrt(n_mass)), self.grad_norm
 
     def _reverse(self, grad_F_final, grad_x_final, include_mass_loss: bool, pair: bool) -> None:
         """The reverse sweep: the injected adjoints (and the mass loss unless excluded) in the
@@ -190,110 +171,38 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         if not self.current.trajectory_current:
             raise RuntimeError("backward needs a forward() of the current state and dFc first")
         self.current.gradients_overwritten()  # ctrl_grad is overwritten
-        N = self.n
-        gx = np.zeros((N, 3)) if grad_x_final is None else self._check_adjoint(grad_x_final, (N, 3), "grad_x_final")
-        gF = np.zeros((N, 3, 3)) if grad_F_final is None else self._check_adjoint(grad_F_final, (N, 3, 3), "grad_F_final")
-        self.x_adj.from_numpy(gx.astype(self.np_dtype))
-        self.F_adj.from_numpy(gF.astype(self.np_dtype))
-        self.v_adj.fill(0.0)
-        self.C_adj.fill(0.0)
-        self._zero_control_field(self.ctrl_grad)
+        N, d = self.n, self.model.np_dtype
+        gx = np.zeros((N, 3)) if grad_x_final is None else checked_array(grad_x_final, (N, 3), "grad_x_final")
+        gF = np.zeros((N, 3, 3)) if grad_F_final is None else checked_array(grad_F_final, (N, 3, 3), "grad_F_final")
+        adjoint, control, step = self.adjoint, self.control_field, self.transfer_adjoints
+        adjoint.seed(gx.astype(d), gF.astype(d), pair)
+        control.zero(control.ctrl_grad)
         if pair:
-            for f in (self.x_adj2, self.v_adj2, self.C_adj2, self.F_adj2):
-                f.fill(0.0)
-            self._zero_control_field(self.ctrl_base)
+            control.zero(control.ctrl_base)
         if self.current.has_target and (include_mass_loss or pair):
-            self._clear_grid()
-            self._splat_mass(self.cfg.substeps)
-            self._loss_with_adjoint()
-            self._loss_backward(self.x_adj2 if pair else self.x_adj)
-            if self._anchored:
-                self._anchor_backward(self.x_adj2 if pair else self.x_adj)
+            self.transfers.clear_grid()
+            self.physics_loss.backward(adjoint.x_adj2 if pair else adjoint.x_adj)
         for t in reversed(range(self.cfg.substeps)):
-            self._restore_p2g(t)
-            self._grid_update()
-            self._clear_grid_adj(pair)
-            self._g2p_backward(t, pair)
-            self._grid_backward(pair)
-            self._p2g_backward(t, pair)
-        self._grad_norm_sq()
-        gn = float(self.norm_acc[None])
+            step.restore_p2g(t)
+            self.transfers.grid_update()
+            step.clear_grid_adjoint(pair)
+            step.g2p_backward(t, pair)
+            step.grid_backward(pair)
+            step.p2g_backward(t, pair)
+        control.gradient_norm_sq()
+        gn = float(control.norm_acc[None])
         if not np.isfinite(gn):
             raise MPMDivergenceError("the dFc gradient became non-finite (NaN/Inf) in the backward pass",
                                       quantity="dFc gradient")
-        self._grad_norm = float(np.sqrt(gn))
+        self.grad_norm = float(np.sqrt(gn))
 
-    def optimize_control(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
-                         grad_x_final: np.ndarray | None = None,  # [N, 3]
-                         iters: int | None = None,
-                         gradient_ready: bool = False,
-                         learning_rate: float | None = None) -> dict:
-        """J iterations of forward -> mass loss -> backward (+ injected adjoints) -> a step on dFc
-        (cfg.optimizer: physmorph.mpm.optimiser), then a last forward with the updated dFc (its
-        loss is loss_final; rollout() returns it).
-
-        gradient_ready: the first iteration's dFc gradient (mass loss + injected terms) is already
-        in place for the current rollout (combine_calibration after calibration_gradients: the
-        morph loop's injection calibration); that iteration's forward and backward are skipped.
-        learning_rate: this call's step (normalised GD: the initial alpha; Adam: lr) instead of
-        cfg.step_size (the morph loop's step, backed off after an undone frame: MorphConfig.settle_backoff)."""
-        if not self.current.has_target:
-            raise RuntimeError("optimize_control needs set_target_grid_mass first")
-        J = self.cfg.grad_iters if iters is None else int(iters)
-        if J < 1:
-            raise ValueError(f"iters must be >= 1, got {J}")
-        now = self.current
-        if gradient_ready and not (now.trajectory_current and now.combined_for == now.rollout):
-            raise RuntimeError("gradient_ready needs calibration_gradients and combine_calibration on a "
-                               "forward() of the current state and dFc")
-        lr = self.cfg.step_size if learning_rate is None else float(learning_rate)
-        if not (np.isfinite(lr) and lr > 0):
-            raise ValueError(f"learning_rate must be finite and > 0, got {learning_rate!r}")
-        optimiser = self.normalized_gd if self.cfg.optimizer == "normalized_gd" else self.adam
-        return optimiser.run(grad_F_final, grad_x_final, J, gradient_ready, lr)
+    optimize_control = optimize_control
+    calibration_gradients = calibration_gradients
+    combine_calibration = combine_calibration
 
     def adam_step(self, learning_rate: float | None = None) -> None:
         """One Adam step on dFc with the gradient of the last backward (step cfg.step_size unless given)."""
         self.adam.step(learning_rate)
-
-    def calibration_gradients(self, grad_F_final: np.ndarray | None = None,  # [N, 3, 3]
-                              grad_x_final: np.ndarray | None = None,  # [N, 3]
-                              pair: bool | None = None) -> tuple[float, float]:
-        """The injection calibration's two dFc gradients on one rollout of the current state and
-        dFc (run here): the mass loss's and the injected adjoint's alone (a difference of two
-        backwards would drown in float32 round-off). Returns their norms; the gradients stay in
-        the solver (no [Tc, N, 3, 3] copies) for combine_calibration.
-
-        pair: one reverse sweep for both (backward_pair) or two backwards; by default the pair
-        from PAIR_MIN_PARTICLE_STEPS particle-substeps on, where its saving a frame pays back its
-        compilation within a few frames."""
-        if pair is None:
-            pair = self.n * self.cfg.substeps >= PAIR_MIN_PARTICLE_STEPS
-        self.forward()
-        if pair:
-            n_mass, n_inj = self.backward_pair(grad_F_final, grad_x_final)
-        else:
-            self.backward(None, None)
-            n_mass = self._grad_norm
-            self._copy_grad_to_base()
-            self.backward(grad_F_final, grad_x_final, include_mass_loss=False)
-            n_inj = self._grad_norm
-        self.current.calibrated_for = self.current.rollout
-        return n_mass, n_inj
-
-    def combine_calibration(self, scale: float) -> None:
-        """The dFc gradient of mass loss + scale <g, final state> from calibration_gradients' two
-        (the backward is linear in the injected adjoint), in place, as the last backward's
-        gradient: optimize_control(gradient_ready=True) starts from it."""
-        if not (self.current.trajectory_current and self.current.calibrated_for == self.current.rollout):
-            raise RuntimeError("combine_calibration needs calibration_gradients on the current rollout")
-        if not np.isfinite(scale):
-            raise ValueError(f"scale must be finite, got {scale!r}")
-        self._combine_gradients(float(scale))
-        self.current.calibrated_for = -1  # the mass gradient's copy is consumed (the line search reuses its field)
-        self.current.combined_for = self.current.rollout
-        self._grad_norm_sq()
-        self._grad_norm = float(np.sqrt(self.norm_acc[None]))
 
     def rollout(self) -> ParticleState:
         """Forward with the current dFc and return the state at t = T (the forward is skipped
@@ -303,15 +212,22 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
             self.forward()
         return self.state_at(self.cfg.substeps)
 
+    def state_at(self, t: int) -> ParticleState:
+        """Stored particle state at substep t (0..T) of the last forward, float64."""
+        self._require_loaded()
+        return self.trajectory.state_at(t)
+
+    def initial_state_gradients(self) -> dict:
+        """Adjoints of the initial x, v, C, F after backward(): {"x": [N,3], "v", "C", "F"}."""
+        a = self.adjoint
+        return {name: f.to_numpy().astype(np.float64)
+                for name, f in (("x", a.x_adj), ("v", a.v_adj), ("C", a.C_adj), ("F", a.F_adj))}
+
     def grid_mass(self) -> np.ndarray:  # [res, res, res]
         """Grid mass of x_T from the last forward (valid right after forward/rollout)."""
-        self._clear_grid()
-        self._splat_mass(self.cfg.substeps)
-        return self.grid_m.to_numpy().astype(np.float64)
-
-    @property
-    def grad_norm(self) -> float:
-        return self._grad_norm
+        self.transfers.clear_grid()
+        self.physics_loss.splat_mass(self.cfg.substeps)
+        return self.trajectory.grid_m.to_numpy().astype(np.float64)
 
     def bytes_per_particle_substep(self) -> int:
         """Stored per particle per substep (physmorph.settings.solver_memory: x, v, C, F, the rotation's
@@ -322,35 +238,28 @@ class MPMSolver(SolverFields, Transfers, PhysicsLoss, ControlField, StepKernels)
         if not self.current.loaded:
             raise RuntimeError("call load_state before running the solver")
 
-    def _check_adjoint(self, g, shape, name) -> np.ndarray:
-        g = np.asarray(g, dtype=np.float64)
-        if g.shape != shape:
-            raise MPMStateError(f"{name} must have shape {shape}, got {g.shape}")
-        if not np.isfinite(g).all():
-            raise MPMStateError(f"{name} is not finite (NaN/Inf)")
-        return g
+    # the control's and the loss's operations, called on the solver
+    reset_control = _delegated("control_field", ControlField.reset)
+    control = _delegated("control_field", ControlField.values)
+    set_control = _delegated("control_field", ControlField.set_values)
+    scale_control = _delegated("control_field", ControlField.scale)
+    control_mean = _delegated("control_field", ControlField.mean)
+    rebase_control = _delegated("control_field", ControlField.rebase)
+    control_gradient = _delegated("control_field", ControlField.gradient)
+    keep_control = _delegated("kept_control", KeptControl.keep)
+    restore_kept_control = _delegated("kept_control", KeptControl.restore)
+    optimizer_state = _delegated("control_field", ControlField.optimizer_state)
+    set_optimizer_state = _delegated("control_field", ControlField.set_optimizer_state)
+    set_target_grid_mass = _delegated("physics_loss", MassLoss.set_target_grid_mass)
+    set_overfill_weight = _delegated("physics_loss", MassLoss.set_overfill_weight)
+    set_position_anchors = _delegated("physics_loss", MassLoss.set_position_anchors)
+    loss = _delegated("physics_loss", MassLoss.loss)
+    mass_loss = _delegated("physics_loss", MassLoss.mass_loss)
 
-    def _check_finite_rollout(self) -> None:
-        """Cheap check of the final state; on failure find the first bad substep/particle."""
-        T = self.cfg.substeps
-        def bad_rows(t):
-            x, v, F, _ = self._export_raw(t)
-            for name, a in (("x", x), ("v", v), ("F", F)):
-                a = a.reshape(self.n, -1)
-                bad = ~(np.abs(a) <= _BLOWUP).all(axis=1)
-                if bad.any():
-                    return name, int(np.argmax(bad))
-            return None
-
-        if bad_rows(T) is None:
-            return
-        for t in range(1, T + 1):
-            hit = bad_rows(t)
-            if hit is not None:
-                name, p = hit
-                raise MPMDivergenceError(
-                    f"{name} became non-finite (NaN/Inf or |{name}| > {_BLOWUP:g}) at substep "
-                    f"{t - 1} (particle {p})", quantity=name, substep=t - 1, particle=p)
+    @property
+    def overfill_weight(self) -> float:
+        """The packing term's weight in use (MPMConfig.overfill_weight unless set_overfill_weight)."""
+        return self.physics_loss.overfill_weight
 
 
 # Every solver solver_for built, with its config's kernel settings and size. Taichi does not free a

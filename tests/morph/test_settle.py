@@ -12,6 +12,7 @@ from physmorph.settings.workflow import load_settings
 from physmorph.meshes.fit import VOLUME_MISMATCH, volume_mismatch
 from physmorph.reports.metrics import REST_SWING_PERCENT, at_rest, sign_changes, swing_percent
 from physmorph.settings.morph import MorphConfig
+from physmorph.morph.judge import FrameJudge
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.records.runfile import read_metrics
 from physmorph.mpm.state import ParticleState
@@ -57,7 +58,8 @@ SHIPPED_FRAMES = 39
 
 @pytest.fixture(scope="module")
 def shipped_run(tiny):
-    """The tiny iso -> bunny full at the shipped method settings: (its metrics, its log lines)."""
+    """The tiny iso -> bunny full at the shipped method settings: (its metrics, its log lines).
+    Slow: one whole tiny full morph of SHIPPED_FRAMES (39) frames."""
     _, d = tiny
     return _run(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_shipped.h5", shipped(SHIPPED_FRAMES))
 
@@ -108,7 +110,7 @@ def test_a_target_of_another_volume_warns_and_settles(tiny, other_volumes, case,
     """The morph names the experiment, the volume ratio and the size that would match in its log
     and the run file, and still comes to rest (at most two sign changes or a swing of 2 %, a drop
     of at most 2 points). Measured without the gate at the default scale: the bunny at 15.0 swings
-    by 90 % of its alpha MSE every frame."""
+    by 90 % of its alpha MSE every frame. Slow: a whole tiny full morph of 30 frames for each case."""
     _, d = tiny
     particles, target, size = ((d / "p_iso.h5", other_volumes / "t_bunny15.h5", 15.0) if case == "small_target"
                                else (other_volumes / "p_iso124.h5", d / "t_bunny.h5", 18.0))
@@ -162,7 +164,8 @@ class _Killed(Exception):
 
 def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, shipped_run, monkeypatch):
     """Killed in frame 38, after the gate has undone frames (from frame 35 in this run), the run
-    resumes from its checkpoint (the accepted state) to the uninterrupted run."""
+    resumes from its checkpoint (the accepted state) to the uninterrupted run. Slow: a 39-frame
+    tiny morph run to its kill in frame 38, then resumed from its checkpoint to the end."""
     _, d = tiny
     mc = shipped(SHIPPED_FRAMES)
     full = shipped_run[0]
@@ -187,15 +190,16 @@ def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, ship
 
 def test_the_accepted_frame_kept_in_files_is_the_one_kept_in_memory(tiny, shipped_run, monkeypatch):
     """On the CPU the accepted frame and its control are written to the partial run and read back
-    when a frame is undone (MorphRun.keep_accepted, as in shipped_run); kept in memory instead (the
-    GPU's way), the run is the same (to the rounding of the threads' atomic sums)."""
+    when a frame is undone (FrameJudge.keep_accepted, as in shipped_run); kept in memory instead (the
+    GPU's way), the run is the same (to the rounding of the threads' atomic sums).
+    Slow: a whole 39-frame tiny full morph of its own, compared with shipped_run's."""
     _, d = tiny
 
     def in_memory(self, frame):
         self.solver.keep_control()
         return frame
 
-    monkeypatch.setattr(morph.MorphRun, "keep_accepted", in_memory)
+    monkeypatch.setattr(FrameJudge, "keep_accepted", in_memory)
     held = _run(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_in_memory.h5", shipped(SHIPPED_FRAMES))[0]
     on_disk = shipped_run[0]
     assert np.nansum(np.asarray(held["settling"]) == 2.0) > 0

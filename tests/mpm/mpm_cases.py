@@ -144,7 +144,7 @@ def autograd_check(s: MPMSolver, st: ParticleState, ctrl, gF=None, check_x0=True
     c = ref.as_torch(ctrl, True)
     states = ref.rollout_torch(x0, ref.as_torch(st.v), ref.as_torch(st.C), ref.as_torch(st.F), c,
                                ref.as_torch(st.Fp), ref.as_torch(st.mass), ref.as_torch(st.volume), s.cfg)
-    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(st.mass), ref.as_torch(s.target_m.to_numpy()), s.cfg)
+    loss = ref.mass_loss_torch(states[-1][0], ref.as_torch(st.mass), ref.as_torch(s.model.target_m.to_numpy()), s.cfg)
     if gF is not None:
         loss = loss + (states[-1][3] * ref.as_torch(gF)).sum()
     loss.backward()

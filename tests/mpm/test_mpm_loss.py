@@ -41,14 +41,16 @@ def _loss_at_zero_control(s: MPMSolver, cfg: MPMConfig, state: ParticleState):
     s.set_control(np.zeros((cfg.substeps, state.n, 3, 3)))
     L = s.forward()
     end = s.state_at(cfg.substeps)
-    return L, splat_mass(end.x, end.mass, s.grid), s.target_m.to_numpy(), cfg.log_mass_eps * state.mass.mean()
+    return L, splat_mass(end.x, end.mass, s.grid), s.model.target_m.to_numpy(), cfg.log_mass_eps * state.mass.mean()
 
 
 def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
     """mass_loss_blur sigma > 0 adds weight x sum_I (log((B m)_I + e) - log((B m*)_I + e))^2, B the
     Gaussian blur truncated at 3 sigma, zero outside the grid: the loss against the formula with B
     as one dense 3D convolution (scipy, not the solver's separable passes), and the control gradient
-    against central finite differences and torch autograd (the reference's conv3d)."""
+    against central finite differences and torch autograd (the reference's conv3d). Slow: it
+    compiles a solver of its own settings (the blurred level's kernels) and runs some 30 rollouts
+    for the finite differences."""
     from scipy.ndimage import convolve
 
     cfg = cfg64(substeps=2, mass_loss="log", mass_loss_blur=1.2, mass_loss_blur_weight=2.0)
@@ -76,7 +78,8 @@ def test_position_anchors_add_their_term_and_match_fd(state):
     pull): the loss is the plain one plus that sum at the rollout's end, the gradients of control and
     initial state match central finite differences, backward_pair's mass-loss gradient carries the
     term (it belongs to the physics objective, not to the injected adjoints), mass_loss() reports
-    the loss without it, and None removes it."""
+    the loss without it, and None removes it. Slow: it compiles a solver of its own settings (the
+    anchors' kernels) and runs some 30 rollouts for the finite differences."""
     cfg = cfg64(substeps=2, mass_loss="log")
     s = make(cfg, state)
     s.set_control(random_control(cfg, state.n))
@@ -114,7 +117,8 @@ def test_overfill_term_matches_its_formula_reference_and_fd(state):
     finite differences and torch autograd. A weight w' set at run time (set_overfill_weight, what
     MorphConfig.overfill_onset does) gives the same with w': 0 leaves the plain log loss, and the
     gradient at w' matches finite differences and the reference built with w'. A solver built
-    without the term refuses a weight."""
+    without the term refuses a weight. Slow: it compiles a solver of its own settings (the overfill
+    kernels) and runs two finite-difference checks and two reference rollouts through torch."""
     cfg = cfg64(substeps=2, mass_loss="log", overfill_weight=3.0, overfill_ratio=0.4)
     s = make(cfg, state)
     assert s.overfill_weight == 3.0

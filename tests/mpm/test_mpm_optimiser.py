@@ -187,7 +187,7 @@ def test_first_gradient_from_the_injection_calibration_skips_nothing_it_should_n
         g_inj = s.control_gradient()
         cal = calibrate_injection(s, 0.1, gF, None, pair=pair)
         assert cal.scale == pytest.approx(0.1 * np.linalg.norm(g_mass) / np.linalg.norm(g_inj), rel=1e-9)
-        pair_inj, pair_mass = s.control_gradient(), s.ctrl_base.to_numpy()
+        pair_inj, pair_mass = s.control_gradient(), s.control_field.ctrl_base.to_numpy()
         np.testing.assert_allclose(pair_inj, g_inj, rtol=1e-10, atol=1e-14 * np.abs(g_inj).max())
         np.testing.assert_allclose(pair_mass, g_mass, rtol=1e-10, atol=1e-14 * np.abs(g_mass).max())
         if use_first:
@@ -254,8 +254,8 @@ def test_normalized_gd_keeps_no_adam_moments_and_resumes_from_its_state(state):
     s.load_state(state)
     s.optimize_control(iters=1)
     saved = s.optimizer_state()
-    assert s.adam_m is None and set(saved) == {"control", "adam_step"}
-    assert saved["control"].dtype == s.np_dtype
+    assert s.control_field.adam_m is None and set(saved) == {"control", "adam_step"}
+    assert saved["control"].dtype == s.model.np_dtype
     ctrl_a = (s.optimize_control(iters=1), s.control())[1]
     s.reset_control()
     s.set_optimizer_state(saved)

@@ -38,7 +38,7 @@ def test_extreme_states_stay_finite(solver20, case):
         st.Fp[1::2] = np.diag([10.0, 10.0, 10.0])  # det 1000
     elif case == "faces":
         # particles pressed against all six faces, moving outward fast
-        lo, hi = s._x_min, s._x_max
+        lo, hi = s.model.x_min, s.model.x_max
         x = rng.uniform(lo, hi, size=(n, 3))
         for i in range(n):
             x[i, i % 3] = lo if (i // 3) % 2 == 0 else hi
@@ -50,7 +50,7 @@ def test_extreme_states_stay_finite(solver20, case):
     end = s.state_at(20)
     for name in ("x", "v", "F", "C"):
         assert np.isfinite(getattr(end, name)).all(), name
-    assert (end.x >= s._x_min).all() and (end.x <= s._x_max).all()
+    assert (end.x >= s.model.x_min).all() and (end.x <= s.model.x_max).all()
     s.backward()
     assert np.isfinite(s.control_gradient()).all()
     assert np.isfinite(s.initial_state_gradients()["x"]).all()
@@ -153,7 +153,7 @@ def test_injected_adjoint_alone_is_the_difference(solver3, state):
     # backward_pair: the two in one reverse sweep (mass into the base field, injected into the gradient)
     n_mass, n_inj = s.backward_pair(gF, gx)
     np.testing.assert_allclose(s.control_gradient(), g_inj, rtol=1e-10, atol=1e-14 * np.abs(g_inj).max())
-    np.testing.assert_allclose(s.ctrl_base.to_numpy(), g_mass, rtol=1e-10, atol=1e-14 * np.abs(g_mass).max())
+    np.testing.assert_allclose(s.control_field.ctrl_base.to_numpy(), g_mass, rtol=1e-10, atol=1e-14 * np.abs(g_mass).max())
     assert (n_mass, n_inj) == pytest.approx((np.linalg.norm(g_mass), np.linalg.norm(g_inj)), rel=1e-10)
     for key, ref in initial_inj.items():
         np.testing.assert_allclose(s.initial_state_gradients()[key], ref, rtol=1e-10, atol=1e-14 * np.abs(ref).max())
@@ -202,7 +202,8 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     """solver_for hands back the previous solver for an equal config and size, reset: after a
     run that moved dFc and the Adam moments, it optimizes exactly as a freshly built solver; given
     other driver settings (optimiser, learning rate, line search, log eps, ...) it optimizes as a
-    solver built with them."""
+    solver built with them. Slow: it builds two solvers, each compiling its kernels (solver_for's
+    and a fresh one to compare with), and runs four optimisations of three iterations each."""
     cfg = cfg64(substeps=2, mass_loss="log")
     target = stretched_target(ball_state(perturb=False), cfg)
 
@@ -259,7 +260,8 @@ def test_no_kernel_reads_a_driver_field():
                 or bool(names & {"ti.kernel", "ti.func"}))
 
     read = set()
-    kernels = ("solver", "stress", "fields", "transfers", "physics_loss", "control", "step_kernels")
+    kernels = ("solver", "stress", "model", "trajectory", "adjoint", "transfers", "transfer_adjoints",
+               "physics_loss", "control", "step_kernels", "optimiser")
     for module in (importlib.import_module(f"physmorph.mpm.{name}") for name in kernels):
         for node in ast.walk(ast.parse(inspect.getsource(module))):
             if isinstance(node, ast.FunctionDef) and compiled_or_init(node):

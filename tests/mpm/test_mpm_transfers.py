@@ -28,7 +28,7 @@ def test_grid_mass_matches_splat_mass(solver3, state):
     np.testing.assert_allclose(solver3.grid_mass(), splat_mass(end.x, end.mass, solver3.grid),
                                rtol=1e-12, atol=1e-10)
     assert solver3.mass_loss() == pytest.approx(
-        ((solver3.grid_mass() - solver3.target_m.to_numpy()) ** 2).sum(), rel=1e-12)
+        ((solver3.grid_mass() - solver3.model.target_m.to_numpy()) ** 2).sum(), rel=1e-12)
 
 
 def test_rollout_matches_torch_reference(solver3, state):
@@ -134,7 +134,7 @@ def test_log_loss_value_matches_reference(solver3_log, state):
     end = s.state_at(3)
     m = splat_mass(end.x, end.mass, s.grid)
     eps = cfg.log_mass_eps * state.mass.mean()
-    want = ((np.log(m + eps) - np.log(s.target_m.to_numpy() + eps)) ** 2).sum()
+    want = ((np.log(m + eps) - np.log(s.model.target_m.to_numpy() + eps)) ** 2).sum()
     assert L == pytest.approx(want, rel=1e-10)
 
 
@@ -214,7 +214,7 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     s = make(cfg, st)
     s.set_control(random_control(cfg, st.n, scale=0.02))
     s.forward()
-    m, t = splat_mass(s.state_at(cfg.substeps).x, st.mass, s.grid), s.target_m.to_numpy()
+    m, t = splat_mass(s.state_at(cfg.substeps).x, st.mass, s.grid), s.model.target_m.to_numpy()
     cap = np.maximum(cfg.overfill_ratio * cfg.density * cfg.dx ** 3, t)
     assert (m > cap).sum() > 5  # the overfill term acts on some nodes ...
     assert ((m > 0) & (m <= cap)).sum() > 5  # ... and not on others
@@ -269,7 +269,7 @@ def test_polar_from_a_nearby_rotation_is_the_svd_polar(precision):
 
 def test_forward_rotations_kept_as_quaternions_round_trip(solver3):
     """The forward keeps each substep's polar rotation as a unit quaternion for the backward
-    (MPMSolver._quaternion_of / _rotation_of): back to the same rotation to float64 round-off,
+    (MPMModel.quaternion_of / rotation_of): back to the same rotation to float64 round-off,
     for random rotations, rotations by pi about an axis (w = 0: every Shepperd branch) and the
     identity."""
     import taichi as ti
@@ -288,7 +288,7 @@ def test_forward_rotations_kept_as_quaternions_round_trip(solver3):
     @ti.kernel
     def round_trip():
         for i in r_in:
-            r_out[i] = s._rotation_of(s._quaternion_of(r_in[i]))
+            r_out[i] = s.model.rotation_of(s.model.quaternion_of(r_in[i]))
 
     round_trip()
     np.testing.assert_allclose(r_out.to_numpy(), rots, rtol=0, atol=1e-14)

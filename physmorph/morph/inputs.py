@@ -1,0 +1,115 @@
+"""What one morph run reads and never changes (physmorph.morph.loop's MorphRun holds one): the
+particles, the target and the views the render loss sees, the solver built for them, the device
+of the searches, what the method uses; and the measures of a state against the target (the
+frame's metrics, each particle's nearest target surface point).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from physmorph.base.taichi_runtime import resolve_device
+from physmorph.meshes.fit import volume_mismatch
+from physmorph.meshes.particles import load_particles
+from physmorph.morph.frame_measures import DeformationMeasures, deformation_measures, grid_mass
+from physmorph.morph.quality import silhouette_iou, volume_metrics
+from physmorph.morph.targets import load_target
+from physmorph.mpm.solver import solver_for
+from physmorph.mpm.state import ParticleState, kinetic_energy, total_volume
+from physmorph.render.api import render_views
+from physmorph.render.containers import RenderTarget
+from physmorph.settings.morph import MorphConfig
+
+
+class MorphInputs:
+    """The run's particles, target, views and solver, and the measures against the target."""
+
+    def __init__(self, particles_h5, target_h5, cfg: MorphConfig, name: str, log, target_size: float | None = None):
+        self.cfg = cfg
+        self.parts = parts = load_particles(particles_h5)
+        self.target = target = load_target(target_h5)
+        if target.grid.res != cfg.mpm.grid_res:
+            raise ValueError(f"{target_h5}: target grid {target.grid.res}^3 does not match mpm.grid_res {cfg.mpm.grid_res}")
+        # The render loss sees `cfg.cameras` views evenly spaced around the ring; the alpha-MSE metric
+        # always uses every target view, so runs with different camera counts stay comparable.
+        self.V = V = target.cameras.count
+        n_loss = V if cfg.cameras is None else min(cfg.cameras, V)
+        self.views = views = sorted(set(np.linspace(0, V, n_loss, endpoint=False).astype(int).tolist()))
+        self.cams = target.cameras.subset(views)
+        self.rtarget = RenderTarget(target.alpha[views], target.depth[views], target.sdt[views])
+        # The best any morph of these particles can render: the target's own sampling at rest.
+        self.ceiling = float(getattr(target, "ceiling_alpha_mse", np.nan))
+        # Sliding-midpoint splits (balanced_tree=False): the surface points lie on a 2D sheet, where the
+        # median-split tree makes each particle's nearest-point query 3.3x slower (471K particles
+        # against 200K points, the paper profile: 5.8 s against 1.75 s a query).
+        self.tree = cKDTree(target.surface_points, balanced_tree=False, compact_nodes=False)
+        self.N = N = len(parts.x)
+        self.solver = solver_for(cfg.mpm, N)  # a reset solver, reused from the previous run of this config and size
+        # the device of the solver's Taichi runtime, and the torch device of the transport plan; on
+        # "cuda" also of the nearest-target and the mask's distance searches (physmorph.plasticity.nearest), the
+        # target points held there; on the CPU those are KD-tree queries (search_device None)
+        self.device = resolve_device(cfg.mpm.device)
+        self.search_device = None if self.device == "cpu" else self.device
+        self.target_on_device = None
+        if self.search_device is not None:
+            from physmorph.plasticity.nearest import DevicePoints
+
+            self.target_on_device = DevicePoints(target.surface_points, self.search_device)
+        # MPM conserves mass, so a target of another total mass cannot be matched: the squared loss
+        # would then be lowered by smearing the excess thinly. The target's mass distribution is
+        # rescaled to the source's total mass (its shape is what is matched).
+        self.mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
+        self.solver.set_target_grid_mass(target.grid_mass * self.mass_ratio)
+        # a target of another volume is named once in the log and in the run file's warnings
+        self.source_volume = parts.mesh_volume if np.isfinite(parts.mesh_volume) else float(parts.volume.sum())
+        self.volume_note = volume_mismatch(name or str(target_h5), self.source_volume, float(target.volume), target_size)
+        if self.volume_note:
+            log(f"[{name}] warning: {self.volume_note}")
+        # The mask is only built where something uses it (a switched-off component costs nothing).
+        self.need_mask = cfg.method != "physics_only" or not cfg.metric_all_particles
+        # The loss render of a frame is the metric's render when it draws the same particles (the
+        # mask) from every view: plasticity and the momentum restart change neither x nor F.
+        self.loss_render_is_metric = not cfg.metric_all_particles and len(views) == V
+        self.inject_F = cfg.method in ("f_inject", "full")
+        self.inject_x = cfg.method == "position_inject"
+        self.want_grad = self.inject_F or self.inject_x
+
+    # ---------------------------------------------------------------------------- the phases
+    def measure(self, st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
+                target_distance: np.ndarray | None = None,
+                masked_alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray, DeformationMeasures]:  # per_view [V]
+        """The frame's metrics: α MSE and IoU over every target view, the deformation measures,
+        the energies, the Chamfer distance and the volume metrics."""
+        cfg, target = self.cfg, self.target
+        sel = slice(None) if cfg.metric_all_particles else mask
+        if alpha is None and masked_alpha is not None and cfg.metric_all_particles:
+            # The loss rendered the masked particles from every view; coverage composes, 1 - alpha =
+            # T_mask T_rest (to within the compositing's early stop, transmittance_min), so only the
+            # particles outside the mask (~10 % at the paper's scale) are rendered again.
+            rest = ~mask
+            alpha = masked_alpha if not rest.any() else 1.0 - (1.0 - masked_alpha) * (
+                1.0 - render_views(st.x[rest], st.F[rest], self.parts.sigma0, target.cameras, cfg.render)[0])
+        if alpha is None:
+            alpha, _ = render_views(st.x[sel], st.F[sel], self.parts.sigma0, target.cameras, cfg.render)
+        per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
+        iou = silhouette_iou(alpha, target.alpha)
+        dm = deformation_measures(st.F, st.Fp)
+        d = self.nearest_target(st.x)[0] if target_distance is None else target_distance
+        return {"alpha_mse": float(per_view.mean()), "iou": float(iou.mean()),
+                "fp_det_min": float(dm.det_plastic.min()), "fp_det_max": float(dm.det_plastic.max()),
+                "fp_anisotropy_max": float(dm.anisotropy_plastic.max()),
+                "elastic_energy": dm.elastic_energy(st.volume, cfg.mpm), "kinetic_energy": kinetic_energy(st),
+                "total_volume": float(total_volume(st)),
+                "mask_size": int(mask.sum()) if self.need_mask else np.nan,
+                "mask_fraction": float(mask.mean()) if self.need_mask else np.nan,
+                "chamfer": float(d.mean()),
+                **volume_metrics(st.x, self.parts.mass, target.grid_mass, target.grid, splat=grid_mass)}, per_view, dm
+
+    def nearest_target(self, x: np.ndarray,  # [N, 3]
+                       ) -> tuple[np.ndarray, np.ndarray]:  # [N] distances, [N] indices
+        """Each x's nearest target surface point: the KD tree on the CPU, the exhaustive search of
+        physmorph.plasticity.nearest on the device."""
+        if self.target_on_device is None:
+            return self.tree.query(x, k=1, workers=-1)
+        return self.target_on_device.query(x)

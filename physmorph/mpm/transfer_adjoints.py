@@ -1,0 +1,230 @@
+"""The adjoints of one substep's transfers, each the hand-written reverse of its forward kernel in
+physmorph.mpm.transfers (paper section 4, "Physics rollout"): steps acting on the model, the
+stored state, the control's gradient and the adjoint (physmorph.mpm.adjoint).
+
+The substep's forward records (the rotation of Fe as a unit quaternion with its smallest pair sum,
+and the P2G grid) are restored instead of running P2G and its SVD again; with ``pair`` each
+reverse kernel carries a second adjoint set, sharing the stencil, A and the node loop's loads.
+"""
+
+import taichi as ti
+
+from .adjoint import Adjoint
+from .control import ControlField
+from .model import MPMModel
+from .trajectory import Trajectory
+
+
+@ti.data_oriented
+class TransferAdjoints:
+    """Reverse of G2P, the grid update and P2G of substep t: adjoints of s_(t+1) -> adjoints of s_t
+    and the control gradient of slot t."""
+
+    def __init__(self, model: MPMModel, trajectory: Trajectory, control: ControlField, adjoint: Adjoint):
+        self.model, self.trajectory, self.control, self.adjoint = model, trajectory, control, adjoint
+        self.n, self.dtype = model.n, model.dtype
+
+    @ti.kernel
+    def clear_grid_adjoint(self, pair: ti.template()):
+        for I in ti.grouped(self.trajectory.grid_m):
+            self.adjoint.grid_v_adj[I] = ti.Vector.zero(self.dtype, 3)
+            if ti.static(pair):
+                self.adjoint.grid_v_adj2[I] = ti.Vector.zero(self.dtype, 3)
+
+    @ti.kernel
+    def restore_p2g(self, t: ti.i32):
+        """The backward's scratch (A, Fe, its polar factors) and substep t's grid, from the forward's stored polar factors and grid:
+        Fe = (F + dFc_t) Fp^-1, R and gap as stored, S = sym(R^T Fe), A as in Transfers.p2g."""
+        kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
+        for I in ti.grouped(self.trajectory.grid_m):
+            self.trajectory.grid_m[I] = self.trajectory.grid_m_t[t, I]
+            self.trajectory.grid_mv[I] = self.trajectory.grid_mv_t[t, I]
+        for p in range(self.n):
+            Fe = (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
+            R = self.model.rotation_of(self.trajectory.R_q[t, p])
+            S0 = R.transpose() @ Fe
+            P = self.model.stress.stress_from_polar(Fe, R)
+            A = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
+            self.adjoint.A_s[p] = A
+            self.adjoint.Fe_s[p] = Fe
+            self.adjoint.R_s[p] = R
+            self.adjoint.S_s[p] = 0.5 * (S0 + S0.transpose())
+            self.adjoint.gap_s[p] = self.trajectory.gap_t[t, p]
+
+    @ti.kernel
+    def p2g_backward(self, t: ti.i32, pair: ti.template()):
+        """Reverse of Transfers.p2g: grid adjoints -> adjoints of (x, v, C, F) of state t and of dFc_t (pair:
+        also the second set's, sharing the stencil, A and the node loop)."""
+        damp = 1.0 - self.dtype(self.model.cfg.dt) * self.dtype(self.model.cfg.drag)
+        for p in range(self.n):
+            xp = self.trajectory.x[t, p]
+            base, fx, w, dw = self.model.stencil(xp)
+            A = self.adjoint.A_s[p]
+            mp = self.model.mass[p]
+            mom = mp * damp * self.trajectory.v[t, p]
+            vbar = ti.Vector.zero(self.dtype, 3)
+            Abar = ti.Matrix.zero(self.dtype, 3, 3)
+            xbar = ti.Vector.zero(self.dtype, 3)
+            vbar2, Abar2, xbar2 = vbar, Abar, xbar
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = self.model.node(fx, w, i, j, k)
+                gw = self.model.node_grad(w, dw, i, j, k)
+                mv = mom + A @ dpos
+                mvb = self.adjoint.grid_mv_adj[base + off]
+                vbar += wt * mvb
+                Abar += wt * mvb.outer_product(dpos)
+                xbar += gw * (mvb.dot(mv) + self.adjoint.grid_m_adj[base + off] * mp) - wt * (A.transpose() @ mvb)
+                if ti.static(pair):
+                    mvb2 = self.adjoint.grid_mv_adj2[base + off]
+                    vbar2 += wt * mvb2
+                    Abar2 += wt * mvb2.outer_product(dpos)
+                    xbar2 += gw * (mvb2.dot(mv) + self.adjoint.grid_m_adj2[base + off] * mp) - wt * (A.transpose() @ mvb2)
+            # one call site of the stress's differential for both sets (each inlined copy costs
+            # seconds of compilation): a loop over the sets
+            for which in range(2 if ti.static(pair) else 1):
+                vb, Ab, xb = vbar, Abar, xbar
+                if ti.static(pair):
+                    if which == 1:
+                        vb, Ab, xb = vbar2, Abar2, xbar2
+                Fhat_bar = self._p2g_F_adjoint(p, Ab)
+                if which == 0:
+                    self._add_particle_adjoints(p, t, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.adjoint.x_adj,
+                                                self.adjoint.v_adj, self.adjoint.C_adj, self.adjoint.F_adj, self.control.ctrl_grad)
+                if ti.static(pair):
+                    if which == 1:
+                        self._add_particle_adjoints(p, t, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.adjoint.x_adj2,
+                                                    self.adjoint.v_adj2, self.adjoint.C_adj2, self.adjoint.F_adj2, self.control.ctrl_base)
+
+    @ti.func
+    def _p2g_F_adjoint(self, p, Abar):
+        """The particle part of p2g's reverse for one adjoint set: A_bar -> P_bar = tau_bar Fe ->
+        Fe_bar (the stress's self-adjoint differential) -> the adjoint of F + dFc."""
+        kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
+        Fe = self.adjoint.Fe_s[p]
+        tau_bar = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * Abar
+        P, dP = self.model.stress.stress_and_diff_polar(Fe, self.adjoint.R_s[p], self.adjoint.S_s[p], self.adjoint.gap_s[p],
+                                                         tau_bar @ Fe)  # P_bar = tau_bar Fe
+        Fe_bar = tau_bar.transpose() @ P + dP
+        return Fe_bar @ self.model.Fp_inv[p].transpose()
+
+    @ti.func
+    def _add_particle_adjoints(self, p, slot, xbar, vbar, Cbar, Fbar, xa: ti.template(), va: ti.template(),
+                               Ca: ti.template(), Fa: ti.template(), grad: ti.template()):
+        xa[p] += xbar
+        va[p] += vbar
+        Ca[p] += Cbar
+        Fa[p] += Fbar
+        grad[slot, p] += Fbar
+
+    @ti.kernel
+    def grid_backward(self, pair: ti.template()):
+        """Reverse of Transfers.grid_update: v_bar -> (mv_bar, m_bar) through the mask and v = mv / m."""
+        for I in ti.grouped(self.trajectory.grid_m):
+            m = self.trajectory.grid_m[I]
+            vfree = ti.Vector.zero(self.dtype, 3)
+            vc = vfree
+            if m > 0:
+                vfree = self.trajectory.grid_mv[I] / m
+                vc = self.model.boundary(I, vfree)
+            self._grid_adjoint_node(I, m, vfree, vc, self.adjoint.grid_v_adj, self.adjoint.grid_mv_adj, self.adjoint.grid_m_adj)
+            if ti.static(pair):
+                self._grid_adjoint_node(I, m, vfree, vc, self.adjoint.grid_v_adj2, self.adjoint.grid_mv_adj2, self.adjoint.grid_m_adj2)
+
+    @ti.func
+    def _grid_adjoint_node(self, I, m, vfree, vc, va: ti.template(), mva: ti.template(), ma: ti.template()):
+        """One adjoint set at node I: the boundary's zeroed components pass nothing back."""
+        mvb = ti.Vector.zero(self.dtype, 3)
+        mb = ti.cast(0.0, self.dtype)
+        if m > 0:
+            vb = va[I]
+            for a in ti.static(range(3)):
+                if vc[a] == 0.0 and vfree[a] != 0.0:
+                    vb[a] = 0.0
+            mvb = vb / m
+            mb = -vb.dot(vfree) / m
+        mva[I] = mvb
+        ma[I] = mb
+
+    @ti.kernel
+    def g2p_backward(self, t: ti.i32, pair: ti.template()):
+        """Reverse of Transfers.g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t
+        (pair: also the second set's, sharing the stencil and the node loop's grid loads)."""
+        kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
+        for p in range(self.n):
+            xp = self.trajectory.x[t, p]
+            base, fx, w, dw = self.model.stencil(xp)
+            xbar, vbar, Cbar = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3), ti.Matrix.zero(self.dtype, 3, 3)
+            xbar2, vbar2, Cbar2 = xbar, vbar, Cbar  # set in the loop below
+            # one call site of the particle part for both sets (a loop over the sets)
+            for which in range(2 if ti.static(pair) else 1):
+                xa, va, Ca, Fa = self.adjoint.x_adj[p], self.adjoint.v_adj[p], self.adjoint.C_adj[p], self.adjoint.F_adj[p]
+                if ti.static(pair):
+                    if which == 1:
+                        xa, va, Ca, Fa = self.adjoint.x_adj2[p], self.adjoint.v_adj2[p], self.adjoint.C_adj2[p], self.adjoint.F_adj2[p]
+                xb, vb, Cb, Fb = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
+                if which == 0:
+                    xbar, vbar, Cbar = xb, vb, Cb
+                    self._set_F_adjoint(p, Fb, self.adjoint.v_adj, self.adjoint.C_adj, self.adjoint.F_adj)
+                if ti.static(pair):
+                    if which == 1:
+                        xbar2, vbar2, Cbar2 = xb, vb, Cb
+                        self._set_F_adjoint(p, Fb, self.adjoint.v_adj2, self.adjoint.C_adj2, self.adjoint.F_adj2)
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = self.model.node(fx, w, i, j, k)
+                gw = self.model.node_grad(w, dw, i, j, k)
+                gv = self.trajectory.grid_v[base + off]
+                Cd = Cbar @ dpos
+                self.adjoint.grid_v_adj[base + off] += wt * (vbar + kq * Cd)
+                xbar += gw * (vbar.dot(gv) + kq * gv.dot(Cd)) - (wt * kq) * (Cbar.transpose() @ gv)
+                if ti.static(pair):
+                    Cd2 = Cbar2 @ dpos
+                    self.adjoint.grid_v_adj2[base + off] += wt * (vbar2 + kq * Cd2)
+                    xbar2 += gw * (vbar2.dot(gv) + kq * gv.dot(Cd2)) - (wt * kq) * (Cbar2.transpose() @ gv)
+            self.adjoint.x_adj[p] = xbar
+            if ti.static(pair):
+                self.adjoint.x_adj2[p] = xbar2
+
+    @ti.func
+    def _g2p_particle_adjoint(self, t, p, xbar_n, vbar_n, Cbar_n, Fbar_n):
+        """The particle part of g2p's reverse for one adjoint set: the adjoints of x, v, C, F of
+        state t+1 -> F's of state t and the (x_bar, v_bar, C_bar) that the node loop scatters."""
+        s = self.dtype(self.model.cfg.smoothing)
+        dt = self.dtype(self.model.cfg.dt)
+        xn = self.trajectory.x[t + 1, p]
+        for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
+            if xn[a] <= self.dtype(self.model.x_min) or xn[a] >= self.dtype(self.model.x_max):
+                xbar_n[a] = 0.0
+        Fh = self.trajectory.F[t, p]
+        Cn = self.trajectory.C[t + 1, p]
+        Fbar_new = (1.0 - s) * Fbar_n
+        Fbar = s * Fbar_n
+        if ti.static(self.model.cfg.smoothing_mode == "isochoric"):
+            # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
+            # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs> (0 where the floor
+            # J_min holds det F' instead of det Fn)
+            Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
+            Fs = (1.0 - s) * Fn + s * self.trajectory.F[t, p]
+            r = self.model.volume_scale(Fn, Fs)
+            Fs_bar = r * Fbar_n
+            Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
+            Jt = self.model.volume_target(Fn)
+            if (Jt / Fs.determinant()) > 0:
+                k3 = r * (Fbar_n * Fs).sum() / 3.0
+                Fs_bar -= k3 * Fs.inverse().transpose()
+                if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor)
+                    Fbar_new = k3 * Fn.inverse().transpose()
+            Fbar_new += (1.0 - s) * Fs_bar
+            Fbar = s * Fs_bar
+        Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
+        Fbar += Fh_bar
+        Cbar = Cbar_n + dt * Fbar_new @ Fh.transpose()
+        vbar = vbar_n + dt * xbar_n
+        return xbar_n, vbar, Cbar, Fbar
+
+    @ti.func
+    def _set_F_adjoint(self, p, Fbar, va: ti.template(), Ca: ti.template(), Fa: ti.template()):
+        """One set's adjoints of state t after g2p's particle part: F's written, v's and C's
+        consumed (zeroed)."""
+        Fa[p] = Fbar
+        va[p] = ti.Vector.zero(self.dtype, 3)
+        Ca[p] = ti.Matrix.zero(self.dtype, 3, 3)
