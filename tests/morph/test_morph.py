@@ -38,6 +38,8 @@ class _Killed(Exception):
 
 @pytest.fixture(scope="module")
 def tiny_runs(tiny):
+    """The tiny iso -> bunny physics-only and full runs, read back: method -> metrics.
+    Slow: two whole tiny morphs of 12 frames each, physics-only and full."""
     return {m: read_metrics(_run(tiny, f"iso_bunny_{m}", f"{m}.h5")) for m in ("physics_only", "full")}
 
 
@@ -45,7 +47,8 @@ def test_the_same_morph_at_two_resolutions_closes_a_comparable_share(tiny, tiny_
     """The method's settings are scale-free (the step follows dx, mpm.step_scales_with_dx): the
     tiny iso -> bunny full morph on a 24^3 grid (dx 4/3, ~500 particles) closes about the share
     of its reachable gap that the 32^3 run (dx 1, ~1.2K particles) does. Measured 2026-11-25:
-    best 61.6 / 63.4 %, last 54.1 / 63.4 %."""
+    best 61.6 / 63.4 %, last 54.1 / 63.4 %. Slow: it samples and rasterizes at 24^3 and runs a
+    whole 12-frame full morph there, on a solver built for its particle count."""
     cfg = load_settings("config/config.yaml", "config/test.yaml",
                         overrides={"sampling": {"grid_res": 24}, "surface": {"voxels": 24}})
     _, d = tiny
@@ -222,7 +225,7 @@ def test_momentum_restart_starts_the_next_frame_at_rest_when_the_mass_loss_rose(
 def test_restart_against_two_frames_back(tiny):
     """morph.restart_reference: two_back: a frame is flagged when its mass loss ends above the
     frame's two before (the previous frame's where that one has no value), not merely above the
-    previous one."""
+    previous one. Slow: one whole tiny full morph of 24 frames."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     assert base.restart_reference == "previous"
@@ -272,7 +275,8 @@ def _spy_controls(monkeypatch) -> tuple[list, list]:
 def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, monkeypatch):
     """morph.control_decay kappa: frame k starts with kappa x the control frame k - 1 ended with;
     morph.restart_control_keep r: after a restart that control is also scaled by r. The defaults
-    (0.975, 1) leak 2.5 % a frame and keep it whole at a restart."""
+    (0.975, 1) leak 2.5 % a frame and keep it whole at a restart.
+    Slow: three whole tiny physics-only morphs of 12 frames each, one per (decay, keep) pair."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
     assert (base.control_decay, base.restart_control_keep) == (0.975, 1.0)
@@ -348,7 +352,8 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
     (physmorph.morph.quality: a0' = max(a0, c + tol), tol = GAP_REL_TOL c, (a0' - a) / (a0' - c)), finite
     (it must not divide by the vanishing gap a0 - c), and, with the body held at its target,
     within 0.05 of 1 (alpha within 0.5 % of the ceiling; measured: exactly 1, the body does not
-    move). Frame 0 is recorded as 0 (no progress yet), which the formula would put at 1 here."""
+    move). Frame 0 is recorded as 0 (no progress yet), which the formula would put at 1 here.
+    Slow: it samples the bunny's particles and morphs them 3 frames, on a solver built for their count."""
     cfg, d = tiny
     s = cfg.sampling
     sample_particles_stage(d / "bunny.h5", d / "p_bunny.h5", d / "p_bunny.png", s, 0)
@@ -382,7 +387,8 @@ def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
     momentum restart) rings and ends worse than it started (64 % rebound, 20 % closed against
     81 %, measured 2026-11-24); the default's restart damps that ringing (4 % rebound with the
     control leaking 5 % a frame, 13 % with the present 2.5 %, measured 2026-11-28). The paper's
-    plasticity: each particle pulled toward its nearest target surface point."""
+    plasticity: each particle pulled toward its nearest target surface point. Slow: four whole tiny
+    full morphs of 12 frames each (continuous stress on and off, in the default and the paper's loop)."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     out = {}
@@ -408,7 +414,8 @@ def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
 def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
     """plasticity.absorb_control moves the achieved deformation into the rest state: released
     (control off, morph.release_frames) the tiny iso -> bunny morph keeps most of its gain, while
-    without plasticity (f_inject) the elastic body springs back toward the source."""
+    without plasticity (f_inject) the elastic body springs back toward the source.
+    Slow: two whole tiny morphs of 12 frames each, each then released for 12 frames."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     pl = dataclasses.replace(base.plasticity, absorb_control=True, absorb_target="control", absorb_start_frame=None,
@@ -541,7 +548,8 @@ def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny
     to the same run without absorption), and released the tiny morph keeps most of its gain, while
     without plasticity (f_inject) it springs back. With the nearest-point map the plasticity alone
     does not hold the shape (it springs back without the absorption); the transport map's rest
-    state alone keeps part of it (it springs back less than f_inject)."""
+    state alone keeps part of it (it springs back less than f_inject). Slow: five whole tiny morphs
+    of 12 frames each, one per variant compared, each then released for 12 frames."""
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     assert base.plasticity.absorb_control and base.plasticity.absorb_target == "shape"

@@ -167,6 +167,10 @@ def test_slurm_profile_dry_run(tmp_path):
 
 @pytest.fixture(scope="module")
 def test_run(tmp_path_factory, mesh_dir):
+    """The test profile's tables, figures and tradeoff, made once in a scratch working directory:
+    (that directory, mesh_dir). Slow: the test profile's whole workflow, each job its own process:
+    two 12-frame morphs (each then released for 40 frames), three 3-frame tradeoff points and the
+    meshes, particles, targets, tables and figures they need."""
     wd = _workdir(tmp_path_factory.mktemp("wf"))
     out = _run(wd, "tables", "figures", "tradeoff", *TEST, "--config", f"mesh_dir={mesh_dir}", check=False)
     assert out.returncode == 0, out.stderr[-4000:]
@@ -174,6 +178,9 @@ def test_run(tmp_path_factory, mesh_dir):
 
 
 def test_tables_on_test_profile(test_run):
+    """The test profile's run leaves every stage's outputs, logs and benchmarks, its tables in three
+    formats with the paper's numbers beside ours, the speed/accuracy study and the figures.
+    Slow: its fixture test_run runs the test profile's whole workflow, each job its own process."""
     wd, _ = test_run
     r = wd / "results/test"
     for shape in ("iso", "bunny"):
@@ -238,6 +245,9 @@ def test_tables_on_test_profile(test_run):
 
 
 def test_changed_settings_rerun_exactly_the_runs_that_use_them(test_run):
+    """A changed setting replans exactly the jobs whose params it reaches; a setting at its default,
+    the thread count and where the mesh mirror lies replan nothing.
+    Slow: ten Snakemake dry runs, each its own process building the test profile's whole DAG."""
     wd, mesh_dir = test_run
     base = (*TEST, "--config", f"mesh_dir={mesh_dir}")
     targets = ("tables", "tradeoff")
@@ -300,7 +310,8 @@ def test_a_mesh_given_by_path_morphs_end_to_end(test_run):
     """A user's mesh given by path (a brick, not in the mirror) is prepared from that file, sampled,
     rasterized and morphed by the full method (render injection from frame 1; plasticity, from the
     test profile's frame 4, not reached in 3 frames): alpha MSE falls from frame 0 to the last frame
-    (to 0.88 of frame 0 when measured, 2026-11-28; 5 % asked)."""
+    (to 0.88 of frame 0 when measured, 2026-11-28; 5 % asked). Slow: a workflow run of its own, each
+    job its own process: the brick's mesh and target, then its 3-frame full morph."""
     import trimesh
 
     wd, mesh_dir = test_run
@@ -327,7 +338,8 @@ def test_export_writes_every_file_of_each_full_run(test_run):
     WebM), a watertight final mesh within 5 % of the particles' volume at that frame (sum V_p det F,
     recomputed here from the run and particle files), splat files whose covariances rebuild
     sigma0^2 F F^T within 1e-5, and the viewer; then an edited video setting replans only the
-    video and viewer jobs."""
+    video and viewer jobs. Slow: `snakemake export` runs the video (13 frames into an MP4 and a
+    WebM), splat and viewer jobs, each its own process, then a dry run."""
     import imageio_ffmpeg
     import trimesh
 
