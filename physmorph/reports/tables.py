@@ -119,8 +119,10 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
     twice the target's density (0 for it), how still the last frames are (physmorph.reports.metrics: the
     swing %, the sign changes of the alpha MSE's frame-to-frame change over the last 10 frames,
     and the drop, the best frame's share of the gap minus the last's, in points), the last
-    exported surface's stray share (%) and distance to the target mesh (grid cells;
-    physmorph.reports.export.measures, where the run was exported), and the
+    exported surface's measures where the run was exported (physmorph.reports.export.measures: the
+    stray share (%), the mean and 95th-percentile distance to the target mesh (grid cells), the mass
+    outside the largest body (%), the surface's components and genus beside the target's, its
+    roughness (%)), and the
     paper's alpha MSE for the experiment where it has one (and which one). Runs written before a
     metric existed show it as NaN."""
     rows = []
@@ -139,14 +141,28 @@ def convergence_table(m: dict[str, dict], layout: PaperLayout) -> pd.DataFrame:
                      "volume_iou_0": viou[0], "volume_iou_final": viou[-1], "overfilled_mass_final": over[-1],
                      "swing_%": swing_percent(a), "sign_changes": sign_changes(a),
                      "drop_points": closed_best - closed_final,
-                     "stray_%": 100 * r.get("export_last", {}).get("stray_share", np.nan),
-                     "surface_dx": r.get("export_last", {}).get("surface_distance_dx", np.nan),
+                     **_body_columns(r.get("export_last", {})),
                      "paper_alpha_mse": paper, "paper_which": paper_which})
     columns = ["experiment", "method", "frames", "alpha_mse_0", "alpha_mse_best", "best_frame", "alpha_mse_final",
                "ceiling", "closed_best_%", "closed_final_%", "iou_0", "iou_best", "iou_final", "ceiling_iou",
                "volume_iou_0", "volume_iou_final", "overfilled_mass_final", "swing_%", "sign_changes", "drop_points",
-               "stray_%", "surface_dx", "paper_alpha_mse", "paper_which"]
+               *BODY_COLUMNS, "paper_alpha_mse", "paper_which"]
     return pd.DataFrame(rows, columns=columns)
+
+
+# the last exported surface's measures (physmorph.reports.export.measures) the convergence table shows,
+# each under its column: measures.csv's name -> (the table's name, its scale)
+EXPORT_COLUMNS = {"stray_share": ("stray_%", 100.0), "surface_distance_dx": ("surface_dx", 1.0),
+                  "surface_p95_dx": ("surface_p95_dx", 1.0), "outside_largest_body": ("outside_body_%", 100.0),
+                  "components": ("components", 1.0), "genus": ("genus", 1.0), "target_genus": ("target_genus", 1.0),
+                  "roughness_percent": ("rough_%", 1.0)}
+BODY_COLUMNS = tuple(column for column, _ in EXPORT_COLUMNS.values())
+
+
+def _body_columns(last: dict) -> dict:
+    """The convergence table's columns of the last exported surface (NaN where the run was not
+    exported, or exported before a measure existed)."""
+    return {column: scale * last.get(key, np.nan) for key, (column, scale) in EXPORT_COLUMNS.items()}
 
 
 def plasticity_table(m: dict[str, dict], t: TableLayout) -> pd.DataFrame:
@@ -275,8 +291,8 @@ def build_tables(runs: dict[str, str | Path], out_dir: str | Path, layout: Paper
     for name, path in (measures or {}).items():
         if name in m and Path(path).exists():
             last = pd.read_csv(path).iloc[-1]
-            m[name]["export_last"] = {"stray_share": float(last["stray_share"]),
-                                      "surface_distance_dx": float(last["surface_distance_dx"])}
+            # a measures.csv written before a measure existed gives NaN for it
+            m[name]["export_last"] = {k: float(last[k]) if k in last else np.nan for k in EXPORT_COLUMNS}
     t = layout.tables
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ import pytest
 from physmorph.reports.metrics import TABLE_NAMES
 from physmorph.reports.layout import load_layout
 from physmorph.morph.quality import GAP_REL_TOL
-from physmorph.reports.tables import build_tables
+from physmorph.reports.tables import BODY_COLUMNS, build_tables
 
 LAYOUT = load_layout(Path(__file__).resolve().parents[2] / "config" / "paper_results.yaml")
 
@@ -342,3 +342,32 @@ def test_timing_table_values_are_the_runs_mean_frame_times_after_frame_0(every_t
             assert row[col] < 2.0  # frame 0's 100 s is not in the mean
         assert row["peak_rss_mb"] == pytest.approx(r["attrs"]["peak_rss_mb"], rel=1e-12)
         assert row["particles"] == r["attrs"]["n_particles"]
+
+
+def test_the_convergence_table_shows_the_last_exported_bodys_measures(tmp_path):
+    """The last row of a run's measures.csv (physmorph.reports.export.measures) fills the body
+    columns (shares in %); a measures.csv written before a measure existed leaves that one NaN, and
+    a run not exported leaves them all NaN."""
+    c = 0.01
+    runs = {name: write_run(tmp_path / f"{name}.h5", [0.05, 0.02, c * 1.1],
+                            {"method": "full", "ceiling_alpha_mse": c, "ceiling_iou": 0.9})
+            for name in ("iso_bunny_full", "cow_S_full", "iso_duck_full")}
+    new = tmp_path / "new.csv"
+    pd.DataFrame([{"frame": 0, "stray_share": 0.5, "surface_distance_dx": 3.0, "closed": True, "faces": 10,
+                   "outside_largest_body": 0.3, "components": 2, "genus": 2, "target_genus": 0,
+                   "surface_p95_dx": 9.0, "roughness_percent": 7.0},
+                  {"frame": 2, "stray_share": 0.012, "surface_distance_dx": 0.7, "closed": True, "faces": 10,
+                   "outside_largest_body": 0.004, "components": 1, "genus": 1, "target_genus": 0,
+                   "surface_p95_dx": 2.5, "roughness_percent": 4.0}]).to_csv(new, index=False)
+    old = tmp_path / "old.csv"
+    pd.DataFrame([{"frame": 2, "stray_share": 0.02, "surface_distance_dx": 0.9, "closed": True,
+                   "faces": 10}]).to_csv(old, index=False)
+    conv = build_tables(runs, tmp_path / "tables", LAYOUT, measures={"iso_bunny_full": new, "cow_S_full": old}
+                        )["convergence"].set_index("experiment")
+    row = conv.loc["iso_bunny_full"]
+    assert (row["stray_%"], row["surface_dx"], row["surface_p95_dx"]) == pytest.approx((1.2, 0.7, 2.5))
+    assert (row["outside_body_%"], row["components"], row["genus"], row["target_genus"], row["rough_%"]) == \
+        pytest.approx((0.4, 1, 1, 0, 4.0))
+    assert conv.loc["cow_S_full", "stray_%"] == pytest.approx(2.0)
+    assert np.isnan(conv.loc["cow_S_full", ["surface_p95_dx", "genus", "rough_%"]].astype(float)).all()
+    assert np.isnan(conv.loc["iso_duck_full", list(BODY_COLUMNS)].astype(float)).all()

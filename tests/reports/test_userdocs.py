@@ -25,6 +25,8 @@ def _fake_tables(d):
                    "closed_best_%": 98.04, "closed_final_%": 97.6, "iou_0": 0.6, "iou_best": 0.9, "iou_final": 0.9,
                    "ceiling_iou": 0.91, "volume_iou_0": 0.53, "volume_iou_final": 0.95,
                    "overfilled_mass_final": 0.012, "swing_%": 0.31, "sign_changes": 3, "drop_points": 0.44,
+                   "stray_%": 0.4, "surface_dx": 0.61, "surface_p95_dx": 1.9, "outside_body_%": 0.2,
+                   "components": 1, "genus": 1, "target_genus": 0, "rough_%": 3.2,
                    "paper_alpha_mse": 0.0546, "paper_which": "best"}]
                  ).to_csv(d / "convergence.csv", index=False)
     pd.DataFrame([{"direction": "full beats physics-only at matched convergence", "case": "bunny",
@@ -59,7 +61,10 @@ def test_results_page_carries_the_tables_numbers(tmp_path):
         ("default", "commit abc1234", "no", prov.sha)
     assert record["summary"]["runs"] == 1 and record["summary"]["particles"] == [6736, 6736]
     assert record["summary"]["iso_full_last"] == {"experiment": "iso_bunny_full", "closed_last_%": 97.6}
-    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.4 | 0.3 % | 3 | 0.53 -> 0.95 | 1.2 % |  |  |" in text
+    assert "| iso_bunny_full | full | 98.0 % (frame 37) | 97.6 % | 0.4 | 0.3 % | 3 |" in text
+    # the body in 3D: volume IoU, packing, stray, outside the body, genus (target's), surface, roughness
+    assert "| iso_bunny_full | 0.53 -> 0.95 | 1.2 % | 0.4 % | 0.2 % | 1 (0) | 0.61 / 1.9 | 3.2 % |" in text
+    assert "Silhouettes closed, body short" not in text  # its volume IoU is above the bar
     assert "| 0.01306 | 0.01569 | 16.8 % | yes | +25.8 % |" in text      # a direction and whether it holds
     assert "| bunny | 9 | 0.01569 | 0.01306 | 16.8 % | +25.8 % |" in text  # the main table beside the paper
     assert "| sigma/mu % | 8.4 | 10.25 | 1.5 % |" in text                   # source invariance
@@ -244,3 +249,17 @@ def test_a_resumed_morph_counts_its_wall_time_over_every_sitting(tmp_path):
         with h5py.File(tmp_path / "runs" / f"{name}.h5", "w") as f:
             f.attrs["wall_time_s"] = wall
     assert page_meta.jobs_wall_time_s(tmp_path) == 250.0 + 300.0 + 5.0
+
+
+def test_a_run_whose_silhouettes_closed_with_a_body_short_of_the_bar_is_named():
+    from physmorph.reports.results_sections import BODY_VOLUME_IOU, body_section
+
+    rows = [{"experiment": name, "closed_final_%": closed, "volume_iou_0": 0.5, "volume_iou_final": viou,
+             "overfilled_mass_final": 0.0} for name, closed, viou in
+            (("cow_S_full", 98.7, 0.79), ("iso_bunny_full", 99.0, 0.93), ("duck_C_full", 60.0, 0.5))]
+    text = "\n".join(body_section(pd.DataFrame(rows)))
+    assert BODY_VOLUME_IOU == 0.85
+    assert "1 run(s) closed at least 90 % of their silhouettes' gap with a volume IoU below 0.85" in text
+    assert "cow_S_full (98.7 % of the gap, volume IoU 0.79)" in text
+    assert "iso_bunny_full (" not in text and "duck_C_full (" not in text  # above the bar; gap not closed
+    assert "| cow_S_full | 0.5 -> 0.79 | 0.0 % |" in text  # not exported: the surface's columns empty

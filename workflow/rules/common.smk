@@ -12,6 +12,7 @@ from physmorph.settings.memory_model import particle_estimate
 from physmorph.settings.memory_model import morph_memory, sampling_memory, target_memory
 from physmorph.reports.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.reports.layout import load_layout
+from physmorph.reports.export.measures import COLUMNS as MEASURE_COLUMNS
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 from physmorph.meshes.particles import stored_particle_count

@@ -46,6 +46,8 @@ rule export_meshes:
         experiment="|".join(FULL_RUNS) or "^$",
     params:
         mesh=params_json(S.export.mesh()),
+        # what measures.csv holds: a new measure reruns the mesh jobs (and the tables after them)
+        measures=",".join(MEASURE_COLUMNS),
     log:
         f"{R}/logs/export/{{experiment}}_meshes.log",
     benchmark:

@@ -5,7 +5,10 @@
 * surface distance: the symmetric Chamfer distance between the exported surface and the target
   mesh, (mean_a min_b |a - b| + mean_b min_a |b - a|) / 2 over SURFACE_SAMPLES points of each, in
   grid cells;
-* closed: whether the exported surface is watertight.
+* closed: whether the exported surface is watertight;
+* the body in 3D (physmorph.reports.export.body): the mass outside the largest connected body, the
+  exported surface's components and genus beside the target mesh's, the 95th-percentile surface
+  distance and the surface's roughness.
 
 The target's outside distance comes from its prepared mesh voxelised at half a cell (inside by
 ray test) and a Euclidean distance transform of the outside.
@@ -21,9 +24,13 @@ import numpy as np
 import pandas as pd
 import trimesh
 
+from physmorph.reports.export.body import (components_and_genus, largest_body_outside_share, roughness_percent,
+                                           surface_distance_p95)
+
 STRAY_DX = 2.0  # a particle this many grid cells outside the target's surface is stray
 SURFACE_SAMPLES = 20000
-COLUMNS = ("frame", "stray_share", "surface_distance_dx", "closed", "faces")
+COLUMNS = ("frame", "stray_share", "surface_distance_dx", "closed", "faces", "outside_largest_body",
+           "components", "genus", "target_genus", "surface_p95_dx", "roughness_percent")
 
 
 def target_mesh(mesh_h5: str | Path) -> trimesh.Trimesh:
@@ -62,25 +69,47 @@ def stray_share(x: np.ndarray,  # [N, 3] positions
     return float(w[d > STRAY_DX * dx].sum() / w.sum())
 
 
+def _surface_samples(mesh: trimesh.Trimesh, seed: int = 0) -> np.ndarray:  # [SURFACE_SAMPLES, 3]
+    return trimesh.sample.sample_surface_even(mesh, SURFACE_SAMPLES, seed=seed)[0]
+
+
 def surface_distance(mesh: trimesh.Trimesh, target: trimesh.Trimesh, dx: float, seed: int = 0) -> float:
     """Symmetric Chamfer distance between two surfaces, in grid cells (the module docstring)."""
+    return _chamfer_dx(_surface_samples(mesh, seed), _surface_samples(target, seed), dx)
+
+
+def _chamfer_dx(a: np.ndarray,  # [S, 3]
+                b: np.ndarray,  # [S, 3]
+                dx: float) -> float:
     from scipy.spatial import cKDTree
 
-    a = trimesh.sample.sample_surface_even(mesh, SURFACE_SAMPLES, seed=seed)[0]
-    b = trimesh.sample.sample_surface_even(target, SURFACE_SAMPLES, seed=seed)[0]
     ab = cKDTree(b).query(a)[0].mean()
     ba = cKDTree(a).query(b)[0].mean()
     return float(0.5 * (ab + ba) / dx)
+
+
+@lru_cache(maxsize=4)
+def _target_surface(mesh_h5: str) -> tuple[trimesh.Trimesh, np.ndarray, int]:
+    """The target mesh, its surface samples and its genus (read once per target)."""
+    target = target_mesh(mesh_h5)
+    return target, _surface_samples(target), components_and_genus(target)[1]
 
 
 def frame_measures(frame: int, state: dict, mesh: trimesh.Trimesh, target_mesh_h5: str | Path) -> dict:
     """The row of measures.csv for one exported frame (state: physmorph.reports.export.runs.frame_state
     with the particle file, mesh: its exported surface in domain coordinates)."""
     dx = float(state["dx"])
+    _, target_samples, target_genus = _target_surface(str(target_mesh_h5))
+    samples = _surface_samples(mesh)
+    components, genus = components_and_genus(mesh)
     return {"frame": int(frame),
             "stray_share": stray_share(state["x"], state["volume"], target_mesh_h5, dx),
-            "surface_distance_dx": surface_distance(mesh, target_mesh(target_mesh_h5), dx),
-            "closed": bool(mesh.is_watertight), "faces": int(len(mesh.faces))}
+            "surface_distance_dx": _chamfer_dx(samples, target_samples, dx),
+            "closed": bool(mesh.is_watertight), "faces": int(len(mesh.faces)),
+            "outside_largest_body": largest_body_outside_share(state["x"], state["volume"], dx),
+            "components": components, "genus": genus, "target_genus": target_genus,
+            "surface_p95_dx": surface_distance_p95(samples, target_samples, dx),
+            "roughness_percent": roughness_percent(mesh)}
 
 
 def write_measures(rows: list[dict], path: Path) -> None:

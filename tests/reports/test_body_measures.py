@@ -1,0 +1,66 @@
+"""The body in 3D (physmorph.reports.export.body): the mass outside the largest connected body, a
+closed surface's components and genus, the 95th-percentile surface distance and the roughness,
+each on shapes whose answer is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from physmorph.reports.export.body import (components_and_genus, largest_body_outside_share, roughness_percent,
+                                           surface_distance_p95)
+
+
+def test_the_mass_outside_the_largest_body_is_the_torn_off_pieces():
+    rng = np.random.default_rng(0)
+    body = rng.uniform(-3, 3, (4000, 3))  # ~18 particles a cell: one connected body
+    piece = rng.uniform(8, 9, (200, 3))  # a torn-off piece well apart from it
+    spray = np.array([[20.0, 0, 0], [0, 20.0, 0]])  # two lone particles
+    x = np.vstack([body, piece, spray])
+    w = np.ones(len(x))
+    assert largest_body_outside_share(body, np.ones(len(body)), 1.0) == 0.0
+    assert largest_body_outside_share(x, w, 1.0) == pytest.approx(202 / len(x))
+    w[:len(body)] = 0.01  # by weight: the heavy piece is then the largest body
+    assert largest_body_outside_share(x, w, 1.0) == pytest.approx(1 - 200 / (40 + 202))
+
+
+def test_a_particle_in_a_neighbouring_cell_belongs_to_the_body_and_two_cells_away_does_not():
+    x = np.array([[0.5, 0.5, 0.5], [1.5, 1.5, 1.5], [3.5, 1.5, 1.5]])  # diagonal neighbour, then a gap of one cell
+    assert largest_body_outside_share(x, np.ones(3), 1.0) == pytest.approx(1 / 3)
+
+
+def test_genus_and_components_of_closed_surfaces():
+    sphere = trimesh.creation.icosphere(3, 5.0)
+    torus = trimesh.creation.torus(5.0, 1.5)
+    assert components_and_genus(sphere) == (1, 0)
+    assert components_and_genus(torus) == (1, 1)
+    both = trimesh.util.concatenate([sphere, torus.copy().apply_translation([20.0, 0, 0])])
+    assert components_and_genus(both) == (2, 1)
+    two_holes = trimesh.util.concatenate([torus, torus.copy().apply_translation([0, 0, 10.0])])
+    assert components_and_genus(two_holes) == (2, 2)
+    open_sphere = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)  # a face missing
+    assert components_and_genus(open_sphere) == (-1, -1)
+
+
+def test_the_95th_percentile_distance_sees_a_missing_part_the_mean_hides():
+    rng = np.random.default_rng(1)
+    target = rng.normal(size=(4000, 3))
+    target /= np.linalg.norm(target, axis=1, keepdims=True)  # points on the unit sphere
+    assert surface_distance_p95(target, target, 1.0) == 0.0
+    assert surface_distance_p95(1.5 * target, target, 0.5) == pytest.approx(1.0, rel=1e-9)  # 0.5 apart: 1 cell
+    missing = target[target[:, 2] < 0.6]  # a cap of the target missing from the body
+    far = surface_distance_p95(missing, target, 1.0)
+    mean_ab = np.mean(np.min(np.linalg.norm(target[:, None] - missing[None, ::4], axis=2), axis=1))
+    assert far > 2.5 * mean_ab and far > 0.1
+
+
+def test_roughness_is_zero_for_a_smooth_body_and_grows_with_lumps():
+    rng = np.random.default_rng(2)
+    sphere = trimesh.creation.icosphere(4, 5.0)
+    assert abs(roughness_percent(sphere)) < 0.1
+    lumpy = sphere.copy()
+    lumpy.vertices = lumpy.vertices * (1 + 0.03 * rng.normal(size=(len(lumpy.vertices), 1)))
+    lumpier = sphere.copy()
+    lumpier.vertices = lumpier.vertices * (1 + 0.06 * rng.normal(size=(len(lumpier.vertices), 1)))
+    assert 1.0 < roughness_percent(lumpy) < roughness_percent(lumpier)
