@@ -8,9 +8,12 @@ that fits, and the source to the target's volume.
 
     python -m physmorph.meshes.fit path/to/mesh.obj [--configfile config/config.yaml ...] [--source iso]
 
-prints the size for the source's volume, the largest size that fits the configured grid (and the
-target's camera views, so the render loss sees all of it), and,
-where the first does not fit, the shapes a config needs (target and a volume-matched isosphere).
+prints a config file (``> mine.yaml``): as comments, the size for the source's volume and the
+largest size that fits the configured grid (and the target's camera views, so the render loss sees
+all of it); then the shapes and the experiment, with a volume-matched isosphere where the first
+size does not fit. The shape is named after the file (or ``--name``), made a valid shape name
+that no shape of the config has (``bunny.obj`` gives ``bunnymine``), and the path is quoted where
+YAML needs it.
 The mesh is repaired exactly as the prepare_mesh stage repairs it, so the volume is the one the
 workflow will see (a mesh that is not watertight still gets a size). A mesh that cannot be used
 (missing, unreadable, empty, flat, enclosing no volume, irreparable, too large) is refused in one
@@ -28,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+import yaml
 
 from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
@@ -273,10 +277,15 @@ def advise_size_for_file(
     return advice
 
 
-def shape_name(stem: str) -> str:
-    """A valid shape name (letters and digits, starting with a letter) from a file's stem."""
+def shape_name(stem: str, taken=()) -> str:
+    """A valid shape name (letters and digits, starting with a letter) from a file's stem (or a
+    name asked for), not one of ``taken`` (the config's shapes): a clash gets "mine", then a number."""
     name = "".join(c for c in stem if c.isascii() and c.isalnum())
-    return name if name[:1].isalpha() else "mesh" + name
+    name = name if name[:1].isalpha() else "mesh" + name
+    if name not in taken:
+        return name
+    candidates = [f"{name}mine"] + [f"{name}mine{i}" for i in range(2, 100)]
+    return next(c for c in candidates if c not in taken)
 
 
 def shrunk_source_name(source: str, target: str) -> str:
@@ -285,8 +294,9 @@ def shrunk_source_name(source: str, target: str) -> str:
     return f"{source}{target}"
 
 
-def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
-    """The advice as a user reads it, with the YAML to paste."""
+def advice_text(advice: SizeAdvice, path: str, name: str, source: str, notes: tuple[str, ...] = ()) -> str:
+    """The advice as a config file: what the helper found as YAML comments, then the shapes and the
+    experiment (``notes``: further comment lines, e.g. a name that was changed)."""
     a = advice
     lines = [f"{path}: {'repaired (' + '; '.join(a.repair) + ')' if a.repair else 'watertight as read'}",
              f"  size for the source's volume ({a.volume:.0f} units^3): {a.size_for_volume:.1f}",
@@ -294,22 +304,25 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str) -> str:
              f"{a.max_size:.1f}"]
     if math.isfinite(a.view_size):
         lines.append(f"  largest size every target view shows whole: {a.view_size:.1f}")
+    shapes = {name: {"kind": "file", "path": str(path), "size": round(a.size, 1)}}
     if a.keeps_source:
         if a.size < a.size_for_volume:
             lines.append(f"  at size {a.size:.1f} it holds {a.target_volume:.0f} units^3, within "
                          f"{100 * VOLUME_SLACK:.0f} % of the source's: the source stays")
-        lines += ["", "shapes:", f"  {name}: {{kind: file, path: {path}, size: {a.size:.1f}}}",
-                  f"experiments: {{{source}_{name}: {{source: {source}, target: {name}, method: full}}}}"]
+        experiment_source = source
     else:
         # Named after its target, so two targets' blocks merge without one source overwriting the
         # other (shape names are letters and digits: isohomer, isorocker in config/outside.yaml).
-        small = shrunk_source_name(source, name)
-        lines += [f"  the volume's size does not fit: at size {a.size:.1f} the mesh holds {a.target_volume:.0f} units^3, "
-                  f"so the source shrinks to it (an isosphere of size {a.source_size:.1f})",
-                  "", "shapes:", f"  {name}: {{kind: file, path: {path}, size: {a.size:.1f}}}",
-                  f"  {small}: {{kind: isosphere, size: {a.source_size:.1f}}}",
-                  f"experiments: {{{small}_{name}: {{source: {small}, target: {name}, method: full}}}}"]
-    return "\n".join(lines)
+        experiment_source = shrunk_source_name(source, name)
+        lines.append(f"  the volume's size does not fit: at size {a.size:.1f} the mesh holds {a.target_volume:.0f} "
+                     f"units^3, so the source shrinks to it (an isosphere of size {a.source_size:.1f})")
+        shapes[experiment_source] = {"kind": "isosphere", "size": round(a.source_size, 1)}
+    config = {"shapes": shapes,
+              "experiments": {f"{experiment_source}_{name}": {"source": experiment_source, "target": name,
+                                                               "method": "full"}}}
+    comments = "".join(f"# {line}\n" for line in [*notes, *lines])
+    # flow style per shape and experiment, quoted where YAML needs it (a path with ',' or '#')
+    return comments + yaml.safe_dump(config, default_flow_style=None, sort_keys=False, width=1000)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -337,7 +350,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--source {args.source!r} is a {src.kind}; name an isosphere (the advice shrinks it when the mesh "
                  "does not fit)")
     volume = isosphere_volume(src.size)
-    name = args.name or shape_name(Path(args.mesh).stem)
+    asked = args.name or Path(args.mesh).stem
+    name = shape_name(asked, taken=set(settings.shapes))
+    notes = () if name == asked else (
+        f"the shape is named {name}: {asked!r} {'is a shape of the config' if asked in settings.shapes else 'is not a shape name (letters and digits, starting with a letter)'}",)
     from physmorph.base.cameras import ring_cameras
 
     t = settings.target
@@ -345,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     # A mesh that cannot be used ends in one line naming the file and the check it failed, status 2.
     advice = exit_on_refusal(lambda: advise_size_for_file(args.mesh, volume, settings.sampling.grid_res,
                                                           settings.domain, cameras=cameras), path=args.mesh)
-    print(advice_text(advice, args.mesh, name, args.source))
+    print(advice_text(advice, args.mesh, name, args.source, notes), end="")
     return 0
 
 

@@ -83,6 +83,30 @@ def test_a_few_percent_short_keeps_the_source(need, keeps):
 def test_shape_names_are_valid():
     assert shape_name("rocker-arm") == "rockerarm"
     assert shape_name("3d_model") == "mesh3dmodel"
+    assert shape_name("bunny", taken={"bunny", "iso"}) == "bunnymine"
+    assert shape_name("bunny", taken={"bunny", "bunnymine"}) == "bunnymine2"
+
+
+@pytest.mark.parametrize("file_name, name, expected", [
+    ("bunny.obj", None, "bunnymine"),  # the stem is a shipped shape's name
+    ("suz.obj", "my_suz", "mysuz"),  # a name asked for with an underscore the workflow refuses
+    ("a, b #1.obj", None, "ab1"),  # a path YAML must quote (',' and '#')
+])
+def test_the_printed_config_is_one_the_workflow_accepts(tmp_path, capsys, monkeypatch, file_name, name, expected):
+    """The helper's whole output, redirected to a file, is a config the workflow loads with the
+    shipped one: the shape named validly and apart from the config's, the path as given."""
+    trimesh.creation.icosphere(2, 1.0).export(tmp_path / file_name)
+    monkeypatch.chdir(tmp_path)
+    args = [file_name, "--configfile", str(REPO / "config/config.yaml")] + (["--name", name] if name else [])
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    (tmp_path / "mine.yaml").write_text(out)
+    s = load_settings(REPO / "config/config.yaml", tmp_path / "mine.yaml")
+    (experiment,) = yaml.safe_load(out)["experiments"]
+    assert s.experiment(experiment).target == expected
+    assert s.shape(expected).path == file_name and s.shape("bunny").kind == "file"  # the shipped bunny kept
+    if expected != (name or file_name.rsplit(".", 1)[0]):
+        assert f"# the shape is named {expected}" in out
 
 
 def test_isosphere_size_for_volume_inverts_isosphere_volume():
@@ -101,8 +125,9 @@ def test_the_printed_config_is_valid_and_matches_volumes(tmp_path, capsys, monke
     assert main([str(path.name), "--configfile", str(REPO / "config/config.yaml")]) == 0
     out = capsys.readouterr().out
     assert "repaired" in out
-    snippet = yaml.safe_load(out[out.index("shapes:"):])
-    (tmp_path / "mine.yaml").write_text(yaml.safe_dump(snippet))
+    (tmp_path / "mine.yaml").write_text(out)  # `fit mesh > mine.yaml`: the advice is its comments
+    snippet = yaml.safe_load(out)
+    assert set(snippet) == {"shapes", "experiments"}
     s = load_settings(REPO / "config/config.yaml", tmp_path / "mine.yaml")
     (exp,) = snippet["experiments"].values()
     src, tgt = s.shapes[exp["source"]], s.shapes[exp["target"]]

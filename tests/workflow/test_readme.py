@@ -86,7 +86,8 @@ def test_readme_runfile_summary_runs(tmp_path):
 
 
 def test_readme_mesh_size_command_runs(tmp_path, mesh_dir):
-    """The README's size helper, as written, on a real mesh: it prints YAML for mine.yaml."""
+    """The README's size helper, as written, on a real mesh: it writes mine.yaml, a config file the
+    workflow's loader accepts."""
     command = re.findall(r"`(python -m physmorph\.meshes\.fit [^`]*)`", README.read_text())[0]
     (tmp_path / "config").symlink_to(REPO / "config")
     (tmp_path / "path" / "to").mkdir(parents=True)
@@ -95,5 +96,9 @@ def test_readme_mesh_size_command_runs(tmp_path, mesh_dir):
     res = subprocess.run(command.replace("python", shlex.quote(sys.executable), 1), shell=True, cwd=tmp_path,
                          capture_output=True, text=True, timeout=120, env=env)
     assert res.returncode == 0, res.stderr
+    written = (tmp_path / "mine.yaml").read_text()  # the command writes the config file it names
     # the bunny is compact: its size for the iso's volume fits, the value config/config.yaml uses
-    assert "mesh: {kind: file, path: path/to/mesh.obj, size: 18.0}" in res.stdout, res.stdout
+    assert "mesh: {kind: file, path: path/to/mesh.obj, size: 18.0}" in written, written
+    from physmorph.settings.workflow import load_settings
+
+    assert load_settings(REPO / "config/config.yaml", tmp_path / "mine.yaml").shape("mesh").size == 18.0
