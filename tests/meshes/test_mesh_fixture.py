@@ -1,4 +1,4 @@
-"""The mesh_dir fixture's download (tests/conftest.py: fetch_or_skip, is_network_failure): only a
+"""The mesh_dir fixture's download (tests/mesh_mirror.py: fetch_or_skip, is_network_failure): only a
 missing network skips the ~50 tests that need the raw meshes; a checksum mismatch, a disk error or
 a bug in the project's code fails them.
 
@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 
 import physmorph.meshes.fetch
-from conftest import RAW_MESH_SHA256, fetch_or_skip, is_network_failure
+from mesh_mirror import RAW_MESH_SHA256, fetch_or_skip, is_network_failure
 from physmorph.meshes.errors import FetchError
 
 

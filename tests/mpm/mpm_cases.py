@@ -6,7 +6,6 @@ one), and the finite-difference and torch autograd checks of the control gradien
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from physmorph.base.grid import Grid, splat_mass
@@ -61,24 +60,6 @@ def cfg64(**kw) -> MPMConfig:
                 overfill_weight=0.0, mass_loss_blur=0.0)
     base.update(kw)
     return MPMConfig(**base)
-
-
-@pytest.fixture(scope="module")
-def state():
-    return ball_state()
-
-
-@pytest.fixture(scope="module")
-def solver3(state):
-    """float64, T = 3, per-substep control, paper drag/smoothing, squared loss."""
-    return make(cfg64(), state)
-
-
-@pytest.fixture(scope="module")
-def solver20():
-    """float64, T = 20, paper defaults on the small grid (extremes, optimization)."""
-    st = ball_state(perturb=False)
-    return make(cfg64(substeps=20), st)
 
 
 def random_control(cfg: MPMConfig, n: int, scale: float = 0.05, seed: int = 3) -> np.ndarray:

@@ -15,7 +15,7 @@ from physmorph.mpm.solver import MPMSolver, solver_for
 from physmorph.mpm.state import ParticleState, elastic_energy, fixed_corotated_energy_density, total_volume
 from physmorph.mpm import reference as ref
 from physmorph.mpm.stress import evaluate_stress
-from mpm_cases import (RES, autograd_check, ball_state, cfg64, fd_check, make, random_control, solver3, solver20, state,  # noqa: F401
+from mpm_cases import (RES, autograd_check, ball_state, cfg64, fd_check, make, random_control,  # noqa: F401
                         stretched_target)
 
 
