@@ -100,7 +100,7 @@ def body_section(conv: pd.DataFrame) -> list[str]:
                      if np.isfinite(r.get("surface_dx", np.nan)) else "", pct(r.get("rough_%", np.nan))])
         if r["closed_final_%"] >= SILHOUETTES_CLOSED_PERCENT and r["volume_iou_final"] < BODY_VOLUME_IOU:
             short.append(f"{r['experiment']} ({pct(r['closed_final_%'])} of the gap, volume IoU "
-                         f"{fmt(r['volume_iou_final'], 2)})")
+                         f"{fmt(r['volume_iou_final'], 3)})")
     out.append(md_table(["experiment", "volume IoU", "overfilled", "stray", "outside the body", "genus (target)",
                          "surface, mean / 95 % (cells)", "roughness"], rows))
     if short:

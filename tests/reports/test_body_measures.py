@@ -20,6 +20,8 @@ def test_the_mass_outside_the_largest_body_is_the_torn_off_pieces():
     x = np.vstack([body, piece, spray])
     w = np.ones(len(x))
     assert largest_body_outside_share(body, np.ones(len(body)), 1.0) == 0.0
+    w_one = np.random.default_rng(3).uniform(0.1, 1.0, len(body))  # a sum that rounds: still exactly 0
+    assert largest_body_outside_share(body, w_one, 1.0) == 0.0
     assert largest_body_outside_share(x, w, 1.0) == pytest.approx(202 / len(x))
     w[:len(body)] = 0.01  # by weight: the heavy piece is then the largest body
     assert largest_body_outside_share(x, w, 1.0) == pytest.approx(1 - 200 / (40 + 202))

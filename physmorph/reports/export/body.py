@@ -36,7 +36,7 @@ def largest_body_outside_share(x: np.ndarray,  # [N, 3] positions
     occupied[tuple(cell.T)] = True
     labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
     body = np.bincount(labels[tuple(cell.T)], weights=w, minlength=count + 1)
-    return float(1.0 - body.max() / w.sum())
+    return float(max(0.0, 1.0 - body.max() / w.sum()))  # one body: 0, not its rounding (-1e-16)
 
 
 def components_and_genus(mesh: trimesh.Trimesh) -> tuple[int, int]:
