@@ -125,9 +125,13 @@ def _same_numbers(a: pd.DataFrame, b: pd.DataFrame, what: str) -> float:
             # a thousandth of a cell
             cells = np.full(len(a), str(col).endswith("_dx")) & ~pct
             plain = ~pct & ~cells
+            # a percentile of those distances (surface_p95_dx) is one sample's distance, so it moves
+            # by the gap between neighbouring samples too (0.002 cells measured): to a hundredth
+            cells_atol = 1e-2 if str(col).endswith("p95_dx") else 1e-3
             np.testing.assert_allclose(v[plain], u[plain], rtol=1e-4, atol=1e-12, equal_nan=True, err_msg=f"{what}: {col}")
             np.testing.assert_allclose(v[pct], u[pct], rtol=0, atol=1e-2, equal_nan=True, err_msg=f"{what}: {col} (%)")
-            np.testing.assert_allclose(v[cells], u[cells], rtol=0, atol=1e-3, equal_nan=True, err_msg=f"{what}: {col} (dx)")
+            np.testing.assert_allclose(v[cells], u[cells], rtol=0, atol=cells_atol, equal_nan=True,
+                                       err_msg=f"{what}: {col} (dx)")
             both = np.isfinite(u) & np.isfinite(v) & (u != 0)
             worst = max([worst, *np.abs((v[both] - u[both]) / u[both])])
         else:
