@@ -30,21 +30,21 @@ class FrameJudge:
         self.gate = settle_gate(cfg.settle, cfg.settle_objective, inputs.want_grad, cfg.settle_backoff)
         self.onset = OverfillOnset(cfg)
 
-    def begin(self, start: int, fs: FrameState, run: RunWriter, checkpoint) -> None:
+    def begin(self, start: int, fs: FrameState, checkpoint) -> None:
         """The policies at the run's first frame to run: from the committed frames and the
         checkpoint where the run resumes (None: a new run)."""
         cfg, solver = self.cfg, self.solver
         self.restart = MomentumRestart(cfg)
         rise_on = self.restart.rise_on
-        self.restart.previous = run.frame_metric(start - 1, rise_on)
-        self.restart.before_previous = run.frame_metric(start - 2, rise_on) if start >= 2 else float("nan")
+        self.restart.previous = self.run.frame_metric(start - 1, rise_on)
+        self.restart.before_previous = self.run.frame_metric(start - 2, rise_on) if start >= 2 else float("nan")
         # the step the next frame takes (backed off by MorphConfig.settle_backoff after an undone frame)
         self.schedule = StepSchedule(fs.next_step)
         self.onset.begin(solver, fs.overfill_weight)
         if checkpoint is not None:
             self.gate.restore(checkpoint.data)
             if self.gate.at_rest_after(start - 1):  # the checkpoint's state is the last accepted frame's
-                scalars, per_view = run.frame_metrics(start - 1)
+                scalars, per_view = self.run.frame_metrics(start - 1)
                 self.gate.accepted = self.keep_accepted(AcceptedFrame(
                     fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale, scalars, per_view,
                     float(scalars.get(self.gate.objective_key, np.nan))))

@@ -106,7 +106,7 @@ class MorphRun:
             start = checkpoint.frame + 1
             self.log(f"[{self.name}] resuming after frame {checkpoint.frame}/{cfg.frames}")
             self.a0 = run.frame_metric(0, "alpha_mse")
-        self.judge.begin(start, self.fs, run, checkpoint)
+        self.judge.begin(start, self.fs, checkpoint)
         return start
 
     def frame_zero(self) -> FrameState:
