@@ -75,7 +75,7 @@ class MorphInputs:
         self.inject_x = cfg.method == "position_inject"
         self.want_grad = self.inject_F or self.inject_x
 
-    # ---------------------------------------------------------------------------- the phases
+    # ---------------------------------------------------------------------------- the measures
     def measure(self, st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
                 target_distance: np.ndarray | None = None,
                 masked_alpha: np.ndarray | None = None) -> tuple[dict, np.ndarray, DeformationMeasures]:  # per_view [V]

@@ -130,6 +130,7 @@ class MorphRun:
                         fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()))
         return fs
 
+    # ---------------------------------------------------------------------------- the phases
     def transport_destinations(self) -> np.ndarray:  # [N, 3]
         if self.destination is None:
             self.destination = destinations_in_grid_mass(self.inputs.parts.x, self.inputs.parts.mass, self.inputs.target.grid_mass,
