@@ -139,6 +139,18 @@ def shape_volume(spec, prepared_h5: str | os.PathLike | None = None,
     return None if unit is None else unit * spec.size ** 3
 
 
+def raw_mesh_on_disk(settings, shape: str, root: str | os.PathLike = ".") -> Path | None:
+    """The raw mesh of file shape ``shape`` where it is on disk before any job: its ``path``, the
+    download in ``root``/resources/meshes/, or the mirror (``mesh_dir``); None for other kinds."""
+    spec = settings.shape(shape)
+    if spec.kind != "file":
+        return None
+    if spec.path is not None:
+        return Path(spec.path)
+    local = Path(root) / "resources" / "meshes" / spec.file
+    return local if local.is_file() or not settings.mesh_dir else Path(settings.mesh_dir) / spec.file
+
+
 def _volume_cache() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_unit_volumes.json"
 
@@ -325,6 +337,14 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str, notes: tu
     return comments + yaml.safe_dump(config, default_flow_style=None, sort_keys=False, width=1000)
 
 
+def target_cameras(settings):
+    """The target's views of ``settings`` (physmorph.settings.workflow.Settings): what a size must fit."""
+    from physmorph.base.cameras import ring_cameras
+
+    t = settings.target
+    return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance)
+
+
 def main(argv: list[str] | None = None) -> int:
     from physmorph.settings.errors import ConfigError
     from physmorph.settings.workflow import load_settings
@@ -354,10 +374,7 @@ def main(argv: list[str] | None = None) -> int:
     name = shape_name(asked, taken=set(settings.shapes))
     notes = () if name == asked else (
         f"the shape is named {name}: {asked!r} {'is a shape of the config' if asked in settings.shapes else 'is not a shape name (letters and digits, starting with a letter)'}",)
-    from physmorph.base.cameras import ring_cameras
-
-    t = settings.target
-    cameras = ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance)
+    cameras = target_cameras(settings)
     # A mesh that cannot be used ends in one line naming the file and the check it failed, status 2.
     advice = exit_on_refusal(lambda: advise_size_for_file(args.mesh, volume, settings.sampling.grid_res,
                                                           settings.domain, cameras=cameras), path=args.mesh)

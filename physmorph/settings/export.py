@@ -13,6 +13,11 @@ from physmorph.settings.base import Float, Int, Refused, fields_of_job, setting,
 class ExportConfig:
     """Videos, surface meshes and Gaussian-splat files of the full-method runs (snakemake export)."""
 
+    experiments: Annotated[tuple[str, ...], setting(
+        "the full-method runs `snakemake export` exports and its viewer page lists; empty: the tables' full runs and "
+        "every full run that a config file beside config/config.yaml adds (a user's own)", "",
+        "experiments keys of method full")] = ()
+
     width: Annotated[Int, setting("width of each video panel (the body's, then the target's)", "pixels",
                                   "even, >= 16", ge=16, job="video")] = 384
     height: Annotated[Int, setting("height of the video", "pixels", "even, >= 16", ge=16, job="video")] = 288

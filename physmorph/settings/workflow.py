@@ -132,8 +132,9 @@ class Settings:
                                              f"(known: {', '.join(sorted(self.raw_meshes)) or 'none'}); "
                                              "for a mesh on disk use 'path' instead")
         for name, exp in self.experiments.items():
-            if not re.fullmatch(r"[A-Za-z0-9_]+", name):
-                fail_at(f"experiments.{name}", "an experiment name is letters, digits and _")
+            if not re.fullmatch(r"[A-Za-z0-9_]+", name) or name == "index":
+                fail_at(f"experiments.{name}", "an experiment name is letters, digits and _, and not 'index' (the "
+                                               "viewer's own page)")
             for role in ("source", "target"):
                 if getattr(exp, role) not in self.shapes:
                     fail_at(f"experiments.{name}.{role}", f"unknown shape '{getattr(exp, role)}' "
@@ -150,6 +151,10 @@ class Settings:
         for i, name in enumerate(self.tables.noise):
             if name not in self.tables.experiments:
                 fail_at(f"tables.noise[{i}]", f"'{name}' is not one of tables.experiments")
+        for i, name in enumerate(self.export.experiments):
+            if name not in self.experiments or self.experiments[name].method != "full":
+                fail_at(f"export.experiments[{i}]", f"'{name}' is not an experiment of method full (those: "
+                                                   f"{', '.join(n for n, e in self.experiments.items() if e.method == 'full') or 'none'})")
         if self.tradeoff is not None and self.tradeoff.experiment not in self.experiments:
             fail_at("tradeoff.experiment", f"unknown experiment '{self.tradeoff.experiment}'")
 

@@ -11,12 +11,23 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 from snakemake.logging import logger
 
-from physmorph.base.cluster import ClusterError, JobRequest, cap_threads, check_account, check_job, check_status
-from physmorph.base.cluster import job_threads_here, read_cluster
-from physmorph.settings.memory_model import SECONDS_PER_PARTICLE_FRAME, particle_estimate
-from physmorph.studies.stability_map import MAP_EXPERIMENT
-from physmorph.studies.extremes import cell_mapping, cell_timeout_s, check_cell
+from physmorph.base.cluster import (
+    ClusterError,
+    JobRequest,
+    cap_threads,
+    check_account,
+    check_job,
+    check_status,
+    job_threads_here,
+    read_cluster,
+)
 from physmorph.reports.metrics import FIGURE_NAMES, TABLE_NAMES
+from physmorph.settings.memory_model import (
+    SECONDS_PER_PARTICLE_FRAME,
+    particle_estimate,
+)
+from physmorph.studies.extremes import cell_mapping, cell_timeout_s, check_cell
+from physmorph.studies.stability_map import MAP_EXPERIMENT
 
 
 def mb(estimate):
@@ -33,14 +44,17 @@ class ResultTree:
     """The files of one profile, results/{profile}/ (``root``), and the shapes and experiments
     behind them (``settings``: physmorph.settings.workflow.Settings; ``points``: the tradeoff study's points)."""
 
-    def __init__(self, settings, points):
+    def __init__(self, settings, points, base_experiments=()):
         self.settings = settings
         self.points = points
         self.root = f"results/{settings.profile}"
         self.res = settings.sampling.tag
-        # what the export stage exports, and of those what `snakemake export` asks for (the tables' full runs)
+        # what the export stage can export, and of those what `snakemake export` asks for: export.experiments,
+        # else the tables' full runs and the full runs that config files beside config/config.yaml add
+        # (``base_experiments``: the experiments config/config.yaml has), a user's own
         self.full_runs = [n for n in settings.experiments if settings.experiment(n).method == "full"]
-        self.export_runs = [n for n in settings.tables.experiments if n in self.full_runs]
+        own = [n for n in self.full_runs if n in settings.tables.experiments or n not in base_experiments]
+        self.export_runs = list(settings.export.experiments) or own
 
     def raw_mesh_path(self, shape):
         spec = self.settings.shape(shape)
@@ -75,9 +89,21 @@ class ResultTree:
     def export_outputs(self):
         out = [f"{self.root}/viewer/index.html"]
         for name in self.export_runs:
-            out += [f"{self.root}/videos/{name}.mp4", f"{self.root}/videos/{name}.webm", f"{self.root}/meshes/{name}",
-                    f"{self.root}/splats/{name}"]
+            out += self.run_exports(name)
         return out
+
+    def run_exports(self, name):
+        """What the export stage makes of one full run: its video, meshes, splats and its own viewer page."""
+        r = self.root
+        return [f"{r}/videos/{name}.mp4", f"{r}/videos/{name}.webm", f"{r}/meshes/{name}", f"{r}/splats/{name}",
+                f"{r}/viewer/{name}.html"]
+
+    def viewer_inputs(self, names):
+        """A viewer page's inputs over the runs ``names``: run files, videos, stills and measures."""
+        r = self.root
+        return {"runs": [f"{r}/runs/{n}.h5" for n in names], "mp4s": [f"{r}/videos/{n}.mp4" for n in names],
+                "webms": [f"{r}/videos/{n}.webm" for n in names], "stills": [f"{r}/videos/{n}_stills" for n in names],
+                "measures": [f"{r}/meshes/{n}" for n in names]}
 
     def experiment_source(self, name):
         return self.settings.shape(self.settings.experiment(name).source)
@@ -103,18 +129,17 @@ class VolumeWarnings:
 
     def raw_mesh_here(self, shape):
         """The raw mesh of a file shape where it is on disk before any job (the download or the mirror)."""
-        s = self.tree.settings
-        spec = s.shape(shape)
-        if spec.kind != "file" or spec.path is not None:
-            return self.tree.raw_mesh_path(shape) or None
-        local = Path(self.tree.raw_mesh_path(shape))
-        return local if local.is_file() or not s.mesh_dir else Path(s.mesh_dir) / spec.file
+        from physmorph.meshes.fit import raw_mesh_on_disk
+
+        return raw_mesh_on_disk(self.tree.settings, shape)
 
     def morph_particles(self, wc):
         """The experiment's source particles (the morph rule's input); on the first call for an
         experiment whose target holds another volume than its source, the warning its morph log will
         give, while the DAG is built (so a dry run says it before any job)."""
-        from physmorph.meshes.fit import volume_warnings  # imports trimesh: only once a morph is planned
+        from physmorph.meshes.fit import (
+            volume_warnings,  # imports trimesh: only once a morph is planned
+        )
 
         s = self.tree.settings
         if wc.experiment not in self.warned:

@@ -17,6 +17,8 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 from physmorph.meshes.particles import stored_particle_count
 from physmorph.settings.study_points import tradeoff_points
+from pathlib import Path
+import yaml
 
 # The merged config is checked against the schema generated from the settings' declarations
 # (python -m physmorph.settings --schema); where it refuses, the settings say why in their own words,
@@ -30,7 +32,9 @@ S = Settings.from_mapping(config)
 # every rule's conda environment under --use-conda (workflow/envs/make_env.py writes both from the locks)
 CONDA_ENV = "../envs/physmorph_cuda.yaml" if S.device == "cuda" else "../envs/physmorph.yaml"
 POINTS = tradeoff_points(S) if S.tradeoff is not None else {}
-RESULTS = ResultTree(S, POINTS)
+# the experiments of config/config.yaml (the shipped ones): a full run that another config file adds is exported too
+BASE_EXPERIMENTS = set((yaml.safe_load(Path("config/config.yaml").read_text()) or {}).get("experiments") or {})
+RESULTS = ResultTree(S, POINTS, BASE_EXPERIMENTS)
 R = RESULTS.root  # this profile's result tree, results/{profile}
 # the main table's runs (physics-only and full per target, config/paper_results.yaml): `paper_main`
 MAIN_EXPERIMENTS = [n for c in load_layout("config/paper_results.yaml").tables.main.values()
@@ -39,7 +43,7 @@ MAIN_EXPERIMENTS = [n for c in load_layout("config/paper_results.yaml").tables.m
 MAIN_TARGETS = sorted({S.experiment(n).target for n in MAIN_EXPERIMENTS})
 MAIN_FIGURES = ("sequences_main", "optimization_traces")
 FULL_RUNS = RESULTS.full_runs  # what the export stage exports
-EXPORT_RUNS = RESULTS.export_runs  # `snakemake export`: the tables' full runs
+EXPORT_RUNS = RESULTS.export_runs  # `snakemake export`: export.experiments, or the tables' and the user's full runs
 
 # bound to the plain names the rules call
 raw_mesh_path = RESULTS.raw_mesh_path
@@ -48,6 +52,7 @@ target_path = RESULTS.target_path
 table_inputs = RESULTS.table_inputs
 figure_outputs = RESULTS.figure_outputs
 export_outputs = RESULTS.export_outputs
+viewer_inputs = RESULTS.viewer_inputs
 experiment_source = RESULTS.experiment_source
 point_target = RESULTS.point_target
 point_settings = RESULTS.point_settings

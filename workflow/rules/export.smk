@@ -84,13 +84,9 @@ rule export_splats:
         "../scripts/export_splats.py"
 
 
-rule export_viewer:
+rule export_viewer:  # the page over every exported run
     input:
-        runs=expand(f"{R}/runs/{{experiment}}.h5", experiment=EXPORT_RUNS),
-        mp4s=expand(f"{R}/videos/{{experiment}}.mp4", experiment=EXPORT_RUNS),
-        webms=expand(f"{R}/videos/{{experiment}}.webm", experiment=EXPORT_RUNS),
-        stills=expand(f"{R}/videos/{{experiment}}_stills", experiment=EXPORT_RUNS),
-        measures=expand(f"{R}/meshes/{{experiment}}", experiment=EXPORT_RUNS),
+        **viewer_inputs(EXPORT_RUNS),
     output:
         f"{R}/viewer/index.html",
     params:
@@ -108,3 +104,20 @@ rule export_viewer:
         CONDA_ENV
     script:
         "../scripts/export_viewer.py"
+
+
+use rule export_viewer as export_viewer_run with:  # one run's own page (what `physmorph morph` opens)
+    input:
+        unpack(lambda wc: viewer_inputs([wc.experiment])),
+    output:
+        f"{R}/viewer/{{experiment}}.html",
+    wildcard_constraints:
+        experiment="|".join(FULL_RUNS) or "^$",
+    params:
+        names=lambda wc: [wc.experiment],
+        profile=S.profile,
+        title=lambda wc: f"physmorph: {wc.experiment}, the {S.profile} profile",
+    log:
+        f"{R}/logs/export/{{experiment}}_viewer.log",
+    benchmark:
+        f"{R}/benchmarks/export/{{experiment}}_viewer.tsv"

@@ -2,4 +2,4 @@ from physmorph.reports.export.stage import viewer_stage
 
 viewer_stage(snakemake.params.names, snakemake.input.runs, snakemake.input.mp4s, snakemake.input.webms or None,
              snakemake.input.stills, [f"{d}/measures.csv" for d in snakemake.input.measures], snakemake.output[0],
-             snakemake.params.profile, log=snakemake.log[0])
+             snakemake.params.profile, title=snakemake.params.get("title"), log=snakemake.log[0])

@@ -5,7 +5,7 @@
   with the transform to the target's input frame recorded (and applied with ``export.frame:
   target``) and what each surface shows measured (measures.csv);
 * ``splats_stage``: the Gaussians of every saved frame as 3DGS PLY files;
-* ``viewer_stage``: results/{profile}/viewer/index.html over the profile's full runs.
+* ``viewer_stage``: results/{profile}/viewer/index.html over the exported runs, and a page per run.
 """
 
 from __future__ import annotations
@@ -136,7 +136,9 @@ def _numbers(run_h5: Path, measures_csv: Path | None) -> dict[str, str]:
 
 
 def viewer_stage(names: list[str], runs: list[str], mp4s: list[str], webms: list[str] | None, stills: list[str],
-                 measures: list[str] | None, out_html: str, profile: str, log: str | None = None) -> None:
+                 measures: list[str] | None, out_html: str, profile: str, title: str | None = None,
+                 log: str | None = None) -> None:
+    """The viewer page over the runs ``names`` (``title``: default the profile's page's)."""
     from physmorph.reports.export.viewer import ViewerRun, write_viewer
 
     with stage_log(log):
@@ -146,5 +148,5 @@ def viewer_stage(names: list[str], runs: list[str], mp4s: list[str], webms: list
             entries.append(ViewerRun(name, Path(mp4s[i]), Path(webms[i]) if webms else None,
                                      [(int(p.stem.removeprefix("frame_")), p) for p in frames],
                                      _numbers(Path(runs[i]), Path(measures[i]) if measures else None)))
-        write_viewer(entries, Path(out_html), f"physmorph: the {profile} profile's morphs")
+        write_viewer(entries, Path(out_html), title or f"physmorph: the {profile} profile's morphs")
         print(f"{out_html}: {len(entries)} runs")
