@@ -33,22 +33,29 @@ def load_raw_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path}: contains no triangle mesh (got {type(loaded).__name__})")
     if len(loaded.faces) == 0 or len(loaded.vertices) == 0:
-        raise MeshError(f"{path}: {_why_empty(path)}")
+        return _surface_of_points(path)
     if not np.all(np.isfinite(loaded.vertices)):
         raise MeshError(f"{path}: mesh has non-finite vertex coordinates")
     return trimesh.Trimesh(np.asarray(loaded.vertices, np.float64), np.asarray(loaded.faces, np.int64), process=False)
 
 
-def _why_empty(path: Path) -> str:
-    """Why a file read as a mesh has no faces: points only (a mesh with nothing to enclose), or
-    nothing at all (trimesh's text readers skip bytes that are not a mesh, rather than raise)."""
+def _surface_of_points(path: Path) -> trimesh.Trimesh:
+    """A file with points and no faces is a point cloud: its closed surface (physmorph.meshes.point_cloud),
+    with ``metadata["points"]`` its point count; a file with nothing in it says so (trimesh's text
+    readers skip bytes that are not a mesh, rather than raise)."""
+    from .point_cloud import surface_from_points
+
     try:
-        points = len(getattr(trimesh.load(path, process=False), "vertices", ()))
+        points = np.asarray(getattr(trimesh.load(path, process=False), "vertices", ()), np.float64).reshape(-1, 3)
     except Exception:  # the first read succeeded; a second one failing says no more
-        points = 0
-    if points:
-        return f"mesh is empty (no faces, {points} points only)"
-    return f"cannot be read as a mesh (no vertices or faces in its {path.stat().st_size} bytes)"
+        points = np.zeros((0, 3))
+    if not len(points):
+        raise MeshError(f"{path}: cannot be read as a mesh (no vertices or faces in its {path.stat().st_size} bytes)")
+    if not np.all(np.isfinite(points)):
+        raise MeshError(f"{path}: point cloud has non-finite coordinates")
+    mesh = surface_from_points(points, str(path))
+    mesh.metadata["points"] = len(points)
+    return mesh
 
 
 def _solid_angles(query: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -337,6 +344,8 @@ def repair_mesh(
     """
     extent = _check_input(mesh, label)
     steps: list[str] = []
+    if "points" in mesh.metadata:  # a point cloud's surface (load_raw_mesh)
+        steps.append(f"surface of {mesh.metadata['points']} points (marching cubes on their signed distance)")
     m, raw_volume = _clean(mesh, label, extent, steps)
     reference, note = raw_volume, ""
     if solid_problem(m) is not None:

@@ -42,7 +42,7 @@ def _bad_mesh(directory: Path, case: str) -> Path:
 REFUSALS = [
     ("missing", "mesh file not found"),
     ("garbage", "cannot be read as a mesh"),
-    ("empty", "mesh is empty (no faces, 3 points only)"),
+    ("empty", "no faces and only 3 points (a point cloud needs at least 100)"),
     ("flat", "mesh is flat"),
     ("zerovolume", "the raw mesh encloses no volume"),
     ("huge", "too large"),
