@@ -26,7 +26,7 @@ import argparse
 import math
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ import yaml
 from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
 from .errors import REFUSED_STATUS, MeshError, exit_on_refusal, refusal_line
+from .mesh_record import mesh_record
 from .prepare import normalize_mesh
 from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
 from .shapes import isosphere
@@ -66,6 +67,7 @@ class SizeAdvice:
     region: tuple[float, float]  # the particles' region on each axis
     repair: tuple[str, ...]  # the repair steps prepare_mesh will log
     view_size: float = math.inf  # the largest size whose every vertex is inside every target view
+    bodies: int = 1  # separate closed bodies after the repair
 
     @property
     def largest(self) -> float:
@@ -96,20 +98,26 @@ VOLUME_MISMATCH = 0.10
 
 
 def volume_mismatch(experiment: str, source_volume: float, target_volume: float,
-                    target_size: float | None = None) -> str | None:
+                    target_size: float | None = None, largest: float = math.inf) -> str | None:
     """One line when a target holds more than VOLUME_MISMATCH more or less than its source's volume
     (None otherwise): MPM keeps volume, so such a target cannot be filled exactly. It names the
     experiment, the ratio and, with the target's configured ``target_size``, the size that holds the
-    source's volume (the fit helper's ``size_for_volume``: volume scales with size^3)."""
+    source's volume (the fit helper's ``size_for_volume``: volume scales with size^3), or where that
+    is above ``largest`` (the largest size that fits the particles' region), a smaller source."""
     ratio = float(target_volume) / float(source_volume)
     if abs(ratio - 1.0) <= VOLUME_MISMATCH:
         return None
     text = (f"{experiment}: the target holds {100 * ratio:.0f} % of the source's volume ({target_volume:.0f} against "
             f"{source_volume:.0f} units^3); MPM keeps volume, so the body cannot fill it exactly")
     if target_size:
-        match = float(target_size) * ratio ** (-1.0 / 3.0)
-        text += (f"; a target size of {round(match / SIZE_STEP) * SIZE_STEP:.1f} (now {float(target_size):g}) would "
-                 "hold the source's volume (python -m physmorph.meshes.fit MESH)")
+        match = round(float(target_size) * ratio ** (-1.0 / 3.0) / SIZE_STEP) * SIZE_STEP
+        if match > largest:
+            held = 100 * ratio * (largest / float(target_size)) ** 3
+            text += (f"; the largest target size that fits the grid, {largest:.1f}, holds {held:.0f} % of it: a smaller "
+                     "source would match (python -m physmorph.meshes.fit MESH)")
+        else:
+            text += (f"; a target size of {match:.1f} (now {float(target_size):g}) would hold the source's volume "
+                     "(python -m physmorph.meshes.fit MESH)")
     return text
 
 
@@ -135,7 +143,7 @@ def shape_volume(spec, prepared_h5: str | os.PathLike | None = None,
         return float(letter_mesh(spec.glyph, spec.size, spec.depth).volume)
     if raw_path is None or not Path(raw_path).is_file():
         return None
-    unit = _unit_volume(Path(raw_path))
+    unit = mesh_record(raw_path).unit_volume
     return None if unit is None else unit * spec.size ** 3
 
 
@@ -151,40 +159,6 @@ def raw_mesh_on_disk(settings, shape: str, root: str | os.PathLike = ".") -> Pat
     return local if local.is_file() or not settings.mesh_dir else Path(settings.mesh_dir) / spec.file
 
 
-def _volume_cache() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_unit_volumes.json"
-
-
-def _unit_volume(raw_path: Path) -> float | None:
-    """The volume at size 1 (longest extent 1) of a raw mesh repaired as prepare_mesh repairs it;
-    None when it cannot be read or repaired (its prepare_mesh job says why). Kept in a small cache
-    (XDG_CACHE_HOME/physmorph) by path, size and modification time: the repair of a large mesh takes
-    seconds, and every workflow invocation asks before its jobs."""
-    import json
-
-    stat = raw_path.stat()
-    key = f"{raw_path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
-    cache_file = _volume_cache()
-    try:
-        cache = json.loads(cache_file.read_text())
-    except (OSError, ValueError):
-        cache = {}
-    if key in cache:
-        return cache[key]
-    try:
-        repaired, _, _ = repair_mesh(load_raw_mesh(raw_path), str(raw_path))
-        lo, hi = repaired.bounds
-        unit = float(repaired.volume / float(np.max(hi - lo)) ** 3) if repaired.is_volume else None
-    except Exception:  # unreadable or irreparable: the prepare_mesh job names it
-        unit = None
-    try:
-        cache_file.parent.mkdir(parents=True, exist_ok=True)
-        cache_file.write_text(json.dumps({**cache, key: unit}))
-    except OSError:  # a read-only home: the answer is still right, only not kept
-        pass
-    return unit
-
-
 def volume_warnings(settings, experiments, prepared_h5, raw_path, volumes: dict | None = None) -> list[str]:
     """volume_mismatch's line for each of ``experiments`` whose source and target volumes are known
     before any job (shape_volume; ``prepared_h5(shape)`` and ``raw_path(shape)`` give its files;
@@ -198,7 +172,11 @@ def volume_warnings(settings, experiments, prepared_h5, raw_path, volumes: dict 
                 volumes[shape] = shape_volume(settings.shape(shape), prepared_h5(shape), raw_path(shape) or None)
         src, tgt = volumes[exp.source], volumes[exp.target]
         if src and tgt:
-            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size)
+            raw = raw_path(exp.target)
+            record = mesh_record(raw) if raw and Path(raw).is_file() else None
+            largest = (region_size(record.unit_lo, record.unit_hi, settings.sampling.grid_res, settings.domain)
+                       if record is not None and record.refusal is None else math.inf)
+            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size, largest)
             if line:
                 lines.append(line)
     return lines
@@ -241,6 +219,24 @@ def largest_size_in_views(unit: trimesh.Trimesh, cameras, upper: float, iteratio
     return _floor_step(lo)
 
 
+def particle_region(grid_res: int, domain: tuple[float, float]) -> tuple[float, float]:
+    """The part of each axis particles may occupy on a ``grid_res`` grid over ``domain``."""
+    return Grid(int(grid_res), float(domain[0]), float(domain[1])).interior_bounds()
+
+
+def region_limit(unit_lo, unit_hi, grid_res: int, domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI)) -> float:
+    """The size at which a shape whose size-1 bounds are ``unit_lo``..``unit_hi`` (3 values each,
+    placed as prepare_mesh places it) touches the particles' region: at size s its bounds are s
+    times those, and both faces of every axis must stay inside."""
+    region = particle_region(grid_res, domain)
+    return min([region[0] / v for v in unit_lo if v < 0] + [region[1] / v for v in unit_hi if v > 0])
+
+
+def region_size(unit_lo, unit_hi, grid_res: int, domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI)) -> float:
+    """region_limit rounded down to a SIZE_STEP multiple: the largest size to advise."""
+    return _floor_step(region_limit(unit_lo, unit_hi, grid_res, domain))
+
+
 def advise_size(
     mesh: trimesh.Trimesh,
     volume: float,
@@ -258,12 +254,9 @@ def advise_size(
     unit_volume = abs(float(unit.volume))
     if not unit_volume > 0:
         raise ValueError("the mesh encloses no volume")
-    region = Grid(int(grid_res), float(domain[0]), float(domain[1])).interior_bounds()
-    # At size s the normalised bounds are s * unit.bounds; both faces of every axis must stay inside.
-    b_lo, b_hi = unit.bounds
-    limits = [region[0] / v for v in b_lo if v < 0] + [region[1] / v for v in b_hi if v > 0]
+    region = particle_region(grid_res, domain)
     size_for_volume = _floor_step((volume / unit_volume) ** (1.0 / 3.0))
-    max_size = _floor_step(min(limits))
+    max_size = region_size(*unit.bounds, grid_res, domain)
     view_size = math.inf if cameras is None else largest_size_in_views(unit, cameras, max(size_for_volume, max_size))
     return SizeAdvice(volume=float(volume), unit_volume=unit_volume, size_for_volume=size_for_volume,
                       max_size=max_size, grid_res=int(grid_res), region=region, repair=tuple(repair),
@@ -281,7 +274,8 @@ def advise_size_for_file(
     """Load and repair ``path`` as prepare_mesh does, then :func:`advise_size`."""
     raw = load_raw_mesh(path)
     repaired, steps, _ = repair_mesh(raw, str(path), volume_tolerance=volume_tolerance)
-    advice = advise_size(repaired, volume, grid_res, domain, tuple(steps), cameras)
+    advice = replace(advise_size(repaired, volume, grid_res, domain, tuple(steps), cameras),
+                     bodies=len(repaired.split(only_watertight=False)))
     if advice.largest < SIZE_STEP:  # a size of 0.0 would be printed, and refused by every stage after
         room = "the particles' region" + (" and the target's views" if math.isfinite(advice.view_size) else "")
         raise MeshError(f"{path}: too large for grid {int(grid_res)} in [{domain[0]:g}, {domain[1]:g}]^3: even at size "
@@ -316,6 +310,8 @@ def advice_text(advice: SizeAdvice, path: str, name: str, source: str, notes: tu
              f"{a.max_size:.1f}"]
     if math.isfinite(a.view_size):
         lines.append(f"  largest size every target view shows whole: {a.view_size:.1f}")
+    if a.bodies > 1:
+        lines.append(f"  warning: {a.bodies} separate bodies; the morph fills them as one shape, and one body morphs best")
     shapes = {name: {"kind": "file", "path": str(path), "size": round(a.size, 1)}}
     if a.keeps_source:
         if a.size < a.size_for_volume:

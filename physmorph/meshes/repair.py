@@ -22,6 +22,8 @@ MAX_COORDINATE = 1e100
 def load_raw_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     """Load an OBJ/GLB/... as one triangle mesh with scene transforms applied (the Duck's 0.01 scale)."""
     path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"{path}: is a folder, not a mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: mesh file not found")
     try:
@@ -347,6 +349,7 @@ def repair_mesh(
     if "points" in mesh.metadata:  # a point cloud's surface (load_raw_mesh)
         steps.append(f"surface of {mesh.metadata['points']} points (marching cubes on their signed distance)")
     m, raw_volume = _clean(mesh, label, extent, steps)
+    open_edges = boundary_edges(m)
     reference, note = raw_volume, ""
     if solid_problem(m) is not None:
         cleaned = m
@@ -369,11 +372,25 @@ def repair_mesh(
     if problem is not None:
         raise MeshError(f"{label}: irreparable, {problem} after {', '.join(steps)}")
     if not _volume_ok(m, reference, volume_tolerance):
+        if open_edges:  # the volume of an open surface is not its shape's: say so, and what to do
+            raise MeshError(
+                f"{label}: the mesh is open ({open_edges} edges on a hole's rim), and closing it "
+                f"{_volume_change(m, reference).removeprefix('repair ')} (more than {100 * volume_tolerance:.0f} %): "
+                "close its holes in a mesh editor (e.g. MeshLab's Close Holes, Blender's 3D-Print Make Manifold) "
+                "and give the closed mesh")
         raise MeshError(
             f"{label}: irreparable, {_volume_change(m, reference)}{note} "
             f"(more than {100 * volume_tolerance:.0f} %; steps: {', '.join(steps) or 'none'})"
         )
     return m, steps, reference
+
+
+def boundary_edges(m: trimesh.Trimesh) -> int:
+    """Edges that only one face uses: the rims of the surface's holes (0 for a closed surface)."""
+    if not len(m.faces):
+        return 0
+    _, counts = np.unique(np.sort(m.edges, axis=1), axis=0, return_counts=True)
+    return int((counts == 1).sum())
 
 
 def solid_problem(m: trimesh.Trimesh) -> str | None:

@@ -6,6 +6,7 @@ use (particles_path, cluster_threads, stability_inputs, ...). Only the workflow 
 never imports Snakemake.
 """
 
+import sys
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -148,6 +149,23 @@ class VolumeWarnings:
                                         self.raw_mesh_here, self.volumes):
                 logger.warning(f"warning: {line}")
         return self.tree.particles_path(s.experiment(wc.experiment).source)
+
+
+def check_user_shapes(settings):
+    """A user's own meshes (file shapes given by path), before any job: what their prepare_mesh or
+    sample_particles job would refuse stops the workflow here in that one line (status 2); what it
+    would accept but not do well is warned."""
+    if not any(spec.kind == "file" and spec.path is not None for spec in settings.shapes.values()):
+        return  # (no trimesh import for the shipped shapes alone)
+    from physmorph.meshes.fit import target_cameras
+    from physmorph.meshes.user_shapes import user_shape_report
+
+    warnings, refusal = user_shape_report(settings, target_cameras(settings))
+    for line in warnings:
+        logger.warning(f"warning: {line}")
+    if refusal is not None:
+        print(refusal, file=sys.stderr)
+        raise SystemExit(2)
 
 
 def folder_of_first_output(wildcards, output):

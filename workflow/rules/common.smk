@@ -5,7 +5,7 @@
 # exactly the jobs that use it. Every output lives under results/{profile}/.
 # The helper functions are in common.py beside this file (Snakemake puts this folder on sys.path).
 from common import ResultTree, SlurmGuard, VolumeWarnings, folder_of_first_output, folder_of_input, mb
-from common import morph_runtime_min
+from common import check_user_shapes, morph_runtime_min
 from physmorph.settings.workflow import Settings
 from physmorph.settings.params import morph_params, params_json, without_defaults
 from physmorph.settings.memory_model import particle_estimate
@@ -29,6 +29,8 @@ except WorkflowError:
     Settings.from_mapping(config)
     raise
 S = Settings.from_mapping(config)
+# a user's own meshes: what their jobs would refuse stops here, in one line, before any job
+check_user_shapes(S)
 # every rule's conda environment under --use-conda (workflow/envs/make_env.py writes both from the locks)
 CONDA_ENV = "../envs/physmorph_cuda.yaml" if S.device == "cuda" else "../envs/physmorph.yaml"
 POINTS = tradeoff_points(S) if S.tradeoff is not None else {}

@@ -1,0 +1,82 @@
+"""What a raw mesh is once repaired as prepare_mesh repairs it, known before any job: its volume,
+bounds and convex hull at size 1, its separate bodies, or the one line it is refused with.
+
+Every workflow invocation asks (the volume warnings, the dry run's checks of a user's meshes), and
+the repair of a large mesh takes seconds, so the answer is kept in a small cache
+(XDG_CACHE_HOME/physmorph) by the file's path, size and modification time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import MeshError, refusal_line
+from .prepare import normalize_mesh
+from .repair import load_raw_mesh, repair_mesh
+
+# a new field or another meaning of one: records of older code are not read
+RECORD_VERSION = 2
+
+
+@dataclass(frozen=True)
+class MeshRecord:
+    """The repaired mesh at size 1 (longest extent 1, its volume centroid at the origin, as
+    prepare_mesh places it), or ``refusal``: why the mesh cannot be used."""
+
+    refusal: str | None = None
+    unit_volume: float | None = None
+    bodies: int = 0  # separate closed bodies after the repair
+    unit_lo: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    unit_hi: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    hull: tuple[tuple[float, float, float], ...] = ()  # [H, 3] the convex hull's vertices
+
+    @property
+    def vertices(self) -> np.ndarray:  # [H, 3]: what a view must hold whole (the hull's: views are convex)
+        return np.asarray(self.hull, np.float64).reshape(-1, 3)
+
+
+def _cache_file() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_records.json"
+
+
+def _measure(raw_path: Path) -> MeshRecord:
+    try:
+        repaired, _, _ = repair_mesh(load_raw_mesh(raw_path), str(raw_path))
+    except MeshError as exc:
+        return MeshRecord(refusal=refusal_line(exc, raw_path))
+    unit, _, _ = normalize_mesh(repaired, 1.0)
+    lo, hi = unit.bounds
+    hull = unit.convex_hull.vertices
+    return MeshRecord(unit_volume=abs(float(unit.volume)), bodies=len(unit.split(only_watertight=False)),
+                      unit_lo=tuple(map(float, lo)), unit_hi=tuple(map(float, hi)),
+                      hull=tuple(tuple(map(float, v)) for v in hull))
+
+
+def mesh_record(raw_path: str | os.PathLike) -> MeshRecord:
+    """The record of ``raw_path`` (an existing file), from the cache or measured now."""
+    raw_path = Path(raw_path)
+    stat = raw_path.stat()
+    key = f"{RECORD_VERSION}:{raw_path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
+    cache_file = _cache_file()
+    try:
+        cache = json.loads(cache_file.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    if key in cache:
+        fields = cache[key]
+        return MeshRecord(**{**fields, "hull": tuple(map(tuple, fields["hull"])),
+                             "unit_lo": tuple(fields["unit_lo"]), "unit_hi": tuple(fields["unit_hi"])})
+    record = _measure(raw_path)
+    try:
+        cache_file.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache_file.with_suffix(f".{os.getpid()}.partial")
+        tmp.write_text(json.dumps({**cache, key: asdict(record)}))
+        tmp.replace(cache_file)
+    except OSError:  # a read-only home: the answer is still right, only not kept
+        pass
+    return record
