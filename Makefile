@@ -21,7 +21,7 @@ WHEEL_DIR ?= /opt/wheels
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 WHEELS := $(if $(filter cuda,$(DEVICE)),,$(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX)))
 
-.PHONY: venv conda-env tables figures tradeoff export report test gpu-check slurm-check dag recover clean-venv
+.PHONY: venv conda-env tables figures tradeoff export morph report test gpu-check slurm-check dag recover clean-venv
 
 $(STAMP): $(LOCK) pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -53,6 +53,12 @@ tradeoff: $(STAMP)
 
 export: $(STAMP)
 	$(VENV)/bin/snakemake --cores $(CORES) export $(ARGS)
+
+# A user's own morph, start to finish (physmorph morph --help): make morph SOURCE=iso TARGET=path/to/mesh.obj,
+# its options in ARGS (e.g. ARGS="--profile fast"); TARGET is the morph's target here, not recover's default.
+morph: $(STAMP)
+	@test -n "$(SOURCE)" -a "$(origin TARGET)" != file || { echo "make morph needs SOURCE=... TARGET=... (a mesh file, a point cloud or a shape name)"; exit 2; }
+	$(VENV)/bin/physmorph morph "$(SOURCE)" "$(TARGET)" --cores $(CORES) $(ARGS)
 
 report: $(STAMP)
 	$(VENV)/bin/snakemake --cores $(CORES) tables figures tradeoff --report report.html $(ARGS)

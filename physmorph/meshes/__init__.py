@@ -28,8 +28,10 @@ where the raw surface overlaps itself. A refusal (MeshError) names the file or s
 check that failed; the fit helper and the prepare_mesh job end on it in one line, exit status 2.
 
 Modules: ``fetch`` (stage 1), ``shapes`` (specs, procedural shapes), ``repair`` (loading and
-repair), ``prepare`` (stage 2: normalise, write, read), ``fit`` (the size helper: ``python -m
-physmorph.meshes.fit MESH``), ``particles`` (stage 3: particle sampling).
+repair), ``point_cloud`` (a point cloud's closed surface, which loading builds for a file of points),
+``prepare`` (stage 2: normalise, write, read), ``mesh_record`` (a raw mesh measured once repaired,
+kept in a cache), ``fit`` (the size helper: ``python -m physmorph.meshes.fit MESH``),
+``user_shapes`` (what a dry run says of a user's meshes), ``particles`` (stage 3: particle sampling).
 
 May import physmorph.records, physmorph.settings and physmorph.base.
 """

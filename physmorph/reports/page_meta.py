@@ -195,6 +195,14 @@ def _wall(seconds) -> str:
     return f"{minutes:.0f} min" if minutes < 90 else f"{minutes / 60:.1f} h"
 
 
+def _per_run(seconds, runs) -> str:
+    """The jobs' time over the runs: about what one more morph of the profile takes, its data jobs included."""
+    if seconds is None or not runs:
+        return ""
+    each = seconds / runs
+    return f"{each:.0f} s" if each < 120 else _wall(each)
+
+
 def _particles(span) -> str:
     if not span:
         return ""
@@ -219,7 +227,7 @@ def readme_table(docs_dir: Path) -> str:
     """The README's profile table from the results pages' records: one row a page, one value a
     cell; a row whose page ran other than the shipped method is marked † (``userdocs check`` names
     the keys)."""
-    header = ["profile", "runs", "particles", "images", "frames", "jobs' time, summed", "peak RSS",
+    header = ["profile", "runs", "particles", "images", "frames", "jobs' time, summed", "per run", "peak RSS",
               "iso full, last", "page"]
     rows, marked, unrecorded = [], False, False
     shipped = shipped_method_settings()
@@ -239,6 +247,7 @@ def readme_table(docs_dir: Path) -> str:
         rss = s.get("peak_rss_mb")
         rows.append([f"`{record['profile']}`{mark}", str(s.get("runs", "")), _particles(s.get("particles")),
                      s.get("images", ""), "/".join(map(str, s.get("frames", []))), _wall(s.get("wall_s")),
+                     _per_run(s.get("wall_s"), s.get("runs")),
                      f"{rss / 1024:.1f} GB" if rss else "", iso_cell, f"[{page.name}](docs/{page.name})"])
     order = {"default": 0, "test": 1, "fast": 2, "mid": 3, "paper": 4}
     rows.sort(key=lambda r: (order.get(r[0].split("`")[1], 9), r[0]))

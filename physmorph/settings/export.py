@@ -16,7 +16,7 @@ class ExportConfig:
     experiments: Annotated[tuple[str, ...], setting(
         "the full-method runs `snakemake export` exports and its viewer page lists; empty: the tables' full runs and "
         "every full run that a config file beside config/config.yaml adds (a user's own)", "",
-        "experiments keys of method full")] = ()
+        "experiments keys of method full", job="plan")] = ()
 
     width: Annotated[Int, setting("width of each video panel (the body's, then the target's)", "pixels",
                                   "even, >= 16", ge=16, job="video")] = 384

@@ -4,6 +4,7 @@ again it does nothing more; a dry run writes nothing; a shape it cannot use is r
 before any job."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -119,11 +120,18 @@ def test_own_mesh_to_a_point_cloud_start_to_finish(tmp_path, mesh_dir):
     assert trimesh.load(Path(paths["meshes"]) / "final.glb", force="mesh").is_watertight
     assert (Path(paths["meshes"]) / "measures.csv").is_file() and sorted(Path(paths["splats"]).glob("frame_*.ply"))
     page = Path(paths["viewer page"]).read_text()
-    assert 'id="pill_ball"' in page and "../videos/pill_ball.mp4" in page
+    assert 'id="pill_ball"' in page and "../videos/pill_ball.mp4" in page and 'data-src="data/pill_ball.js"' in page
+    import json
+
+    script = (r / "viewer/data/pill_ball.js").read_text()
+    data = json.loads(script.split("window.PHYSMORPH_RUNS[\"pill_ball\"] = ", 1)[1].rstrip().rstrip(";"))
+    saved = sorted(int(p.stem.removeprefix("frame_")) for p in Path(paths["meshes"]).glob("frame_*.ply"))
+    assert [f["frame"] for f in data["frames"]] == saved and data["splats"] and data["target"]
+    assert (r / "viewer/viewer3d.js").stat().st_size > 1e6
     config = yaml.safe_load((wd / "morphs/pill_ball.yaml").read_text())
     assert config["experiments"]["pill_ball"] == {"source": "pill", "target": "ball", "method": "full", "frames": 4}
     again = _morph(*args, cwd=tmp_path)
     assert again.returncode == 0 and "nothing to be done" in again.stdout and again.stdout.endswith(run.stdout[-200:])
     dry = _morph(*args, "--name", "other", "-n", cwd=tmp_path)
-    assert dry.returncode == 0 and "morph                    1" in dry.stdout, dry.stdout
+    assert dry.returncode == 0 and re.search(r"^morph\s+1$", dry.stdout, re.M), dry.stdout
     assert not (wd / "morphs/other.yaml").exists()

@@ -40,7 +40,9 @@ def test_the_render_loss_scalars_come_from_its_terms_in_the_run_files_order():
 
 def test_every_export_setting_names_the_one_job_that_reads_it():
     video, mesh = fields_of_job(ExportConfig, "video"), fields_of_job(ExportConfig, "mesh")
-    assert set(video) | set(mesh) == {f.name for f in fields(ExportConfig)} and not set(video) & set(mesh)
+    plan = fields_of_job(ExportConfig, "plan")  # read where the workflow plans the export, by no job
+    assert set(video) | set(mesh) | set(plan) == {f.name for f in fields(ExportConfig)}
+    assert not set(video) & set(mesh) and plan == ("experiments",)
     cfg = ExportConfig()
     assert list(cfg.video()) == list(video) and list(cfg.mesh()) == list(mesh)
     assert {"width", "fps", "crf"} <= set(video) and {"refine", "smooth_iterations"} <= set(mesh)

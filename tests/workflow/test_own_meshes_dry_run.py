@@ -2,29 +2,22 @@
 stops the dry run in that one line, before any job is planned; separate bodies are warned and the
 jobs planned (physmorph.meshes.user_shapes, workflow/rules/common.py check_user_shapes)."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import trimesh
 import yaml
 
-REPO = Path(__file__).resolve().parents[2]
-SNAKEMAKE = Path(sys.executable).with_name("snakemake")
+from snakemake_runs import scratch_workdir, snakemake_run
 
 
-def _dry_run(tmp_path: Path, shape: dict) -> subprocess.CompletedProcess:
+def _dry_run(tmp_path: Path, shape: dict):
     wd = tmp_path / "wd"
     wd.mkdir()
-    for name in ("Snakefile", "config", "workflow"):
-        (wd / name).symlink_to(REPO / name)
+    scratch_workdir(wd)
     (wd / "mine.yaml").write_text(yaml.safe_dump({"shapes": {"mine": shape},
                                                   "experiments": {"iso_mine": {"source": "iso", "target": "mine",
                                                                                "method": "full"}}}))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.run([str(SNAKEMAKE), "-n", "--cores", "2", "results/default/runs/iso_mine.h5", "--configfile",
-                           "mine.yaml"], cwd=wd, capture_output=True, text=True, env=env, timeout=300)
+    return snakemake_run(wd, "-n", "results/default/runs/iso_mine.h5", "--configfile", "mine.yaml", check=False)
 
 
 def test_a_mesh_too_large_for_the_grid_stops_the_dry_run_in_one_line(tmp_path):

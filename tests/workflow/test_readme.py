@@ -33,7 +33,25 @@ def readme_commands() -> list[str]:
 
 
 def _snakemake_commands() -> list[str]:
-    return [c for c in readme_commands() if c.startswith("snakemake ") and "--profile" not in c]
+    inline = re.findall(r"`(snakemake [^`]*--configfile mine\.yaml[^`]*)`", README.read_text().replace("\n", " "))
+    return [c for c in readme_commands() + inline if c.startswith("snakemake ") and "--profile" not in c]
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+
+
+def _mine_yaml(directory: Path, mesh_dir: Path) -> Path:
+    """The README's mine.yaml, as its fit command writes it for path/to/mesh.obj (the Bunny here)."""
+    command = re.findall(r"`(python -m physmorph\.meshes\.fit [^`]*)`", README.read_text())[0]
+    if not (directory / "config").exists():
+        (directory / "config").symlink_to(REPO / "config")
+    (directory / "path" / "to").mkdir(parents=True, exist_ok=True)
+    (directory / "path" / "to" / "mesh.obj").symlink_to(mesh_dir / "stanford-bunny.obj")
+    res = subprocess.run(command.replace("python", shlex.quote(sys.executable), 1), shell=True, cwd=directory,
+                         capture_output=True, text=True, timeout=120, env=_env())
+    assert res.returncode == 0, res.stderr
+    return directory / "mine.yaml"
 
 
 def test_the_readme_has_the_commands_it_promises():
@@ -47,9 +65,7 @@ def test_the_readme_has_the_commands_it_promises():
 def test_readme_snakemake_command_plans_as_written(command, tmp_path, mesh_dir):
     for name in ("Snakefile", "config", "workflow"):
         (tmp_path / name).symlink_to(REPO / name)
-    # the README's mine.yaml, its mesh path pointing at a real mesh
-    mine = next(b for b in _blocks("yaml") if "iso_mine" in b)
-    (tmp_path / "mine.yaml").write_text(mine.replace("path/to/mesh.obj", str(mesh_dir / "stanford-bunny.obj")))
+    _mine_yaml(tmp_path, mesh_dir)  # the README's mine.yaml
     args = shlex.split(command)[1:]
     if "--report" in args:  # a report is written after the jobs have run; plan the jobs
         i = args.index("--report")
@@ -88,17 +104,29 @@ def test_readme_runfile_summary_runs(tmp_path):
 def test_readme_mesh_size_command_runs(tmp_path, mesh_dir):
     """The README's size helper, as written, on a real mesh: it writes mine.yaml, a config file the
     workflow's loader accepts."""
-    command = re.findall(r"`(python -m physmorph\.meshes\.fit [^`]*)`", README.read_text())[0]
-    (tmp_path / "config").symlink_to(REPO / "config")
-    (tmp_path / "path" / "to").mkdir(parents=True)
-    (tmp_path / "path" / "to" / "mesh.obj").symlink_to(mesh_dir / "stanford-bunny.obj")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run(command.replace("python", shlex.quote(sys.executable), 1), shell=True, cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120, env=env)
-    assert res.returncode == 0, res.stderr
-    written = (tmp_path / "mine.yaml").read_text()  # the command writes the config file it names
+    written = _mine_yaml(tmp_path, mesh_dir).read_text()  # the command writes the config file it names
     # the bunny is compact: its size for the iso's volume fits, the value config/config.yaml uses
     assert "mesh: {kind: file, path: path/to/mesh.obj, size: 18.0}" in written, written
     from physmorph.settings.workflow import load_settings
 
     assert load_settings(REPO / "config/config.yaml", tmp_path / "mine.yaml").shape("mesh").size == 18.0
+
+
+def test_readme_morph_command_plans_as_written(tmp_path, mesh_dir):
+    """The README's one command for a user's own mesh, as written (path/to/mesh.obj: the Bunny),
+    with -n: it plans the morph and its exports and writes nothing."""
+    command = next(c for c in readme_commands() if c.startswith("physmorph morph "))
+    (tmp_path / "path" / "to").mkdir(parents=True)
+    (tmp_path / "path" / "to" / "mesh.obj").symlink_to(mesh_dir / "stanford-bunny.obj")
+    wd = tmp_path / "wd"
+    wd.mkdir()
+    for name in ("Snakefile", "config", "workflow"):
+        (wd / name).symlink_to(REPO / name)
+    args = [*shlex.split(command)[1:], "-n", "--workdir", str(wd), "--mesh-dir", str(mesh_dir)]
+    res = subprocess.run([str(Path(sys.executable).with_name("physmorph")), *args], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=300, env=_env())
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    assert "iso_mesh: {source: iso, target: mesh, method: full}" in res.stdout
+    for rule in ("morph", "export_video", "export_meshes", "export_splats", "export_viewer_run"):
+        assert re.search(rf"^{rule}\s+1$", res.stdout, re.M), res.stdout
+    assert not (wd / "morphs").exists()

@@ -100,11 +100,13 @@ class ResultTree:
                 f"{r}/viewer/{name}.html"]
 
     def viewer_inputs(self, names):
-        """A viewer page's inputs over the runs ``names``: run files, videos, stills and measures."""
+        """A viewer page's inputs over the runs ``names``: run files, videos, stills, measures, their 3D
+        view data, and the 3D view's script."""
         r = self.root
         return {"runs": [f"{r}/runs/{n}.h5" for n in names], "mp4s": [f"{r}/videos/{n}.mp4" for n in names],
                 "webms": [f"{r}/videos/{n}.webm" for n in names], "stills": [f"{r}/videos/{n}_stills" for n in names],
-                "measures": [f"{r}/meshes/{n}" for n in names]}
+                "measures": [f"{r}/meshes/{n}" for n in names], "data": [f"{r}/viewer/data/{n}.js" for n in names],
+                "bundle": f"{r}/viewer/viewer3d.js"}
 
     def experiment_source(self, name):
         return self.settings.shape(self.settings.experiment(name).source)

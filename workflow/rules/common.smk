@@ -13,6 +13,8 @@ from physmorph.settings.memory_model import morph_memory, sampling_memory, targe
 from physmorph.reports.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.reports.layout import load_layout
 from physmorph.reports.export.measures import COLUMNS as MEASURE_COLUMNS
+from physmorph.reports.export.viewer import BUNDLE as VIEWER_BUNDLE
+from physmorph.meshes.fetch import sha256_of
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 from physmorph.meshes.particles import stored_particle_count

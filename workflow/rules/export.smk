@@ -121,3 +121,46 @@ use rule export_viewer as export_viewer_run with:  # one run's own page (what `p
         f"{R}/logs/export/{{experiment}}_viewer.log",
     benchmark:
         f"{R}/benchmarks/export/{{experiment}}_viewer.tsv"
+
+
+rule export_viewer_data:  # a run's 3D view: every saved frame's surface, the target's, the last frame's splats
+    input:
+        run=f"{R}/runs/{{experiment}}.h5",
+        meshes=f"{R}/meshes/{{experiment}}",
+        target_mesh=lambda wc: f"{R}/meshes/{S.experiment(wc.experiment).target}.h5",
+    output:
+        f"{R}/viewer/data/{{experiment}}.js",
+    wildcard_constraints:
+        experiment="|".join(FULL_RUNS) or "^$",
+    log:
+        f"{R}/logs/export/{{experiment}}_viewer_data.log",
+    benchmark:
+        f"{R}/benchmarks/export/{{experiment}}_viewer_data.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    conda:
+        CONDA_ENV
+    script:
+        "../scripts/export_viewer_data.py"
+
+
+rule export_viewer_bundle:  # the 3D view's script beside the pages (three.js and Spark, vendored)
+    output:
+        f"{R}/viewer/viewer3d.js",
+    params:
+        # a new bundle reruns the copy (and the pages after it)
+        sha256=sha256_of(VIEWER_BUNDLE) if VIEWER_BUNDLE.exists() else "missing",
+    log:
+        f"{R}/logs/export/viewer_bundle.log",
+    benchmark:
+        f"{R}/benchmarks/export/viewer_bundle.tsv"
+    threads: 1
+    resources:
+        mem_mb=500,
+        runtime=5,
+    conda:
+        CONDA_ENV
+    script:
+        "../scripts/export_viewer_bundle.py"

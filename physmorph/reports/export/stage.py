@@ -5,7 +5,8 @@
   with the transform to the target's input frame recorded (and applied with ``export.frame:
   target``) and what each surface shows measured (measures.csv);
 * ``splats_stage``: the Gaussians of every saved frame as 3DGS PLY files;
-* ``viewer_stage``: results/{profile}/viewer/index.html over the exported runs, and a page per run.
+* ``viewer_stage``: results/{profile}/viewer/index.html over the exported runs, and a page per run;
+* ``viewer_data_stage``, ``viewer_bundle_stage``: a run's 3D view data, and the 3D view's script.
 """
 
 from __future__ import annotations
@@ -137,8 +138,9 @@ def _numbers(run_h5: Path, measures_csv: Path | None) -> dict[str, str]:
 
 def viewer_stage(names: list[str], runs: list[str], mp4s: list[str], webms: list[str] | None, stills: list[str],
                  measures: list[str] | None, out_html: str, profile: str, title: str | None = None,
-                 log: str | None = None) -> None:
-    """The viewer page over the runs ``names`` (``title``: default the profile's page's)."""
+                 data: list[str] | None = None, bundle: str | None = None, log: str | None = None) -> None:
+    """The viewer page over the runs ``names`` (``title``: default the profile's page's; ``data``:
+    each run's 3D data script, ``bundle`` the 3D view's script beside the page)."""
     from physmorph.reports.export.viewer import ViewerRun, write_viewer
 
     with stage_log(log):
@@ -147,6 +149,33 @@ def viewer_stage(names: list[str], runs: list[str], mp4s: list[str], webms: list
             frames = sorted(Path(stills[i]).glob("frame_*.jpg"))
             entries.append(ViewerRun(name, Path(mp4s[i]), Path(webms[i]) if webms else None,
                                      [(int(p.stem.removeprefix("frame_")), p) for p in frames],
-                                     _numbers(Path(runs[i]), Path(measures[i]) if measures else None)))
-        write_viewer(entries, Path(out_html), title or f"physmorph: the {profile} profile's morphs")
+                                     _numbers(Path(runs[i]), Path(measures[i]) if measures else None),
+                                     Path(data[i]) if data else None))
+        write_viewer(entries, Path(out_html), title or f"physmorph: the {profile} profile's morphs",
+                     Path(bundle) if bundle else None)
         print(f"{out_html}: {len(entries)} runs")
+
+
+def viewer_data_stage(experiment: str, run_h5: str, meshes_dir: str, target_mesh_h5: str, out_js: str,
+                      log: str | None = None) -> None:
+    """A run's 3D view data, data/{experiment}.js (physmorph.reports.export.viewer_data)."""
+    from physmorph.reports.export.viewer_data import write_viewer_data
+
+    def run() -> None:
+        with stage_log(log):
+            path = write_viewer_data(experiment, Path(run_h5), Path(meshes_dir), Path(target_mesh_h5), Path(out_js))
+            print(f"{path}: {path.stat().st_size / 1e6:.1f} MB")
+
+    exit_on_refusal(run, log=log, refusals=USER_ERRORS)
+
+
+def viewer_bundle_stage(out_js: str, log: str | None = None) -> None:
+    """The 3D view's script beside the pages: the vendored bundle, copied (viewer_data.BUNDLE)."""
+    import shutil
+
+    from physmorph.reports.export.viewer import BUNDLE
+
+    with stage_log(log):
+        Path(out_js).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(BUNDLE, out_js)
+        print(f"{out_js}: {BUNDLE.stat().st_size / 1e6:.1f} MB, from {BUNDLE.name}")
