@@ -130,12 +130,13 @@ def test_readme_table_has_one_value_a_cell_and_marks_other_methods(tmp_path):
     _page(docs, "results_mid.md", "mid", {**shipped, "settle": "off"}, {**summary, "particles": [35000, 44000]})
     (docs / "paper_scale.md").write_text("# no record\n")
     table = readme_table(docs).splitlines()
-    assert table[2] == ("| `default` | 18 | 6.7K-8.0K | 8 × 160×90 | 40 | 9 min | 0.6 GB | 100.9 % (bunny) "
+    # 540 s over 18 runs: 30 s a run
+    assert table[2] == ("| `default` | 18 | 6.7K-8.0K | 8 × 160×90 | 40 | 9 min | 30 s | 0.6 GB | 100.9 % (bunny) "
                         "| [results.md](docs/results.md) |")
     assert table[3].startswith("| `mid` † | 18 | 35.0K-44.0K |")
     assert table[4].startswith("| `paper` ‡ |")
     assert any(ln.startswith("† made with other method settings") for ln in table)
-    assert all(row.count(" | ") == 8 for row in table[2:5])
+    assert all(row.count(" | ") == 9 for row in table[2:5])
 
 
 def test_the_repository_pages_read_back():
