@@ -25,12 +25,16 @@ class ExportConfig:
                                 job="video")] = 10
     orbit_deg: Annotated[Float, setting("how far the video's camera turns around the body over the whole run",
                                         "degrees", job="video")] = 120.0
+    body: Annotated[Literal["surface", "particles"], setting(
+        "what the video draws of the body: surface (the exported closed surface, smoothed without shrinking, as "
+        "the paper shows its results; export.refine and export.smooth_iterations make it) or particles (the run's "
+        "Gaussians, as the render loss sees them)", job="video")] = "surface"
     max_particles: Annotated[Int, setting(
         "above this many particles the video shows the body by an even subsample, each Gaussian widened to keep "
         "it closed", ge=1000, job="video")] = 120_000
     crf: Annotated[Int, setting("H.264 constant rate factor (lower: better and larger)", ge=0, le=51, job="video")] = 23
-    refine: Annotated[Float, setting("surface grid cells per MPM cell (the exported meshes' resolution)",
-                                     gt=0, job="mesh")] = 2.0
+    refine: Annotated[Float, setting("surface grid cells per MPM cell (the exported meshes' resolution; the "
+                                     "video's surface too)", gt=0, job="mesh")] = 2.0
     smooth_iterations: Annotated[Int, setting("Taubin smoothing passes of the exported surface (0: none)",
                                               ge=0, job="mesh")] = 10
     frame: Annotated[Literal["domain", "target"], setting(
@@ -50,3 +54,7 @@ class ExportConfig:
     def mesh(self) -> dict:
         """What the mesh jobs read (the fields declared with job="mesh")."""
         return {k: getattr(self, k) for k in fields_of_job(type(self), "mesh")}
+
+    def video_surface(self) -> dict:
+        """The mesh keys the video jobs read too: those that make the surface, when they draw it."""
+        return self.mesh() if self.body == "surface" else {}

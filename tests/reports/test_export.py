@@ -294,7 +294,8 @@ def test_stray_share_counts_the_mass_beyond_two_cells_outside_the_target(tmp_pat
 
 def test_orbit_camera_starts_at_the_first_ring_view_and_turns_about_y():
     from physmorph.base.cameras import ring_cameras
-    from physmorph.reports.export.video import orbit_camera, subsample
+    from physmorph.reports.export.video import orbit_camera
+    from physmorph.reports.export.video_body import subsample
 
     ring = ring_cameras(4, 21.0, 40.0, 64, 48, 36.0)
     for view, az in enumerate((0.0, 90.0, 180.0)):
@@ -333,7 +334,8 @@ def test_a_run_without_every_frames_motion_ends_the_video_job_in_one_line(tmp_pa
 
     def video_job(target: Path, log: Path):
         code = ("from physmorph.reports.export.stage import video_stage; "
-                f"video_stage({str(run)!r}, {str(target)!r}, '{{}}', '{{}}', {str(tmp_path / 'v.mp4')!r}, None, "
+                f"video_stage({str(run)!r}, {str(target)!r}, '{{}}', '{{\"body\": \"particles\"}}', "
+                f"{str(tmp_path / 'v.mp4')!r}, None, "
                 f"{str(tmp_path / 'stills')!r}, log={str(log)!r})")
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
 

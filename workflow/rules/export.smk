@@ -12,13 +12,15 @@ rule export:  # videos, surface meshes, splat files and a viewer of the full-met
 rule export_video:
     input:
         run=f"{R}/runs/{{experiment}}.h5",
+        particles=lambda wc: particles_path(S.experiment(wc.experiment).source),
         target_mesh=lambda wc: f"{R}/meshes/{S.experiment(wc.experiment).target}.h5",
     output:
         mp4=f"{R}/videos/{{experiment}}.mp4",
         webm=f"{R}/videos/{{experiment}}.webm",
         stills=directory(f"{R}/videos/{{experiment}}_stills"),
     params:
-        video=params_json(S.export.video()),
+        # the video keys, and the mesh keys that make the surface it draws (none when it draws the particles)
+        video=params_json({**S.export.video(), **S.export.video_surface()}),
         target=params_json(S.target),
     log:
         f"{R}/logs/export/{{experiment}}_video.log",

@@ -61,6 +61,14 @@ def _rest_particles(particles_h5: str | os.PathLike, run_checksum: str | None, n
     return {"volume": volume, "is_surface": is_surface, "dx": dx}
 
 
+def rest_particles(run_h5: str | os.PathLike, particles_h5: str | os.PathLike) -> dict:
+    """The particle file's volume [N], is_surface [N] and dx, checked to be the one ``run_h5`` was made from."""
+    with _open_run(run_h5) as f:
+        checksums = json.loads(str(f.attrs["input_checksums"])) if "input_checksums" in f.attrs else {}
+        n = len(f["states"][sorted(f["states"])[0]]["x"])
+    return _rest_particles(particles_h5, checksums.get("particles"), n, run_h5)
+
+
 def frame_state(run_h5: str | os.PathLike, frame: int, particles_h5: str | os.PathLike | None = None) -> dict:
     """The saved state of ``frame`` of a finished run.
 

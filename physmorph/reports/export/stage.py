@@ -52,7 +52,7 @@ def _transforms(source_mesh_h5: Path, target_mesh_h5: Path) -> dict:
 
 
 def _video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, export: str | dict, mp4: str,
-                 webm: str | None, stills_dir: str, log: str | None = None) -> None:
+                 webm: str | None, stills_dir: str, log: str | None = None, particles_h5: str | None = None) -> None:
     from dataclasses import asdict
 
     from physmorph.settings.sections import TargetConfig
@@ -62,7 +62,7 @@ def _video_stage(run_h5: str, target_mesh_h5: str, target_cfg: str | dict, expor
     target = asdict(typed(TargetConfig, target_cfg, "target"))
     with stage_log(log):
         count = write_videos(Path(run_h5), Path(target_mesh_h5), target, Path(mp4), Path(webm) if webm else None,
-                             Path(stills_dir), cfg)
+                             Path(stills_dir), cfg, particles_h5=Path(particles_h5) if particles_h5 else None)
         rec = video_record(Path(mp4))
         print(f"{mp4}: {count} frames encoded, {rec['frames']} read back, {rec['seconds']:.1f} s, "
               f"{rec['bytes'] / 1e6:.1f} MB")

@@ -1,10 +1,11 @@
 """A run as a video: every frame of the morph, the body shaded as in the figures from a slowly
-orbiting camera, beside the target from the same view, with the frame number and the share of the
-reachable gap closed.
+orbiting camera, beside the target from the same view, with the frame number, the share of the
+reachable gap closed and the volume IoU.
 
-The body is the run's Gaussians (x and F of every frame: physmorph.records.runfile.frame_motion) shaded
-by ``physmorph.render.api.shade``; the target is its prepared mesh's surface, evenly sampled, as small
-round Gaussians shaded the same way, so both sides are lit and seen alike. Frames are encoded with imageio-ffmpeg: H.264 in yuv420p (what browsers and players open)
+The body is its closed surface at every frame or the run's own Gaussians (``export.body``:
+physmorph.reports.export.video_body; x and F of every frame: physmorph.records.runfile.frame_motion),
+shaded by ``physmorph.render.api.shade``; the target is its prepared mesh's surface, evenly sampled,
+as small round Gaussians shaded the same way, so both sides are lit and seen alike. Frames are encoded with imageio-ffmpeg: H.264 in yuv420p (what browsers and players open)
 and VP9 in WebM beside it.
 """
 
@@ -20,6 +21,7 @@ from physmorph.morph.quality import gap_closed
 from physmorph.reports.export.runs import saved_frames
 from physmorph.settings.export import ExportConfig
 from physmorph.records.runfile import frame_motion
+from physmorph.reports.export.video_body import SURFACE_GAUSSIANS, BodyDrawing, body_label, surface_gaussians
 
 
 def orbit_camera(azimuth_deg: float, elevation_deg: float, fov_y_deg: float, distance: float, width: int,
@@ -34,21 +36,8 @@ def orbit_camera(azimuth_deg: float, elevation_deg: float, fov_y_deg: float, dis
                    width, height)
 
 
-def subsample(x: np.ndarray,  # [N, 3]
-              F: np.ndarray,  # [N, 3, 3]
-              sigma0: float, limit: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """At most ``limit`` particles, evenly strided, each Gaussian widened by (N / M)^(1/3) so the
-    body stays closed (the same fill per volume)."""
-    n = len(x)
-    if n <= limit:
-        return x, F, sigma0
-    step = int(np.ceil(n / limit))
-    return x[::step], F[::step], sigma0 * (n / len(x[::step])) ** (1.0 / 3.0)
-
-
-def target_gaussians(mesh_h5: Path, count: int = 40_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
-    """The prepared target mesh as ``count`` round Gaussians (F = I) evenly on its surface, sigma
-    the points' spacing sqrt(area / count): a closed, evenly lit skin."""
+def target_gaussians(mesh_h5: Path, count: int = SURFACE_GAUSSIANS, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """The prepared target mesh as ``count`` round Gaussians evenly on its surface (surface_gaussians)."""
     import trimesh
 
     from physmorph.records.h5io import StageInputError
@@ -57,8 +46,7 @@ def target_gaussians(mesh_h5: Path, count: int = 40_000, seed: int = 0) -> tuple
         raise StageInputError(f"{mesh_h5}: missing (the target's prepared mesh)")
     with h5py.File(mesh_h5, "r") as f:
         mesh = trimesh.Trimesh(f["vertices"][()], f["faces"][()], process=False)
-    pts = np.asarray(trimesh.sample.sample_surface_even(mesh, count, seed=seed)[0], dtype=np.float64)
-    return pts, np.broadcast_to(np.eye(3), (len(pts), 3, 3)).copy(), float(np.sqrt(mesh.area / len(pts)))
+    return surface_gaussians(mesh, count, seed)
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
@@ -70,29 +58,32 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
     return np.array(pil)
 
 
-def video_frames(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, settings: ExportConfig, log=print):
-    """Yield (k, the video's frame [H, 2W, 3] uint8) for every run frame k = 0..K."""
+def video_frames(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, settings: ExportConfig, log=print,
+                 particles_h5: Path | None = None):
+    """Yield (k, the video's frame [H, 2W, 3] uint8) for every run frame k = 0..K (``particles_h5``:
+    the run's particle file, which the body's surface needs: video_body.BodyDrawing)."""
     from physmorph.settings.render import RenderConfig
     from physmorph.render.api import shade
+    from physmorph.reports.export.runs import rest_particles
 
     tx, tF, ts = target_gaussians(target_mesh_h5)
+    rest = rest_particles(run_h5, particles_h5) if settings.body == "surface" and particles_h5 is not None else None
     with h5py.File(run_h5, "r") as f:
         frames = int(f.attrs["frames_completed"])
-        sigma0 = float(f.attrs["sigma0"])
+        drawing = BodyDrawing(settings, float(f.attrs["sigma0"]), rest)
         alpha = f["metrics/alpha_mse"][()]
+        iou = f["metrics/volume_iou"][()] if "volume_iou" in f["metrics"] else np.full(len(alpha), np.nan)
         ceiling = float(f.attrs.get("ceiling_alpha_mse", np.nan))
         name = str(f.attrs.get("experiment", Path(run_h5).stem))
         for k in range(frames + 1):
             cam = orbit_camera(settings.orbit_deg * k / max(frames, 1), target_cfg["elevation_deg"],
                                target_cfg["fov_y_deg"], target_cfg["distance"], settings.width, settings.height)
-            x, F = frame_motion(f, k)
-            bx, bF, bs = subsample(x, F, sigma0, settings.max_particles)
+            bx, bF, bs = drawing.gaussians(*frame_motion(f, k))
             body = shade(bx, bF, bs, cam, 0, RenderConfig())
             target = shade(tx, tF, ts, cam, 0, RenderConfig(), color=(0.55, 0.62, 0.72))
             img = (255 * np.clip(np.concatenate([body, target], axis=1), 0, 1)).astype(np.uint8)
             closed = gap_closed(float(alpha[0]), float(alpha[k]), ceiling) if np.isfinite(ceiling) else np.nan
-            text = f"{name}  frame {k}/{frames}" + (f"  {100 * closed:.0f} % of the gap" if np.isfinite(closed) else "")
-            img = _label(img, text)
+            img = _label(img, body_label(name, k, frames, closed, float(iou[k]) if k < len(iou) else np.nan))
             img[:, settings.width - 1: settings.width + 1] = 200  # the seam between body and target
             if k % 10 == 0:
                 log(f"[video {name}] frame {k}/{frames}")
@@ -100,7 +91,8 @@ def video_frames(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, settings:
 
 
 def write_videos(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, mp4: Path, webm: Path | None,
-                 stills_dir: Path | None = None, settings: ExportConfig = ExportConfig(), log=print) -> int:
+                 stills_dir: Path | None = None, settings: ExportConfig = ExportConfig(), log=print,
+                 particles_h5: Path | None = None) -> int:
     """Encode the run's video as H.264 MP4 (yuv420p) and, with ``webm``, VP9 WebM; with
     ``stills_dir`` the saved frames' images as frame_{k:04d}.jpg (the viewer's slider). Returns
     the frame count (K + 1 for a run of K frames)."""
@@ -126,7 +118,7 @@ def write_videos(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, mp4: Path
     if stills_dir is not None:
         Path(stills_dir).mkdir(parents=True, exist_ok=True)
     try:
-        for k, img in video_frames(run_h5, target_mesh_h5, target_cfg, settings, log):
+        for k, img in video_frames(run_h5, target_mesh_h5, target_cfg, settings, log, particles_h5):
             for w in writers:
                 w.send(np.ascontiguousarray(img))
             if k in stills:

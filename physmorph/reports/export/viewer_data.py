@@ -51,7 +51,7 @@ def last_frame_splats(run_h5: Path) -> str:
     """The last saved frame's Gaussians (at most VIEWER_SPLATS) as a base64 3DGS PLY, in the domain frame."""
     from physmorph.reports.export.runs import frame_state, saved_frames
     from physmorph.reports.export.splats import write_splats
-    from physmorph.reports.export.video import subsample
+    from physmorph.reports.export.video_body import subsample
 
     s = frame_state(run_h5, saved_frames(run_h5)[-1])
     x, F, sigma = subsample(np.asarray(s["x"]), np.asarray(s["F"]), float(s["sigma0"]), VIEWER_SPLATS)
