@@ -416,12 +416,24 @@ def _results_page(args, root: Path) -> Path:
                              command=f"python -m physmorph.reports.userdocs results {args.profile}",
                              provenance=runs_provenance(tree / "tables", tree / "runs"),
                              outputs_md=docs / "outputs.md")
-    video = tree / "videos" / "iso_bunny_full.mp4"
-    if args.profile == "default" and video.exists():  # the README's opening picture
-        from physmorph.reports.export.video import write_gif
-
-        print(f"wrote {write_gif(video, docs / 'images' / 'iso_bunny.gif')}")
+    if args.profile == "default":  # the README's opening picture
+        _readme_picture(root, tree)
     return path
+
+
+def _readme_picture(root: Path, tree: Path) -> None:
+    """The default profile's best-looking honest run's video as README.md's GIF, with its numbers
+    (physmorph.reports.readme_picture)."""
+    from physmorph.reports.export.video import write_gif
+    from physmorph.reports.readme_picture import PICTURE, caption, pick_run, update_readme_picture
+    from physmorph.settings.workflow import load_settings
+
+    row = pick_run(tree / "tables" / "convergence.csv", tree / "videos")
+    if row is None:
+        return
+    exp = load_settings(root / "config" / "config.yaml").experiment(row["experiment"])
+    print(f"wrote {write_gif(tree / 'videos' / (row['experiment'] + '.mp4'), root / PICTURE)}")
+    update_readme_picture(root / "README.md", caption(row, exp.source, exp.target, "default"))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -125,7 +125,12 @@ def test_default_page_ran_the_shipped_method():
 
 
 def test_readme_opens_with_the_morph_gif_under_two_megabytes():
-    gif = ROOT / "docs" / "images" / "iso_bunny.gif"
-    first_image = re.search(r"!\[[^\]]*\]\(([^)]+)\)", README.read_text()).group(1)
-    assert first_image == "docs/images/iso_bunny.gif"
+    """The opening picture is the generated one, and its caption gives the run's numbers."""
+    from physmorph.reports.readme_picture import MARKER, PICTURE
+
+    text = README.read_text()
+    caption, first_image = re.search(r"!\[([^\]]*)\]\(([^)]+)\)", text).groups()
+    assert first_image == PICTURE.as_posix() and f"{MARKER}\n![" in text
+    assert re.search(r"the default profile: \d+ % of the gap closed at the last frame, volume IoU \d\.\d\d", caption)
+    gif = ROOT / PICTURE
     assert gif.read_bytes()[:6] in (b"GIF87a", b"GIF89a") and gif.stat().st_size <= 2_000_000
