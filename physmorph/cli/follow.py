@@ -83,23 +83,34 @@ def follow(call: WorkflowCall, snakemake_log: Path, morph_log: Path, out: TextIO
         # unbuffered: each line reaches the log (and this loop) as it is written, the jobs' too
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         proc = subprocess.Popen(call.command(), cwd=call.workdir, stdout=log, stderr=subprocess.STDOUT, env=env)
-        sm_tail, news = _Tail(snakemake_log), _JobNews(out)
-        while True:
-            finished = proc.poll() is not None
-            for line in sm_tail.lines():
-                news.read(line)
-            for line in morph_tail.lines():
-                shown = frame_progress(line) or (line.strip() if "resuming" in line or "warning" in line else None)
-                if shown:
-                    print(f"  morph: {shown}", file=out, flush=True)
-            if finished:
-                break
-            time.sleep(poll_s)
+        try:
+            _watch(proc, _Tail(snakemake_log), morph_tail, _JobNews(out), out, poll_s)
+        except KeyboardInterrupt:  # Snakemake got the Ctrl-C too: it stops its jobs, the morph keeps its frames
+            proc.wait()
+            print("stopped: run the same command again to resume (the morph goes on from its last committed frame)",
+                  file=out, flush=True)
+            return 130
     if proc.returncode != 0:
         tail = snakemake_log.read_text(errors="replace").splitlines()[-25:]
         print("\n".join(["the workflow stopped; its last lines (whole output: " + str(snakemake_log) + "):", *tail]),
               file=out, flush=True)
     return proc.returncode
+
+
+def _watch(proc: subprocess.Popen, sm_tail: _Tail, morph_tail: _Tail, news: "_JobNews", out: TextIO,
+           poll_s: float) -> None:
+    """Until ``proc`` ends: Snakemake's news of its jobs and the morph's frames, as they come."""
+    while True:
+        finished = proc.poll() is not None
+        for line in sm_tail.lines():
+            news.read(line)
+        for line in morph_tail.lines():
+            shown = frame_progress(line) or (line.strip() if "resuming" in line or "warning" in line else None)
+            if shown:
+                print(f"  morph: {shown}", file=out, flush=True)
+        if finished:
+            return
+        time.sleep(poll_s)
 
 
 class _JobNews:

@@ -41,13 +41,20 @@ def _env() -> dict:
     return {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
 
 
-def _mine_yaml(directory: Path, mesh_dir: Path) -> Path:
-    """The README's mine.yaml, as its fit command writes it for path/to/mesh.obj (the Bunny here)."""
-    command = re.findall(r"`(python -m physmorph\.meshes\.fit [^`]*)`", README.read_text())[0]
-    if not (directory / "config").exists():
-        (directory / "config").symlink_to(REPO / "config")
+def _mesh_here(directory: Path, mesh_dir: Path) -> None:
+    """path/to/mesh.obj in ``directory``: the Bunny."""
     (directory / "path" / "to").mkdir(parents=True, exist_ok=True)
     (directory / "path" / "to" / "mesh.obj").symlink_to(mesh_dir / "stanford-bunny.obj")
+
+
+@pytest.fixture(scope="module")
+def mine_yaml(tmp_path_factory, mesh_dir) -> Path:
+    """The README's mine.yaml, as its fit command writes it for path/to/mesh.obj (the Bunny here),
+    made once (the fit repairs the mesh) in a folder of its own."""
+    directory = tmp_path_factory.mktemp("fit")
+    command = re.findall(r"`(python -m physmorph\.meshes\.fit [^`]*)`", README.read_text())[0]
+    (directory / "config").symlink_to(REPO / "config")
+    _mesh_here(directory, mesh_dir)
     res = subprocess.run(command.replace("python", shlex.quote(sys.executable), 1), shell=True, cwd=directory,
                          capture_output=True, text=True, timeout=120, env=_env())
     assert res.returncode == 0, res.stderr
@@ -62,10 +69,12 @@ def test_the_readme_has_the_commands_it_promises():
 
 
 @pytest.mark.parametrize("command", _snakemake_commands())
-def test_readme_snakemake_command_plans_as_written(command, tmp_path, mesh_dir):
+def test_readme_snakemake_command_plans_as_written(command, tmp_path, mesh_dir, request):
     for name in ("Snakefile", "config", "workflow"):
         (tmp_path / name).symlink_to(REPO / name)
-    _mine_yaml(tmp_path, mesh_dir)  # the README's mine.yaml
+    if "mine.yaml" in command:  # the README's mine.yaml, its mesh beside it
+        (tmp_path / "mine.yaml").write_text(request.getfixturevalue("mine_yaml").read_text())
+        _mesh_here(tmp_path, mesh_dir)
     args = shlex.split(command)[1:]
     if "--report" in args:  # a report is written after the jobs have run; plan the jobs
         i = args.index("--report")
@@ -101,15 +110,15 @@ def test_readme_runfile_summary_runs(tmp_path):
     assert "iso_bunny_full.h5: complete, 2 frames, alpha MSE 0.06 -> 0.04" in res.stdout, res.stdout
 
 
-def test_readme_mesh_size_command_runs(tmp_path, mesh_dir):
+def test_readme_mesh_size_command_runs(mine_yaml):
     """The README's size helper, as written, on a real mesh: it writes mine.yaml, a config file the
     workflow's loader accepts."""
-    written = _mine_yaml(tmp_path, mesh_dir).read_text()  # the command writes the config file it names
+    written = mine_yaml.read_text()  # the command writes the config file it names
     # the bunny is compact: its size for the iso's volume fits, the value config/config.yaml uses
     assert "mesh: {kind: file, path: path/to/mesh.obj, size: 18.0}" in written, written
     from physmorph.settings.workflow import load_settings
 
-    assert load_settings(REPO / "config/config.yaml", tmp_path / "mine.yaml").shape("mesh").size == 18.0
+    assert load_settings(REPO / "config/config.yaml", mine_yaml).shape("mesh").size == 18.0
 
 
 def test_readme_morph_command_plans_as_written(tmp_path, mesh_dir):
