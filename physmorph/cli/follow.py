@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -85,8 +86,12 @@ def follow(call: WorkflowCall, snakemake_log: Path, morph_log: Path, out: TextIO
         proc = subprocess.Popen(call.command(), cwd=call.workdir, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
             _watch(proc, _Tail(snakemake_log), morph_tail, _JobNews(out), out, poll_s)
-        except KeyboardInterrupt:  # Snakemake got the Ctrl-C too: it stops its jobs, the morph keeps its frames
-            proc.wait()
+        except KeyboardInterrupt:  # a terminal's Ctrl-C reaches Snakemake too; an interrupt sent here alone is passed on
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.send_signal(signal.SIGINT)
+                proc.wait()  # Snakemake stops its jobs; the morph keeps its committed frames
             print("stopped: run the same command again to resume (the morph goes on from its last committed frame)",
                   file=out, flush=True)
             return 130
