@@ -75,6 +75,9 @@ def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = F
         kwargs["advanced_optimization"] = False
     if threads is not None and arch == "cpu":
         kwargs["cpu_max_num_threads"] = int(threads)
+    if os.environ.get("PHYSMORPH_KERNEL_PROFILER") == "1":
+        # each kernel's launches timed (benchmarks/bench_roofline.py); never in a run
+        kwargs["kernel_profiler"] = True
     ti.init(**kwargs)
     use_short_source_positions()
     _state.update(arch=arch, threads=threads, debug=debug)
