@@ -12,7 +12,7 @@ from physmorph.settings.memory_model import particle_estimate
 from physmorph.settings.memory_model import morph_memory, sampling_memory, target_memory
 from physmorph.reports.metrics import TABLE_NAMES as TABLES, FIGURE_NAMES as FIGURES
 from physmorph.reports.layout import load_layout
-from physmorph.reports.export.measures import COLUMNS as MEASURE_COLUMNS
+from physmorph.reports.export.columns import MEASURE_COLUMNS
 from physmorph.reports.export.viewer import BUNDLE as VIEWER_BUNDLE
 from physmorph.meshes.fetch import sha256_of
 from snakemake.exceptions import WorkflowError

@@ -24,13 +24,12 @@ import numpy as np
 import pandas as pd
 import trimesh
 
+from physmorph.reports.export.columns import MEASURE_COLUMNS
 from physmorph.reports.export.body import (components_and_genus, largest_body_outside_share, roughness_percent,
                                            surface_distance_p95)
 
 STRAY_DX = 2.0  # a particle this many grid cells outside the target's surface is stray
 SURFACE_SAMPLES = 20000
-COLUMNS = ("frame", "stray_share", "surface_distance_dx", "closed", "faces", "outside_largest_body",
-           "components", "genus", "target_genus", "surface_p95_dx", "roughness_percent")
 
 
 def target_mesh(mesh_h5: str | Path) -> trimesh.Trimesh:
@@ -113,4 +112,4 @@ def frame_measures(frame: int, state: dict, mesh: trimesh.Trimesh, target_mesh_h
 
 
 def write_measures(rows: list[dict], path: Path) -> None:
-    pd.DataFrame(rows, columns=list(COLUMNS)).to_csv(path, index=False)
+    pd.DataFrame(rows, columns=list(MEASURE_COLUMNS)).to_csv(path, index=False)
