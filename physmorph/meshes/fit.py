@@ -29,17 +29,19 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 import yaml
 
 from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
 from .errors import REFUSED_STATUS, MeshError, exit_on_refusal, refusal_line
 from .mesh_record import mesh_record
-from .prepare import normalize_mesh
-from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
-from .shapes import isosphere
+
+if TYPE_CHECKING:  # trimesh, the repair and the shapes load when a mesh is sized: the workflow's
+    import trimesh  # volume warnings, asked at every snakemake start, need none of them
+
 
 # Sizes are rounded down to this many domain units, so a printed size always fits.
 SIZE_STEP = 0.1
@@ -188,7 +190,27 @@ def _floor_step(x: float) -> float:
 
 def isosphere_volume(size: float) -> float:
     """Volume of the source isosphere of longest extent ``size`` (it scales as size^3)."""
-    return float(isosphere(radius=0.5).volume) * size ** 3
+    return isosphere_unit_volume() * size ** 3
+
+
+def isosphere_unit_volume() -> float:
+    """The volume of physmorph.meshes.shapes.isosphere at size 1 (radius 0.5): its 80 faces, the
+    icosahedron's 20 each cut into 4 at the edges' midpoints pushed out to the sphere, summed as
+    tetrahedra from the centre (the divergence theorem); numpy only, so no mesh library loads."""
+    phi = (1.0 + 5.0 ** 0.5) / 2.0
+    v = np.array([[-1, phi, 0], [1, phi, 0], [-1, -phi, 0], [1, -phi, 0], [0, -1, phi], [0, 1, phi], [0, -1, -phi],
+                  [0, 1, -phi], [phi, 0, -1], [phi, 0, 1], [-phi, 0, -1], [-phi, 0, 1]], dtype=np.float64)
+    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2),
+             (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11),
+             (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    unit = lambda p: 0.5 * p / np.linalg.norm(p)  # noqa: E731  (on the sphere of radius 0.5)
+    volume = 0.0
+    for a, b, c in faces:
+        A, B, C = unit(v[a]), unit(v[b]), unit(v[c])
+        ab, bc, ca = unit(A + B), unit(B + C), unit(C + A)
+        for tri in ((A, ab, ca), (ab, B, bc), (ca, bc, C), (ab, bc, ca)):
+            volume += abs(float(np.linalg.det(np.array(tri)))) / 6.0
+    return volume
 
 
 def isosphere_size_for_volume(volume: float) -> float:
@@ -250,6 +272,8 @@ def advise_size(
     the render loss sees the whole target."""
     if not volume > 0:
         raise ValueError(f"volume must be > 0, got {volume!r}")
+    from .prepare import normalize_mesh
+
     unit, _, _ = normalize_mesh(mesh, 1.0)
     unit_volume = abs(float(unit.volume))
     if not unit_volume > 0:
@@ -268,12 +292,14 @@ def advise_size_for_file(
     volume: float,
     grid_res: int,
     domain: tuple[float, float] = (DOMAIN_LO, DOMAIN_HI),
-    volume_tolerance: float = DEFAULT_VOLUME_TOLERANCE,
+    volume_tolerance: float | None = None,
     cameras=None,
 ) -> SizeAdvice:
     """Load and repair ``path`` as prepare_mesh does, then :func:`advise_size`."""
+    from .repair import DEFAULT_VOLUME_TOLERANCE, load_raw_mesh, repair_mesh
+
     raw = load_raw_mesh(path)
-    repaired, steps, _ = repair_mesh(raw, str(path), volume_tolerance=volume_tolerance)
+    repaired, steps, _ = repair_mesh(raw, str(path), volume_tolerance=volume_tolerance or DEFAULT_VOLUME_TOLERANCE)
     advice = replace(advise_size(repaired, volume, grid_res, domain, tuple(steps), cameras),
                      bodies=len(repaired.split(only_watertight=False)))
     if advice.largest < SIZE_STEP:  # a size of 0.0 would be printed, and refused by every stage after

@@ -16,8 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from .errors import MeshError, refusal_line
-from .prepare import normalize_mesh
-from .repair import load_raw_mesh, repair_mesh
 
 # a new field or another meaning of one: records of older code are not read
 RECORD_VERSION = 2
@@ -45,6 +43,9 @@ def _cache_file() -> Path:
 
 
 def _measure(raw_path: Path) -> MeshRecord:
+    from .prepare import normalize_mesh  # (trimesh and the repair load only when a mesh is measured)
+    from .repair import load_raw_mesh, repair_mesh
+
     try:
         repaired, _, _ = repair_mesh(load_raw_mesh(raw_path), str(raw_path))
     except MeshError as exc:

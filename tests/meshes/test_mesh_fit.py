@@ -217,3 +217,13 @@ def test_two_targets_get_their_own_shrunk_sources(tmp_path, capsys, monkeypatch)
         assert isosphere_volume(src.size) == pytest.approx(target_volume, rel=0.02)
     assert {name for block in blocks for name in block["experiments"]} <= set(s.experiments)
     assert (a["source"], b["source"]) == ("isolong8", "isolong10")  # valid shape names: letters and digits
+
+
+def test_the_isospheres_volume_without_its_mesh_is_its_meshs():
+    """fit.isosphere_unit_volume (numpy only, for the workflow's volume warnings) is the volume of
+    the mesh physmorph.meshes.shapes.isosphere builds, at any size."""
+    from physmorph.meshes.fit import isosphere_unit_volume, isosphere_volume
+    from physmorph.meshes.shapes import isosphere
+
+    assert isosphere_unit_volume() == pytest.approx(isosphere(radius=0.5).volume, rel=1e-12)
+    assert isosphere_volume(13.7) == pytest.approx(isosphere(radius=6.85).volume, rel=1e-12)
