@@ -6,7 +6,9 @@ caches: 12 bytes per element moved) and the floating-point rate of a register-bo
 independent chains of fused multiply-adds per element). Then one MPM frame's rollout, forward and
 backward, with Taichi's kernel profiler on: per kernel its launches, its time, its share of the
 physics, and, for the kernels whose traffic is modelled below, the bytes it moves per launch, the
-rate that makes, and that rate as a share of the triad's (the roofline's memory roof).
+rate that makes, and that rate as a share of the triad's (the roofline's memory roof). Last, P2G's
+two halves apart: its per-particle stress (the polar decomposition warm-started from the last
+substep) and its scatter into the grid (27 nodes, 108 float atomic adds), each as a kernel.
 
 Traffic model (float32, per particle per substep, each array read or written once; the grid's
 scattered traffic counted at one 16-byte node (mass + momentum) per stencil point, 27 points):
@@ -93,7 +95,8 @@ def kernel_times() -> dict:
 
 
 def physics_profile(n: int, res: int, reps: int) -> tuple:
-    """Per-kernel (launches, seconds) of ``reps`` forward+backward rollouts, their wall time, the grid's nodes."""
+    """Per-kernel (launches, seconds) of ``reps`` forward+backward rollouts, their wall time, the
+    grid's nodes and the solver."""
     import taichi as ti
 
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -119,7 +122,50 @@ def physics_profile(n: int, res: int, reps: int) -> tuple:
         solver.forward()
         solver.backward()
     ti.sync()
-    return kernel_times(), time.perf_counter() - t0, (res + 1) ** 3
+    return kernel_times(), time.perf_counter() - t0, (res + 1) ** 3, solver
+
+
+def p2g_parts(solver, reps: int = 5) -> dict:
+    """P2G's two halves timed apart, best of ``reps`` over every substep of the last rollout: its
+    per-particle stress (Fe, the warm-started polar decomposition, P, the affine A) and its scatter
+    (the 27 nodes' 108 float atomic adds), each a kernel of the library's own functions."""
+    import taichi as ti
+
+    model, traj, ctrl, n = solver.model, solver.trajectory, solver.control_field, solver.model.n
+    sink = ti.field(model.dtype, shape=n)
+    T = solver.cfg.substeps
+
+    @ti.kernel
+    def stress_only(t: ti.i32):
+        for q in range(n):
+            Fe = (traj.F[t, q] + ctrl.ctrl[t, q]) @ model.Fp_inv[q]
+            R, S, gap = model.stress.polar_from(Fe, traj.R_prev[q])
+            P = model.stress.stress_from_polar(Fe, R)
+            sink[q] = (P @ Fe.transpose()).sum() + gap
+
+    @ti.kernel
+    def scatter_only(t: ti.i32):
+        for q in range(n):
+            base, fx, w, dw = model.stencil(traj.x[t, q])
+            mom = model.mass[q] * traj.v[t, q]
+            for i, j, k in ti.ndrange(3, 3, 3):
+                off, dpos, wt = model.node(fx, w, i, j, k)
+                traj.grid_mv[base + off] += wt * (mom + traj.C[t, q] @ dpos)
+                traj.grid_m[base + off] += wt * model.mass[q]
+
+    out = {}
+    for name, kernel in (("p2g: stress", stress_only), ("p2g: scatter", scatter_only)):
+        kernel(0)
+        ti.sync()
+        best = np.inf
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            for t in range(T):
+                kernel(t)
+            ti.sync()
+            best = min(best, time.perf_counter() - t0)
+        out[name] = best / T
+    return out
 
 
 def main() -> None:
@@ -134,7 +180,7 @@ def main() -> None:
 
     init_taichi("cpu", threads=args.threads)
     limits = machine_limits()
-    times, wall, nodes = physics_profile(args.n, args.res, args.reps)
+    times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps)
     total = sum(t for _, t in times.values())
     print(f"machine ({args.threads} threads): triad {limits['bandwidth'] / 1e9:.1f} GB/s, "
           f"fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s")
@@ -155,6 +201,10 @@ def main() -> None:
         rate = per * count / seconds if per else None
         print(f"{short[:44]:<44} {count:>8} {seconds:>7.3f} {100 * seconds / total:>5.1f}% "
               + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * rate / limits['bandwidth']:>7.0f}%" if per else ""))
+    p2g_launch = by_kernel.get("p2g", (1, 0.0))
+    parts = p2g_parts(solver)
+    print(f"p2g, {1e3 * p2g_launch[1] / max(p2g_launch[0], 1):.2f} ms a launch, apart: "
+          + ", ".join(f"{name.split(': ')[1]} {1e3 * sec:.2f} ms" for name, sec in parts.items()))
 
 
 if __name__ == "__main__":
