@@ -37,7 +37,7 @@ import yaml
 from physmorph.base.grid import DOMAIN_HI, DOMAIN_LO, Grid
 
 from .errors import REFUSED_STATUS, MeshError, exit_on_refusal, refusal_line
-from .mesh_record import mesh_record
+from .mesh_record import letter_volume, mesh_record
 
 if TYPE_CHECKING:  # trimesh, the repair and the shapes load when a mesh is sized: the workflow's
     import trimesh  # volume warnings, asked at every snakemake start, need none of them
@@ -140,9 +140,7 @@ def shape_volume(spec, prepared_h5: str | os.PathLike | None = None,
     if spec.kind == "isosphere":
         return isosphere_volume(spec.size)
     if spec.kind == "letter":
-        from .shapes import letter_mesh
-
-        return float(letter_mesh(spec.glyph, spec.size, spec.depth).volume)
+        return letter_volume(spec.glyph, spec.size, spec.depth)
     if raw_path is None or not Path(raw_path).is_file():
         return None
     unit = mesh_record(raw_path).unit_volume

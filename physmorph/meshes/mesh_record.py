@@ -2,12 +2,15 @@
 bounds and convex hull at size 1, its separate bodies, or the one line it is refused with.
 
 Every workflow invocation asks (the volume warnings, the dry run's checks of a user's meshes), and
-the repair of a large mesh takes seconds, so the answer is kept in a small cache
-(XDG_CACHE_HOME/physmorph) by the file's path, size and modification time.
+the repair of a large mesh takes seconds, so the answer is kept in a cache
+(XDG_CACHE_HOME/physmorph/mesh_records/), one small file a record named by the file's path, size
+and modification time: a planning run reads only the records of the meshes it names, and two
+processes that measure two meshes at once never overwrite each other's.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import asdict, dataclass
@@ -38,8 +41,25 @@ class MeshRecord:
         return np.asarray(self.hull, np.float64).reshape(-1, 3)
 
 
-def _cache_file() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_records.json"
+# the records this process has read or measured, by cache key (a workflow's planning asks once per run)
+_KNOWN: dict[str, MeshRecord] = {}
+
+
+def _cache_file(key: str) -> Path:
+    name = hashlib.sha256(key.encode()).hexdigest()[:32]
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_records" / f"{name}.json"
+
+
+def _read(cache_file: Path, key: str) -> MeshRecord | None:
+    try:
+        stored = json.loads(cache_file.read_text())
+    except (OSError, ValueError):
+        return None
+    if stored.get("key") != key:  # a hash collision or a damaged file: measured again
+        return None
+    fields = stored["record"]
+    return MeshRecord(**{**fields, "hull": tuple(map(tuple, fields["hull"])),
+                         "unit_lo": tuple(fields["unit_lo"]), "unit_hi": tuple(fields["unit_hi"])})
 
 
 def _measure(raw_path: Path) -> MeshRecord:
@@ -58,26 +78,47 @@ def _measure(raw_path: Path) -> MeshRecord:
                       hull=tuple(tuple(map(float, v)) for v in hull))
 
 
+def letter_volume(glyph: str, size: float, depth: float | None) -> float:
+    """The volume of physmorph.meshes.shapes.letter_mesh(glyph, size, depth), kept in the same cache
+    under the text of shapes.py (another letter geometry, another key), so a planning run loads
+    neither trimesh nor a font to warn about a letter target's volume."""
+    code = hashlib.sha256((Path(__file__).parent / "shapes.py").read_bytes()).hexdigest()[:16]
+    key = f"letter:{code}:{glyph}:{float(size)!r}:{depth!r}"
+    cache_file = _cache_file(key)
+    try:
+        stored = json.loads(cache_file.read_text())
+        if stored.get("key") == key:
+            return float(stored["volume"])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    from .shapes import letter_mesh
+
+    volume = float(letter_mesh(glyph, size, depth).volume)
+    _write(cache_file, {"key": key, "volume": volume})
+    return volume
+
+
+def _write(cache_file: Path, stored: dict) -> None:
+    try:
+        cache_file.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache_file.with_suffix(f".{os.getpid()}.partial")
+        tmp.write_text(json.dumps(stored))
+        tmp.replace(cache_file)
+    except OSError:  # a read-only home: the answer is still right, only not kept
+        pass
+
+
 def mesh_record(raw_path: str | os.PathLike) -> MeshRecord:
     """The record of ``raw_path`` (an existing file), from the cache or measured now."""
     raw_path = Path(raw_path)
     stat = raw_path.stat()
     key = f"{RECORD_VERSION}:{raw_path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
-    cache_file = _cache_file()
-    try:
-        cache = json.loads(cache_file.read_text())
-    except (OSError, ValueError):
-        cache = {}
-    if key in cache:
-        fields = cache[key]
-        return MeshRecord(**{**fields, "hull": tuple(map(tuple, fields["hull"])),
-                             "unit_lo": tuple(fields["unit_lo"]), "unit_hi": tuple(fields["unit_hi"])})
-    record = _measure(raw_path)
-    try:
-        cache_file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache_file.with_suffix(f".{os.getpid()}.partial")
-        tmp.write_text(json.dumps({**cache, key: asdict(record)}))
-        tmp.replace(cache_file)
-    except OSError:  # a read-only home: the answer is still right, only not kept
-        pass
+    if key in _KNOWN:
+        return _KNOWN[key]
+    cache_file = _cache_file(key)
+    record = _read(cache_file, key)
+    if record is None:
+        record = _measure(raw_path)
+        _write(cache_file, {"key": key, "record": asdict(record)})
+    _KNOWN[key] = record
     return record
