@@ -100,17 +100,25 @@ VOLUME_MISMATCH = 0.10
 
 
 def volume_mismatch(experiment: str, source_volume: float, target_volume: float,
-                    target_size: float | None = None, largest: float = math.inf) -> str | None:
+                    target_size: float | None = None, largest: float = math.inf,
+                    volume_setting: str | None = None) -> str | None:
     """One line when a target holds more than VOLUME_MISMATCH more or less than its source's volume
     (None otherwise): MPM keeps volume, so such a target cannot be filled exactly. It names the
     experiment, the ratio and, with the target's configured ``target_size``, the size that holds the
     source's volume (the fit helper's ``size_for_volume``: volume scales with size^3), or where that
-    is above ``largest`` (the largest size that fits the particles' region), a smaller source."""
+    is above ``largest`` (the largest size that fits the particles' region), a smaller source.
+    ``volume_setting``: the run's plasticity.volume (None: a run without plasticity): keep names
+    the setting that moves the body's rest volume to the target's; target says it does."""
     ratio = float(target_volume) / float(source_volume)
     if abs(ratio - 1.0) <= VOLUME_MISMATCH:
         return None
-    text = (f"{experiment}: the target holds {100 * ratio:.0f} % of the source's volume ({target_volume:.0f} against "
-            f"{source_volume:.0f} units^3); MPM keeps volume, so the body cannot fill it exactly")
+    head = (f"{experiment}: the target holds {100 * ratio:.0f} % of the source's volume ({target_volume:.0f} against "
+            f"{source_volume:.0f} units^3)")
+    if volume_setting == "target":
+        return f"{head}; plasticity.volume: target moves the body's rest volume there"
+    text = f"{head}; MPM keeps volume, so the body cannot fill it exactly"
+    if volume_setting == "keep":
+        text += " (plasticity.volume: target, or an experiment's volume: target, moves its rest volume there)"
     if target_size:
         match = round(float(target_size) * ratio ** (-1.0 / 3.0) / SIZE_STEP) * SIZE_STEP
         if match > largest:
@@ -176,7 +184,8 @@ def volume_warnings(settings, experiments, prepared_h5, raw_path, volumes: dict 
             record = mesh_record(raw) if raw and Path(raw).is_file() else None
             largest = (region_size(record.unit_lo, record.unit_hi, settings.sampling.grid_res, settings.domain)
                        if record is not None and record.refusal is None else math.inf)
-            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size, largest)
+            setting = (exp.volume or settings.plasticity.volume) if exp.method == "full" else None
+            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size, largest, setting)
             if line:
                 lines.append(line)
     return lines

@@ -63,7 +63,9 @@ class MorphInputs:
         self.solver.set_target_grid_mass(target.grid_mass * self.mass_ratio)
         # a target of another volume is named once in the log and in the run file's warnings
         self.source_volume = parts.mesh_volume if np.isfinite(parts.mesh_volume) else float(parts.volume.sum())
-        self.volume_note = volume_mismatch(name or str(target_h5), self.source_volume, float(target.volume), target_size)
+        self.target_volume_ratio = float(target.volume) / self.source_volume
+        self.volume_note = volume_mismatch(name or str(target_h5), self.source_volume, float(target.volume), target_size,
+                                           volume_setting=cfg.plasticity.volume if cfg.method == "full" else None)
         if self.volume_note:
             log(f"[{name}] warning: {self.volume_note}")
         # The mask is only built where something uses it (a switched-off component costs nothing).
@@ -74,6 +76,11 @@ class MorphInputs:
         self.inject_F = cfg.method in ("f_inject", "full")
         self.inject_x = cfg.method == "position_inject"
         self.want_grad = self.inject_F or self.inject_x
+
+    def rest_volume_ratio(self, frame: int) -> float:
+        """The rest volume over the source's the plasticity holds after frame ``frame``
+        (PlasticityConfig.rest_volume_ratio toward this target's volume)."""
+        return self.cfg.plasticity.rest_volume_ratio(frame, self.target_volume_ratio)
 
     # ---------------------------------------------------------------------------- the measures
     def measure(self, st: ParticleState, mask: np.ndarray, alpha: np.ndarray | None = None,
@@ -101,6 +108,7 @@ class MorphInputs:
                 "fp_anisotropy_max": float(dm.anisotropy_plastic.max()),
                 "elastic_energy": dm.elastic_energy(st.volume, cfg.mpm), "kinetic_energy": kinetic_energy(st),
                 "total_volume": float(total_volume(st)),
+                "rest_volume": float((st.volume * dm.det_plastic).sum() / st.volume.sum()),
                 "mask_size": int(mask.sum()) if self.need_mask else np.nan,
                 "mask_fraction": float(mask.mean()) if self.need_mask else np.nan,
                 "chamfer": float(d.mean()),

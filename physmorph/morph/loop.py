@@ -226,10 +226,15 @@ class MorphRun:
         if self.pool is None:
             pool = neighbour_pool(self.inputs.parts.x, self.inputs.target.grid.lo, self.inputs.target.grid.dx, cfg.plasticity.neighbour_ppc)
             self.pool = np.arange(N) if pool is None else pool
-        pl = chamfer_plasticity_step(st.x, Fp_from, self.inputs.target.surface_points, cfg.plasticity, self.inputs.tree,
-                                     destination=destination, nearest_index=self.nearest_i,
+        # the step acts on the rest state's shape, Fp / s (s^3 the rest volume ratio, 1 unless
+        # plasticity.volume is target): its damping, toward I, and its det bounds hold that shape's volume
+        scale_from, scale = (self.inputs.rest_volume_ratio(j) ** (1.0 / 3.0) for j in (k - 1, k))
+        pl = chamfer_plasticity_step(st.x, Fp_from if scale_from == 1.0 else Fp_from / scale_from, self.inputs.target.surface_points, cfg.plasticity,
+                                     self.inputs.tree, destination=destination, nearest_index=self.nearest_i,
                                      pool=None if len(self.pool) == N else self.pool,
                                      search_device=self.inputs.search_device)
+        if scale != 1.0:
+            pl.Fp = pl.Fp * scale
         Fp_old = st.Fp
         fs.state = st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
         try:  # before the re-base: a bad Fp is named as such, not as a bad control
@@ -270,8 +275,11 @@ class MorphRun:
         scal, per_view, m, rejected = self.judge.steer(k, fs, scal, per_view, m, frame_step)
         if rejected:
             self.nearest_d = self.nearest_i = None
-        new_warnings = [] if rejected else self.monitor.update(k, fs.state.Fp, m["alpha_mse"], det=dm.det_plastic,
-                                                               fp_anisotropy=dm.anisotropy_plastic)
+        # the det bounds hold the rest state's shape (the plasticity step): det Fp over the rest volume ratio
+        rest = self.inputs.rest_volume_ratio(k) if self.cfg.method == "full" else 1.0
+        new_warnings = [] if rejected else self.monitor.update(
+            k, fs.state.Fp, m["alpha_mse"], det=dm.det_plastic if rest == 1.0 else dm.det_plastic / rest,
+            fp_anisotropy=dm.anisotropy_plastic)
         # the render's images and gradient and the metrics' arrays are done with: the frame's freed
         # heap goes back to the system, so the checkpoint's buffers do not sit on top of it. Not
         # after every stage: memory returned is faulted in again by the next stage (on the 2-core

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, ClassVar, Literal
 
 from physmorph.settings.base import Bool, Float, Int, Refused, setting, settings_dataclass
@@ -62,6 +63,14 @@ class PlasticityConfig:
     absorb_start_frame: Annotated[Int | None, setting(
         "updates that commit: -n the last n, n from frame n on, null every update", "frame", "!= 0")] = -1
 
+    # a target of another volume than its source (not in the paper): the rest state's volume moved
+    # toward the target's, so the elastic stress itself takes the body there (rest_volume_ratio)
+    volume: Annotated[Literal["keep", "target"], setting(
+        "the rest volume: keep, the source's (MPM keeps volume); target, moved toward the target's volume by at "
+        "most volume_rate a frame from plasticity.start_frame on")] = "keep"
+    volume_rate: Annotated[Float, setting(
+        "with volume target: the most the rest volume changes in a frame, as a share of it", gt=0, le=1)] = 0.05
+
     # the paper's continuous stress as its text describes it (config/paper_method.yaml)
     continuous_stress: Annotated[Bool, setting(
         "re-base the control so an Fp update leaves the elastic Fe unchanged")] = False
@@ -75,6 +84,17 @@ class PlasticityConfig:
             return True
         start = self.absorb_start_frame if self.absorb_start_frame >= 0 else frames + 1 + self.absorb_start_frame
         return frame >= start
+
+    def rest_volume_ratio(self, frame: int, target_ratio: float) -> float:
+        """The rest volume over the source's after frame ``frame``'s update: 1 with volume keep or
+        before start_frame; with volume target, from start_frame on each update moves it by the
+        factor 1 + volume_rate toward ``target_ratio`` (the target's volume over the source's), and
+        it stays there once reached. A function of the frame alone, so a resumed run follows it."""
+        if self.volume == "keep" or frame < self.start_frame or not target_ratio > 0:
+            return 1.0
+        wanted = math.log(target_ratio)
+        reach = (frame - self.start_frame + 1) * math.log1p(self.volume_rate)
+        return math.exp(math.copysign(min(abs(wanted), reach), wanted))
 
     def __post_init__(self) -> None:
         """The checks across a field's parts and its excluded value (each field's range is its declaration's)."""

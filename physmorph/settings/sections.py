@@ -113,13 +113,14 @@ class Experiment:
     grad_iters: Annotated[Int | None, setting("sets mpm.grad_iters", ge=1)] = None
     plasticity_start: Annotated[Int | None, setting("sets plasticity.start_frame", "frame", ge=0)] = None
     release_frames: Annotated[Int | None, setting("sets morph.release_frames", "frames", ge=0)] = None
+    volume: Annotated[Literal["keep", "target"] | None, setting("sets plasticity.volume", "", "keep or target")] = None
 
 
 # experiment key -> (section, field) it overrides
 EXPERIMENT_OVERRIDES = {"drag": ("mpm", "drag"), "grad_iters": ("mpm", "grad_iters"),
                         "plasticity_start": ("plasticity", "start_frame"), "frames": ("morph", "frames"),
                         "cameras": ("morph", "cameras"), "gamma": ("morph", "gamma"), "gamma_x": ("morph", "gamma_x"),
-                        "release_frames": ("morph", "release_frames")}
+                        "release_frames": ("morph", "release_frames"), "volume": ("plasticity", "volume")}
 
 
 @settings_dataclass
