@@ -108,15 +108,17 @@ def volume_mismatch(experiment: str, source_volume: float, target_volume: float,
     source's volume (the fit helper's ``size_for_volume``: volume scales with size^3), or where that
     is above ``largest`` (the largest size that fits the particles' region), a smaller source.
     ``volume_setting``: the run's plasticity.volume (None: a run without plasticity): keep names
-    the setting that moves the body's rest volume to the target's; target says it does."""
+    the setting that moves the body's rest volume to the target's; target says it does (the size
+    that would hold the source's volume is named in every case)."""
     ratio = float(target_volume) / float(source_volume)
     if abs(ratio - 1.0) <= VOLUME_MISMATCH:
         return None
     head = (f"{experiment}: the target holds {100 * ratio:.0f} % of the source's volume ({target_volume:.0f} against "
             f"{source_volume:.0f} units^3)")
     if volume_setting == "target":
-        return f"{head}; plasticity.volume: target moves the body's rest volume there"
-    text = f"{head}; MPM keeps volume, so the body cannot fill it exactly"
+        text = f"{head}; plasticity.volume: target moves the body's rest volume there"
+    else:
+        text = f"{head}; MPM keeps volume, so the body cannot fill it exactly"
     if volume_setting == "keep":
         text += " (plasticity.volume: target, or an experiment's volume: target, moves its rest volume there)"
     if target_size:

@@ -15,7 +15,7 @@ class PlasticityConfig:
     # defaults changed since runs were first made (physmorph.settings.params.without_defaults): always in a
     # run's params, so runs made with the old default rerun
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
-                                                             "eta", "correspondence", "start_frame"})
+                                                             "eta", "correspondence", "start_frame", "volume"})
     # the paper's plasticity (section 3.4; eta and start_frame at values of their own, docs/method.md)
     # base rate per frame (the paper: 0.2; config/paper_method.yaml uses it; 0.02 until 2026-11-24,
     # with the nearest-point correspondence, then 0.1; see config/config.yaml)
@@ -64,10 +64,11 @@ class PlasticityConfig:
         "updates that commit: -n the last n, n from frame n on, null every update", "frame", "!= 0")] = -1
 
     # a target of another volume than its source (not in the paper): the rest state's volume moved
-    # toward the target's, so the elastic stress itself takes the body there (rest_volume_ratio)
+    # toward the target's, so the elastic stress itself takes the body there (rest_volume_ratio);
+    # "target" the default since 2026-12-01 (docs/study/log.md finding 242; "keep" before)
     volume: Annotated[Literal["keep", "target"], setting(
         "the rest volume: keep, the source's (MPM keeps volume); target, moved toward the target's volume by at "
-        "most volume_rate a frame from plasticity.start_frame on")] = "keep"
+        "most volume_rate a frame from plasticity.start_frame on")] = "target"
     volume_rate: Annotated[Float, setting(
         "with volume target: the most the rest volume changes in a frame, as a share of it", gt=0, le=1)] = 0.05
 

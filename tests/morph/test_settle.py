@@ -107,9 +107,9 @@ def other_volumes(tiny, tmp_path_factory, mesh_dir):
 
 @pytest.mark.parametrize("case, ratio", [("small_target", 0.57), ("small_source", 1.34)])
 def test_a_target_of_another_volume_warns_and_settles(tiny, other_volumes, case, ratio):
-    """The morph names the experiment, the volume ratio and the size that would match in its log
-    and the run file, and still comes to rest (at most two sign changes or a swing of 2 %, a drop
-    of at most 2 points). Measured without the gate at the default scale: the bunny at 15.0 swings
+    """The morph names the experiment, the volume ratio, the volume setting and the size that would
+    match in its log and the run file, reaches the target's volume and the target, and comes to
+    rest (at most two sign changes or a swing of 2 %, a drop of at most 2 points). Measured without the gate at the default scale: the bunny at 15.0 swings
     by 90 % of its alpha MSE every frame. Slow: a whole tiny full morph of 30 frames for each case."""
     _, d = tiny
     particles, target, size = ((d / "p_iso.h5", other_volumes / "t_bunny15.h5", 15.0) if case == "small_target"
@@ -118,11 +118,21 @@ def test_a_target_of_another_volume_warns_and_settles(tiny, other_volumes, case,
     warning = [line for line in lines if "of the source's volume" in line]
     assert len(warning) == 1 and f"{case}:" in warning[0] and f"{100 * ratio:.0f} %" in warning[0], lines
     assert f"(now {size:g})" in warning[0]
+    assert "plasticity.volume: target moves the body's rest volume there" in warning[0]
     assert warning[0].split("] warning: ", 1)[1] in m["attrs"]["warnings"]
     assert m["attrs"]["target_volume_ratio"] == pytest.approx(ratio, abs=0.02)
     a, g = m["alpha_mse"], _share(m)
+    v = m["total_volume"]
     print(f"{case}: best {np.nanmax(g):.1f} last {g[-1]:.1f} sign changes {sign_changes(a)} "
-          f"swing {swing_percent(a):.2f} %")
+          f"swing {swing_percent(a):.2f} % rest volume {m['rest_volume'][-1]:.3f} body {v[-1] / v[0]:.3f} "
+          f"volume IoU {m['volume_iou'][-1]:.3f}")
+    # the shipped plasticity.volume (target) moves the rest volume to the target's and the body
+    # follows; measured here: best / last 105.0 / 105.0 % (small target), 102.8 / 102.8 % (small source),
+    # and with volume keep at the default scale 67 % and 105 % (docs/study/log.md finding 242)
+    wanted = m["attrs"]["target_volume_ratio"]
+    assert m["rest_volume"][-1] == pytest.approx(wanted, rel=0.03)
+    assert v[-1] / v[0] == pytest.approx(wanted, rel=0.10)
+    assert g[-1] >= 95.0
     assert at_rest(a, max_swing=2 * REST_SWING_PERCENT), (sign_changes(a), swing_percent(a))
     assert np.nanmax(g) - g[-1] <= 2.0
 

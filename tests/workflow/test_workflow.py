@@ -249,7 +249,8 @@ def _stored_params(wd: Path) -> dict[str, tuple[str, list]]:
 def test_data_and_morph_jobs_keep_the_params_recorded_before_the_core_was_restructured(test_run):
     """An unchanged config reruns no data or morph job: the params Snakemake compares are those a
     run of the test profile stored with the code before the core's restructuring
-    (tests/data/test_profile_params.json), byte for byte."""
+    (tests/data/test_profile_params.json), byte for byte; a default changed on purpose since then
+    is re-recorded there (its defaults_changed_since says which)."""
     import json
 
     wd, _ = test_run
