@@ -48,4 +48,6 @@ RETIRED_METHOD_SETTINGS: dict[str, object] = {
 # with other settings.
 ADDED_METHOD_SETTINGS: dict[str, object] = {
     "stray_pull_density": 0.0,  # the stray pull's outside test: the nearest grid node's target mass
+    "plasticity.volume": "keep",  # the rest volume stayed the source's (target the default since 2026-12-01)
+    "plasticity.volume_rate": 0.05,
 }

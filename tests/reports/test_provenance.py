@@ -159,9 +159,14 @@ def test_a_retired_setting_counts_as_shipped_only_at_the_value_the_method_ran_wi
     assert differing_keys({**old, "mpm.control_in_F": True}, shipped) == ["mpm.control_in_F"]
     assert differing_keys({**old, "step_backoff": {"values": [1.0, 0.5]}}, shipped) == ["step_backoff"]
     assert differing_keys({**shipped, "no_such_key": 1}, shipped) == ["no_such_key"]
-    # a setting added since: a record without it ran as the added setting's value does
+    # a setting added since: a record without it ran as the added setting's value does, so it is
+    # a difference exactly where the shipped default is another value (plasticity.volume: target)
     assert set(ADDED_METHOD_SETTINGS) <= set(shipped)
     before = {k: v for k, v in shipped.items() if k not in ADDED_METHOD_SETTINGS}
+    changed = sorted(k for k, v in ADDED_METHOD_SETTINGS.items() if shipped[k] != v)
+    assert changed == ["plasticity.volume"]
+    assert differing_keys(before, shipped) == changed
+    before = {**before, **{k: shipped[k] for k in changed}}
     assert differing_keys(before, shipped) == []
     assert differing_keys(before, {**shipped, "stray_pull_density": 0.2}) == ["stray_pull_density"]
     # a page of runs from before and after the removal / the addition: those without the key ran as its value
