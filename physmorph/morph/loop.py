@@ -226,15 +226,12 @@ class MorphRun:
         if self.pool is None:
             pool = neighbour_pool(self.inputs.parts.x, self.inputs.target.grid.lo, self.inputs.target.grid.dx, cfg.plasticity.neighbour_ppc)
             self.pool = np.arange(N) if pool is None else pool
-        # the step acts on the rest state's shape, Fp / s (s^3 the rest volume ratio, 1 unless
-        # plasticity.volume is target): its damping, toward I, and its det bounds hold that shape's volume
-        scale_from, scale = (self.inputs.rest_volume_ratio(j) ** (1.0 / 3.0) for j in (k - 1, k))
-        pl = chamfer_plasticity_step(st.x, Fp_from if scale_from == 1.0 else Fp_from / scale_from, self.inputs.target.surface_points, cfg.plasticity,
-                                     self.inputs.tree, destination=destination, nearest_index=self.nearest_i,
+        # the rest volume ratio's cube roots before and after the update (1 unless plasticity.volume is target)
+        rest_scale = tuple(self.inputs.rest_volume_ratio(j) ** (1.0 / 3.0) for j in (k - 1, k))
+        pl = chamfer_plasticity_step(st.x, Fp_from, self.inputs.target.surface_points, cfg.plasticity, self.inputs.tree,
+                                     destination=destination, nearest_index=self.nearest_i,
                                      pool=None if len(self.pool) == N else self.pool,
-                                     search_device=self.inputs.search_device)
-        if scale != 1.0:
-            pl.Fp = pl.Fp * scale
+                                     search_device=self.inputs.search_device, rest_scale=rest_scale)
         Fp_old = st.Fp
         fs.state = st = ParticleState(x=st.x, v=st.v, F=st.F, C=st.C, Fp=pl.Fp, mass=st.mass, volume=st.volume)
         try:  # before the re-base: a bad Fp is named as such, not as a bad control

@@ -269,6 +269,7 @@ def chamfer_plasticity_step(
     nearest_index: np.ndarray | None = None,  # [N] index of each x's nearest target point, when the caller has it
     pool: np.ndarray | None = None,  # [P] the particles neighbourhoods are drawn from (neighbour_pool); None: all
     search_device: str | None = None,  # the torch device of the nearest-target search; None: the KD tree
+    rest_scale: tuple[float, float] = (1.0, 1.0),  # (s_from, s): the rest volume ratio's cube root before and after
 ) -> PlasticityResult:
     """One Chamfer-guided plasticity update (steps 1-6 of the module docstring); with
     ``destination`` step 1 is d_i = destination_i - x_i. With ``pool`` every particle's k neighbours
@@ -276,7 +277,9 @@ def chamfer_plasticity_step(
     The nearest target points, where neither ``destination`` nor ``nearest_index`` gives them, come
     from the KD tree, or with ``search_device`` from physmorph.plasticity.nearest on that torch device; the
     neighbourhoods, the smoothing and the Jacobian (physmorph.plasticity.neighbourhood) run on the Taichi
-    runtime's arch, the update itself in NumPy."""
+    runtime's arch, the update itself in NumPy. ``rest_scale`` (s_from, s): Fp arrives holding the rest
+    volume ratio s_from³ (PlasticityConfig.rest_volume_ratio) and leaves holding s³; steps 4-6 act on
+    the rest shape Fp / s_from, so the damping toward I and the det bounds keep that shape's volume."""
     from scipy.spatial import cKDTree
 
     from physmorph.plasticity.neighbourhood import displacement_jacobian_pairs, k_nearest, smooth_displacement  # Taichi
@@ -300,7 +303,10 @@ def chamfer_plasticity_step(
     mag = np.linalg.norm(d, axis=1)
     scale = np.median(mag)
     eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
-    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ Fp
+    scale_from, scale = rest_scale
+    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ (Fp if scale_from == 1.0 else Fp / scale_from)
     Fp_new = (1.0 - cfg.damping) * Fp_new + cfg.damping * np.eye(3)
     Fp_new = project_plastic(Fp_new, cfg.det_bounds, cfg.max_anisotropy)
+    if scale != 1.0:
+        Fp_new = Fp_new * scale
     return PlasticityResult(Fp_new, d, eta, float(np.linalg.norm(d_raw, axis=1).mean()))

@@ -402,3 +402,17 @@ def test_plasticity_step_takes_its_neighbours_from_the_pool():
         want[name] = np.eye(3) + eta * 0.5 * (J + J.transpose(0, 2, 1))
     np.testing.assert_allclose(pooled.Fp, want["pool"], atol=1e-10)
     assert np.abs(pooled.Fp - want["all"]).max() > 1e-6  # 1.7e-4: the pool's neighbourhoods are wider
+
+
+def test_a_rest_scale_moves_the_rest_volume_and_damps_toward_the_scaled_identity():
+    """rest_scale (s_from, s): the step acts on Fp / s_from and returns s times the result, so a
+    translation (zero Jacobian) damps Fp toward s I, det Fp then s³ times the unscaled step's."""
+    x = _lattice(6)
+    Fp = np.tile(np.diag([1.2, 1.0, 1 / 1.2]), (len(x), 1, 1))
+    target = x + np.array([0.1, 0.0, 0.0])
+    cfg = PlasticityConfig(k_neighbors=16, det_bounds=(0.1, 10.0), max_anisotropy=10.0)
+    s_from, s = 0.9, 0.85
+    res = chamfer_plasticity_step(x, s_from * Fp, target, cfg, rest_scale=(s_from, s))
+    assert np.allclose(res.Fp, s * (0.95 * Fp + 0.05 * np.eye(3)), atol=1e-9)
+    plain = chamfer_plasticity_step(x, Fp, target, cfg)
+    assert np.allclose(np.linalg.det(res.Fp), s ** 3 * np.linalg.det(plain.Fp), rtol=1e-9)
