@@ -186,8 +186,8 @@ def volume_warnings(settings, experiments, prepared_h5, raw_path, volumes: dict 
             record = mesh_record(raw) if raw and Path(raw).is_file() else None
             largest = (region_size(record.unit_lo, record.unit_hi, settings.sampling.grid_res, settings.domain)
                        if record is not None and record.refusal is None else math.inf)
-            setting = (exp.volume or settings.plasticity.volume) if exp.method == "full" else None
-            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size, largest, setting)
+            line = volume_mismatch(name, src, tgt, settings.shape(exp.target).size, largest,
+                                   settings.experiment_config(name).rest_volume_setting())
             if line:
                 lines.append(line)
     return lines

@@ -50,12 +50,18 @@ def _cache_file(key: str) -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physmorph" / "mesh_records" / f"{name}.json"
 
 
-def _read(cache_file: Path, key: str) -> MeshRecord | None:
+def _stored(cache_file: Path, key: str) -> dict | None:
+    """What ``cache_file`` keeps for ``key``; None where it is missing, damaged or another key's."""
     try:
         stored = json.loads(cache_file.read_text())
     except (OSError, ValueError):
         return None
-    if stored.get("key") != key:  # a hash collision or a damaged file: measured again
+    return stored if isinstance(stored, dict) and stored.get("key") == key else None
+
+
+def _read(cache_file: Path, key: str) -> MeshRecord | None:
+    stored = _stored(cache_file, key)
+    if stored is None:
         return None
     fields = stored["record"]
     return MeshRecord(**{**fields, "hull": tuple(map(tuple, fields["hull"])),
@@ -85,12 +91,9 @@ def letter_volume(glyph: str, size: float, depth: float | None) -> float:
     code = hashlib.sha256((Path(__file__).parent / "shapes.py").read_bytes()).hexdigest()[:16]
     key = f"letter:{code}:{glyph}:{float(size)!r}:{depth!r}"
     cache_file = _cache_file(key)
-    try:
-        stored = json.loads(cache_file.read_text())
-        if stored.get("key") == key:
-            return float(stored["volume"])
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
+    stored = _stored(cache_file, key)
+    if stored is not None and isinstance(stored.get("volume"), float):
+        return stored["volume"]
     from .shapes import letter_mesh
 
     volume = float(letter_mesh(glyph, size, depth).volume)

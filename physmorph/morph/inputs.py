@@ -65,7 +65,7 @@ class MorphInputs:
         self.source_volume = parts.mesh_volume if np.isfinite(parts.mesh_volume) else float(parts.volume.sum())
         self.target_volume_ratio = float(target.volume) / self.source_volume
         self.volume_note = volume_mismatch(name or str(target_h5), self.source_volume, float(target.volume), target_size,
-                                           volume_setting=cfg.plasticity.volume if cfg.method == "full" else None)
+                                           volume_setting=cfg.rest_volume_setting())
         if self.volume_note:
             log(f"[{name}] warning: {self.volume_note}")
         # The mask is only built where something uses it (a switched-off component costs nothing).
@@ -79,7 +79,9 @@ class MorphInputs:
 
     def rest_volume_ratio(self, frame: int) -> float:
         """The rest volume over the source's the plasticity holds after frame ``frame``
-        (PlasticityConfig.rest_volume_ratio toward this target's volume)."""
+        (PlasticityConfig.rest_volume_ratio toward this target's volume; 1 without plasticity)."""
+        if self.cfg.rest_volume_setting() is None:
+            return 1.0
         return self.cfg.plasticity.rest_volume_ratio(frame, self.target_volume_ratio)
 
     # ---------------------------------------------------------------------------- the measures

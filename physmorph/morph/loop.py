@@ -273,7 +273,7 @@ class MorphRun:
         if rejected:
             self.nearest_d = self.nearest_i = None
         # the det bounds hold the rest state's shape (the plasticity step): det Fp over the rest volume ratio
-        rest = self.inputs.rest_volume_ratio(k) if self.cfg.method == "full" else 1.0
+        rest = self.inputs.rest_volume_ratio(k)
         new_warnings = [] if rejected else self.monitor.update(
             k, fs.state.Fp, m["alpha_mse"], det=dm.det_plastic if rest == 1.0 else dm.det_plastic / rest,
             fp_anisotropy=dm.anisotropy_plastic)

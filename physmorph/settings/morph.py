@@ -116,3 +116,7 @@ class MorphConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def rest_volume_setting(self) -> str | None:
+        """plasticity.volume where the run has a plasticity (the full method), else None."""
+        return self.plasticity.volume if self.method == "full" else None
