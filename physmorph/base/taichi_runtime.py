@@ -41,6 +41,62 @@ def use_short_source_positions() -> bool:
     return True
 
 
+def use_cached_function_sources() -> bool:
+    """Make Taichi's frontend read each kernel's and Taichi function's source once per process.
+
+    Taichi inlines a ``ti.func`` at every call site, and for each inlining (and each kernel
+    instance) it fetches the function's source again: ``inspect.getsourcelines`` (which tokenizes
+    the module's lines to find the block and looks its module up among all loaded ones) and a
+    ``textwrap.fill`` of every line. A solver's build inlines ~500 functions, so that was about a
+    quarter of its frontend time. The source lines, their first line number and the file are kept
+    per function object here; the tree is still parsed afresh for each use (the frontend writes
+    into it) and the function's globals still read at each use, as Taichi does. Returns False,
+    changing nothing, where the Taichi version lacks the function this wraps."""
+    try:
+        from taichi.lang import kernel_impl
+    except ImportError:  # pragma: no cover - another Taichi layout
+        return False
+    original = getattr(kernel_impl, "_get_tree_and_ctx", None)
+    if original is None or getattr(original, "cached_sources", False):
+        return original is not None
+    needed = ("getsourcefile", "getsourcelines", "_get_global_vars", "ASTTransformerContext")
+    if not all(hasattr(kernel_impl, name) for name in needed):  # pragma: no cover - another Taichi layout
+        return False
+    import ast
+    import textwrap
+
+    # code object -> (file, filled source lines, first line, dedented text): keyed by the code, not
+    # the function, since the stress functions are closures made anew for each solver
+    sources: dict = {}
+
+    def source_of(func):
+        key = getattr(func, "__code__", func)
+        if key not in sources:
+            file = kernel_impl.getsourcefile(func)
+            src, start_lineno = kernel_impl.getsourcelines(func)
+            src = [textwrap.fill(line, tabsize=4, width=9999) for line in src]
+            sources[key] = (file, src, start_lineno, textwrap.dedent("\n".join(src)))
+        return sources[key]
+
+    def _get_tree_and_ctx(self, excluded_parameters=(), is_kernel=True, arg_features=None, args=None,
+                          ast_builder=None, is_real_function=False):
+        file, src, start_lineno, text = source_of(self.func)
+        tree = ast.parse(text)
+        tree.body[0].decorator_list = []
+        global_vars = kernel_impl._get_global_vars(self.func)
+        if is_kernel or is_real_function:  # template arguments are globals of the kernel's body
+            for i in self.template_slot_locations:
+                global_vars[self.arguments[i].name] = args[i]
+        return tree, kernel_impl.ASTTransformerContext(
+            excluded_parameters=excluded_parameters, is_kernel=is_kernel, func=self, arg_features=arg_features,
+            global_vars=global_vars, argument_data=args, src=list(src), start_lineno=start_lineno, file=file,
+            ast_builder=ast_builder, is_real_function=is_real_function)
+
+    _get_tree_and_ctx.cached_sources = True
+    kernel_impl._get_tree_and_ctx = _get_tree_and_ctx
+    return True
+
+
 def resolve_device(device: str) -> str:
     """'auto' -> 'cuda' when a CUDA device is usable, else 'cpu'. 'cpu'/'cuda' pass through."""
     if device not in ("auto", "cpu", "cuda"):
@@ -80,6 +136,7 @@ def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = F
         kwargs["kernel_profiler"] = True
     ti.init(**kwargs)
     use_short_source_positions()
+    use_cached_function_sources()
     _state.update(arch=arch, threads=threads, debug=debug)
     return arch
 

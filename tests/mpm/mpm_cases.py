@@ -41,10 +41,32 @@ def stretched_target(st: ParticleState, cfg: MPMConfig, stretch=(1.15, 0.93, 0.9
 
 def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = False) -> MPMSolver:
     """A solver loaded with st (and the stretched target). reuse: take it from solver_for (for a
-    test's own solver; module fixtures build their own, which no later test may reset)."""
+    test's own solver; module fixtures take theirs from module_solver or build their own, which no
+    later test may reset)."""
     s = solver_for(cfg, st.n) if reuse else MPMSolver(cfg, st.n)
     if target:
         s.set_target_grid_mass(stretched_target(ball_state(perturb=False), cfg))
+    s.load_state(st)
+    return s
+
+
+# Module fixtures' solvers by (fixture name, kernel settings, particle count): solver3 is made by each
+# module that uses it, and each build compiles ~60 kernels (~8 s on 2 cores with Taichi's cache empty)
+_module_solvers: dict = {}
+
+
+def module_solver(name: str, cfg: MPMConfig, st: ParticleState) -> MPMSolver:
+    """The solver of the module fixture ``name``, loaded with st and the stretched target: the one an
+    earlier module's fixture of that name built for these kernel settings and this size, reset and
+    configured (a reset solver computes what a new one would: test_mpm_solver.py), else a new one.
+    Apart from solver_for's, so no test's own solver is this one: no test resets it in its module."""
+    key = (name, cfg.kernel_settings(), st.n)
+    if key not in _module_solvers:
+        _module_solvers[key] = MPMSolver(cfg, st.n)
+    s = _module_solvers[key]
+    s.reset()
+    s.configure(cfg)
+    s.set_target_grid_mass(stretched_target(ball_state(perturb=False), cfg))
     s.load_state(st)
     return s
 

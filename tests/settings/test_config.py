@@ -333,6 +333,38 @@ def test_quick_compile_turns_off_taichis_ir_optimisation_only_when_asked(monkeyp
     assert seen.get("advanced_optimization", True) is (quick is None)
 
 
+def test_cached_function_sources_keep_each_closures_own_values():
+    """init_taichi makes Taichi's frontend read a function's source once (use_cached_function_sources:
+    re-reading it at every inlining was a quarter of a solver's kernel build). The cache is keyed
+    by the code, shared by closures made from one definition (the stress functions are made anew
+    for each solver): each closure still compiles with its own captured values."""
+    import taichi as ti
+    from taichi.lang import kernel_impl
+
+    from physmorph.base.taichi_runtime import init_taichi
+
+    init_taichi("cpu")
+    assert getattr(kernel_impl._get_tree_and_ctx, "cached_sources", False)
+
+    def adder(c):
+        @ti.func
+        def add(x):
+            return x + c
+        return add
+
+    out = ti.field(ti.f64, shape=2)
+
+    def kernel_of(add, slot):
+        @ti.kernel
+        def run():
+            out[slot] = add(1.0)
+        return run
+
+    kernel_of(adder(2.0), 0)()
+    kernel_of(adder(40.0), 1)()
+    assert out.to_numpy().tolist() == [3.0, 41.0]
+
+
 def test_taichi_errors_still_name_file_line_and_source_with_short_positions():
     """init_taichi makes Taichi's frontend record one-line source positions (use_short_source_positions:
     the caret lines it formatted for every node were a third of a cached kernel build); a kernel
