@@ -49,7 +49,7 @@ def use_cached_function_sources() -> bool:
     the module's lines to find the block and looks its module up among all loaded ones) and a
     ``textwrap.fill`` of every line. A solver's build inlines ~500 functions, so that was about a
     quarter of its frontend time. The source lines, their first line number and the file are kept
-    per function object here; the tree is still parsed afresh for each use (the frontend writes
+    per definition (code object) here; the tree is still parsed afresh for each use (the frontend writes
     into it) and the function's globals still read at each use, as Taichi does. Returns False,
     changing nothing, where the Taichi version lacks the function this wraps."""
     try:

@@ -43,7 +43,11 @@ def make(cfg: MPMConfig, st: ParticleState, target: bool = True, reuse: bool = F
     """A solver loaded with st (and the stretched target). reuse: take it from solver_for (for a
     test's own solver; module fixtures take theirs from module_solver or build their own, which no
     later test may reset)."""
-    s = solver_for(cfg, st.n) if reuse else MPMSolver(cfg, st.n)
+    return _loaded(solver_for(cfg, st.n) if reuse else MPMSolver(cfg, st.n), cfg, st, target)
+
+
+def _loaded(s: MPMSolver, cfg: MPMConfig, st: ParticleState, target: bool = True) -> MPMSolver:
+    """s with the stretched target (where ``target``) and st loaded."""
     if target:
         s.set_target_grid_mass(stretched_target(ball_state(perturb=False), cfg))
     s.load_state(st)
@@ -66,9 +70,7 @@ def module_solver(name: str, cfg: MPMConfig, st: ParticleState) -> MPMSolver:
     s = _module_solvers[key]
     s.reset()
     s.configure(cfg)
-    s.set_target_grid_mass(stretched_target(ball_state(perturb=False), cfg))
-    s.load_state(st)
-    return s
+    return _loaded(s, cfg, st)
 
 
 def cfg64(**kw) -> MPMConfig:
