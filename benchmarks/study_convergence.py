@@ -38,7 +38,7 @@ CSV = REPO / "docs" / "study" / "runs.csv"
 COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_frame", "a_final", "ceiling",
            "closed_best", "closed_final", "iou0", "iou_best", "iou_final", "ceiling_iou", "chamfer0",
            "chamfer_final", "fp_det_min", "status", "wall_s", "volume_iou0", "volume_iou_final", "overfilled_final",
-           "swing_percent", "sign_changes", "drop_points"]
+           "swing_percent", "sign_changes", "drop_points", "volume_change_percent"]
 
 
 def parse_set(items: list[str]) -> dict:
@@ -78,7 +78,9 @@ def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float) ->
            "overfilled_final": m["overfilled_mass"][-1],
            # how still the last frames are (physmorph.reports.metrics)
            "swing_percent": swing_percent(a), "sign_changes": sign_changes(a),
-           "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"]))}
+           "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"])),
+           # the body's volume at the last frame against its first (sum V0 det F)
+           "volume_change_percent": 100.0 * (m["total_volume"][-1] / m["total_volume"][0] - 1.0)}
     row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
     print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
     curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])

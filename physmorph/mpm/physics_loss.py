@@ -3,7 +3,8 @@ loss L between the grid mass of x_T and the target's), its forms and terms, and 
 
 Forms (MPMConfig.mass_loss): "squared" sum_I (m_I - m*_I)^2, "log" (default) sum_I (log(m_I + e)
 - log(m*_I + e))^2; terms: a blurred level (mass_loss_blur), the packing term (overfill_weight)
-and the stray pull's position anchors w_p |x_T,p - a_p|^2. Steps acting on the model (its target),
+the stray pull's position anchors w_p |x_T,p - a_p|^2 and the volume term (physmorph.mpm.volume_term,
+MPMConfig.volume_weight). Steps acting on the model (its target),
 the stored end state and the adjoint; the loss's own settings (weights, anchors) and scratch here.
 """
 
@@ -16,7 +17,9 @@ from physmorph.settings.mpm import MPMConfigError, MPMStateError
 from .adjoint import Adjoint
 from .currency import Currency
 from .model import MPMModel, checked_array
+from .state import ParticleState
 from .trajectory import Trajectory
+from .volume_term import VolumeTerm
 
 
 @ti.data_oriented
@@ -36,6 +39,7 @@ class MassLoss:
             self.blur_w = ti.field(f, shape=2 * self._blur_radius + 1)
             self.blur_w.from_numpy(blur_weights(cfg.mass_loss_blur).astype(self.np_dtype))
         self.anchors = PositionAnchors(model, trajectory)
+        self.volume = VolumeTerm(model, trajectory)
         self.reset()
 
     def reset(self) -> None:
@@ -46,29 +50,36 @@ class MassLoss:
         self._overfill_weight = float(self.model.cfg.overfill_weight)
         self.anchors.active = False
 
-    def set_particle_mass(self, mass: np.ndarray) -> None:  # [N]
-        """The loaded frame's masses set the log form's e = log_mass_eps * mean particle mass."""
-        self._log_eps = float(self.model.cfg.log_mass_eps * mass.mean())
+    def load_frame(self, st: ParticleState) -> None:
+        """The loaded frame's masses set the log form's e = log_mass_eps * mean particle mass, its
+        rest state the volume term's V*."""
+        self._log_eps = float(self.model.cfg.log_mass_eps * st.mass.mean())
+        self.volume.set_rest_volume(st)
 
     def evaluate(self) -> float:
-        """The loss of the stored end state x_T (the grid cleared first by the caller), its adjoint
-        dL/dm_I in the grid's; returns it with the anchors' term (loss()), keeping both."""
+        """The loss of the stored end state (the grid cleared first by the caller), its adjoint
+        dL/dm_I in the grid's; returns it with the anchors' and the volume term (loss()), keeping
+        it and the mass loss alone (mass_loss())."""
         self.splat_mass(self.model.cfg.substeps)
         self._loss_with_adjoint()
         self._last_mass_loss = float(self.loss_acc[None])
         if self.anchors.active:
             self.anchors.add_loss(self.loss_acc)
         self._last_loss = float(self.loss_acc[None])
+        if self.volume.active:
+            self._last_loss += self.volume.loss()
         return self._last_loss
 
-    def backward(self, xa) -> None:
-        """x_bar_T += dL/dx_T of the stored end state's loss into the adjoint set ``xa`` (the grid
-        cleared first by the caller; the kept losses stay as they are)."""
+    def backward(self, xa, Fa) -> None:
+        """x_bar_T += dL/dx_T and F_bar_T += dL/dF_T of the stored end state's loss into the adjoint
+        set ``xa``, ``Fa`` (the grid cleared first by the caller; the kept losses stay as they are)."""
         self.splat_mass(self.model.cfg.substeps)
         self._loss_with_adjoint()
         self._loss_backward(xa)
         if self.anchors.active:
             self.anchors.backward(xa)
+        if self.volume.active:
+            self.volume.backward(Fa)
 
     @property
     def last_loss(self) -> float | None:
@@ -208,6 +219,7 @@ class MassLoss:
         self.model.target_m.from_numpy(m.astype(self.np_dtype))
         if self.blur_grids:
             self._blur(self.model.target_m, self.blur_grids[1])
+        self.volume.set_unit(m)
         self.current.has_target = True
         self.current.stale()  # the cached loss refers to the old target
 
@@ -236,13 +248,14 @@ class MassLoss:
 
     def loss(self) -> float:
         """The last forward's loss: the end-layer mass loss plus the anchors' term
-        (set_position_anchors), what forward() returned."""
+        (set_position_anchors) and the volume term, what forward() returned."""
         if self._last_loss is None:
             raise RuntimeError("loss needs a forward first")
         return self._last_loss
 
     def mass_loss(self) -> float:
-        """The last forward's end-layer mass loss (with the packing term), without the anchors' term."""
+        """The last forward's end-layer mass loss (with the packing term), without the anchors' and
+        the volume term."""
         if self._last_mass_loss is None:
             raise RuntimeError("mass_loss needs a forward first")
         return self._last_mass_loss

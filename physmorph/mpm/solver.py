@@ -113,7 +113,7 @@ class MPMSolver:
         st = state.validated()
         self.model.load_constants(st)
         self.trajectory.load(st)
-        self.physics_loss.set_particle_mass(st.mass)
+        self.physics_loss.load_frame(st)
         self.current.loaded = True
         self.current.stale()
 
@@ -181,7 +181,8 @@ class MPMSolver:
             control.zero(control.ctrl_base)
         if self.current.has_target and (include_mass_loss or pair):
             self.transfers.clear_grid()
-            self.physics_loss.backward(adjoint.x_adj2 if pair else adjoint.x_adj)
+            xa, Fa = (adjoint.x_adj2, adjoint.F_adj2) if pair else (adjoint.x_adj, adjoint.F_adj)
+            self.physics_loss.backward(xa, Fa)
         for t in reversed(range(self.cfg.substeps)):
             step.restore_p2g(t)
             self.transfers.grid_update()

@@ -29,7 +29,7 @@ _WARM_GAP_MIN = 0.05
 
 
 @ti.func
-def _cofactor(F):
+def cofactor(F):
     """cof(F) = J F^-T, columns c0 = f1 x f2, c1 = f2 x f0, c2 = f0 x f1 (polynomial in F)."""
     f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
     f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
@@ -42,7 +42,7 @@ def _cofactor(F):
 
 @ti.func
 def _cofactor_diff(F, dF):
-    """d cof(F)[dF]: product rule on the cross products of _cofactor."""
+    """d cof(F)[dF]: product rule on the cross products of cofactor."""
     f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
     f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
     f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
@@ -191,7 +191,7 @@ def make_stress_funcs(dtype, mu: float, lam: float):
     @ti.func
     def stress_from_polar(Fe, R):
         """P = 2 mu (Fe - R) + g(J) cof(Fe)  (Stomakhin et al. 2012: g = lam (J - 1)), R the rotation of Fe."""
-        cof = _cofactor(Fe)
+        cof = cofactor(Fe)
         J = (cof * Fe).sum() / 3.0  # det Fe = Fe : cof(Fe) / 3
         g, _ = volume_term(J)
         return dtype(two_mu) * (Fe - R) + g * cof
@@ -207,7 +207,7 @@ def make_stress_funcs(dtype, mu: float, lam: float):
         (tr S - S) omega = axial(R^T dFe - dFe^T R) (floored pair sums: singular guard).
         dP is the Hessian of Psi applied to dFe, hence self-adjoint: the same map gives the
         reverse-mode product  Fe_bar = dP[P_bar]."""
-        cof = _cofactor(Fe)  # shared by P and dP
+        cof = cofactor(Fe)  # shared by P and dP
         J = (cof * Fe).sum() / 3.0
         g, dg = volume_term(J)
         P = dtype(two_mu) * (Fe - R) + g * cof

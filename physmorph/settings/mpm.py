@@ -49,7 +49,7 @@ STEP_VOLUME_MODES = ("full", "particle")
 # (MPMSolver.configure, solver_for). tests/mpm/test_mpm_solver.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
                            "step_per_volume", "step_volume", "step_volume_share", "grad_iters",
-                           "log_mass_eps", "cfl", "cfl_warn_fraction"})
+                           "log_mass_eps", "cfl", "cfl_warn_fraction", "volume_weight"})
 
 
 @settings_dataclass(error=MPMConfigError)
@@ -80,6 +80,14 @@ class MPMConfig:
         mass (ratio 0.001), makes every node holding more than the target pay the log loss's term
         twice: the body spills less past the silhouette (findings 175, 180); MorphConfig's
         overfill_onset starts it when the body has arrived.
+    volume_weight: w of a volume term added to the physics loss, 0 = off (the paper has none; its
+        limits name a global volume penalty as future work): w u (V_T / V* - 1)^2 with V_T =
+        sum_p V0_p det F_T,p the body's volume at the frame's end, V* = sum_p V0_p det Fp_p its rest
+        volume and u the number of grid nodes the target fills (the squared form: the sum of their
+        squared masses), so a body whose volume is off by a share pays what a target whose every
+        node is off by that share would (physmorph.mpm.volume_term). The step's volume projection
+        (step_volume) keeps most of each particle's own change of volume; this term acts on the
+        whole body's.
     overfill_ratio: the density ratio of that cap (the sampled shapes at rest reach ~2x their
         density at the 99th percentile, on their surface shell; 0.001: the target's own mass).
     cfl: the solver refuses dt > cfl * dx / c with c = sqrt((lambda + 2 mu) / rho) the
@@ -215,6 +223,9 @@ class MPMConfig:
         "that is more); 1 with ratio 0.001: overfill weighed twice; 0 = off", ge=0)] = 1.0  # history: docs/study/CHANGELOG.md
     overfill_ratio: Annotated[Float, setting(
         "density ratio of the packing term's cap (0.001: the target's own node mass)", gt=0)] = 0.001
+    volume_weight: Annotated[Float, setting(
+        "weight of a volume term on the body's volume against its rest volume, per node the target fills; "
+        "0 = off (the paper)", ge=0)] = 0.0
 
     def __post_init__(self) -> None:
         """The checks across fields (each field's own range is its declaration's)."""
