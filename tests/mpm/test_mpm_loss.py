@@ -81,7 +81,7 @@ def test_position_anchors_add_their_term_and_match_fd(state):
     the loss without it, and None removes it. Slow: it compiles a solver of its own settings (the
     anchors' kernels) and runs some 30 rollouts for the finite differences."""
     cfg = cfg64(substeps=2, mass_loss="log")
-    s = make(cfg, state)
+    s = make(cfg, state, reuse=True)
     s.set_control(random_control(cfg, state.n))
     plain = s.forward()
     rng = np.random.default_rng(4)

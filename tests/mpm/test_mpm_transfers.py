@@ -211,7 +211,7 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     st = state.copy()
     squeezed = np.arange(st.n) % 4 == 0
     st.F[squeezed] *= 0.55  # det F ~ 0.55^3 = 0.17 < J_min: these particles sit on the floor
-    s = make(cfg, st)
+    s = make(cfg, st, reuse=True)
     s.set_control(random_control(cfg, st.n, scale=0.02))
     s.forward()
     m, t = splat_mass(s.state_at(cfg.substeps).x, st.mass, s.grid), s.model.target_m.to_numpy()
