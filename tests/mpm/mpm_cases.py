@@ -11,7 +11,7 @@ import torch
 from physmorph.base.grid import Grid, splat_mass
 from physmorph.settings.mpm import MPMConfig
 from physmorph.mpm.solver import MPMSolver, solver_for
-from physmorph.mpm.state import ParticleState
+from physmorph.mpm.state import ParticleState, total_volume
 from physmorph.mpm import reference as ref
 
 RES = 16  # dx = 2 on [-16, 16]^3
@@ -84,6 +84,15 @@ def cfg64(**kw) -> MPMConfig:
                 overfill_weight=0.0, mass_loss_blur=0.0)
     base.update(kw)
     return MPMConfig(**base)
+
+
+def volume_term_parts(s: MPMSolver, st: ParticleState) -> tuple[float, float, int]:
+    """The loss of a forward of s's current control and state st without the volume term, the
+    body's volume at its end over the rest volume, V_T / V* = sum V0 det F_T / sum V0 det Fp, and
+    the target's filled nodes u (the term's unit): the parts of w u (V_T / V* - 1)^2."""
+    plain = s.forward()
+    ratio = total_volume(s.state_at(s.cfg.substeps)) / float((st.volume * np.linalg.det(st.Fp)).sum())
+    return plain, ratio, int((s.model.target_m.to_numpy() > 0).sum())
 
 
 def random_control(cfg: MPMConfig, n: int, scale: float = 0.05, seed: int = 3) -> np.ndarray:

@@ -16,7 +16,7 @@ from physmorph.mpm.state import ParticleState, elastic_energy, fixed_corotated_e
 from physmorph.mpm import reference as ref
 from physmorph.mpm.stress import evaluate_stress
 from mpm_cases import (RES, autograd_check, ball_state, cfg64, fd_check, make, random_control,  # noqa: F401
-                        stretched_target)
+                        stretched_target, volume_term_parts)
 
 
 def _loss_control_gradient_matches_autograd(s: MPMSolver, state: ParticleState, ctrl, target, eps: float,
@@ -148,30 +148,26 @@ def test_overfill_term_matches_its_formula_reference_and_fd(state):
         plain.set_overfill_weight(1.0)
 
 
-@pytest.mark.parametrize("shipped", [False, True], ids=["simple", "shipped_defaults"])
-def test_volume_term_adds_its_formula_and_matches_fd(state, shipped):
+
+def test_volume_term_adds_its_formula_and_matches_fd(state):
     """volume_weight w > 0 adds w u (V_T / V* - 1)^2 to the loss, V_T = sum_p V0 det F_T the body's
     volume at the end, V* = sum_p V0 det Fp the rest volume, u the target's filled nodes (log form):
     the loss is the plain one plus that term, mass_loss() reports it without, the control's and the
-    initial state's gradients match central finite differences (float64; at simple settings and at
-    the shipped solver), backward_pair's mass-loss gradient carries the term, and weight 0 removes
-    it. The weight is chosen so the term is about the plain loss (a test of a negligible term would
-    pass with a wrong gradient)."""
-    base = (dataclasses.replace(MPMConfig(), precision="float64", grid_res=RES, substeps=3) if shipped
-            else cfg64(substeps=2, mass_loss="log"))
+    initial state's gradients match central finite differences (float64; at the shipped solver in
+    test_mpm_transfers.py), backward_pair's mass-loss gradient carries the term, and weight 0
+    removes it. The weight is chosen so the term is about the plain loss (a test of a negligible
+    term would pass with a wrong gradient)."""
+    base = cfg64(substeps=2, mass_loss="log")
     s = make(base, state, reuse=True)
-    s.set_control(random_control(base, state.n, scale=0.02 if shipped else 0.05))
-    plain = s.forward()
-    end = s.state_at(base.substeps)
-    ratio = total_volume(end) / float((state.volume * np.linalg.det(state.Fp)).sum())
-    unit = int((s.model.target_m.to_numpy() > 0).sum())
+    s.set_control(random_control(base, state.n))
+    plain, ratio, unit = volume_term_parts(s, state)
     assert abs(ratio - 1.0) > 1e-3  # the perturbed ball's volume is off its rest volume
     w = plain / (unit * (ratio - 1.0) ** 2)
     s.configure(dataclasses.replace(base, volume_weight=w))
     L = s.forward()
     assert L == pytest.approx(plain + w * unit * (ratio - 1.0) ** 2, rel=1e-10)
     assert s.loss() == L and s.mass_loss() == pytest.approx(plain, rel=1e-12)
-    fd_check(s, state, n_checks=6, seed=31, h=1e-5 if shipped else 1e-4)
+    fd_check(s, state, n_checks=6, seed=31)
     s.forward()
     s.backward()
     whole = s.control_gradient()

@@ -16,7 +16,7 @@ from physmorph.mpm.state import ParticleState, elastic_energy, fixed_corotated_e
 from physmorph.mpm import reference as ref
 from physmorph.mpm.stress import evaluate_stress
 from mpm_cases import (RES, autograd_check, ball_state, cfg64, fd_check, make, random_control,  # noqa: F401
-                        stretched_target)
+                        stretched_target, volume_term_parts)
 
 
 # ----------------------------------------------------------------------------- forward
@@ -201,7 +201,8 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     substep, free after), and the test asserts no particle's det F_new lies within 1e-4 of the
     kink (2e-4 at the nearest here), so a central difference of step 1e-5 stays on one branch:
     the check is where the clamp is smooth. The overfill term max(0, r)^2 is C^1 (its nodes on
-    both sides of the cap here)."""
+    both sides of the cap here). Then the same with the volume term (mpm.volume_weight, off in the
+    shipped config) weighed to about the rest of the loss."""
     cfg = dataclasses.replace(MPMConfig(), precision="float64", grid_res=RES, substeps=3)
     default = MPMConfig()
     changed = {f.name for f in dataclasses.fields(MPMConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
@@ -230,6 +231,11 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     fd_check(s, st, n_checks=8, seed=22, h=1e-5)
     fd_check(s, st, gF=50.0 * rng.normal(size=(st.n, 3, 3)), gx=5.0 * rng.normal(size=(st.n, 3)), n_checks=6,
               seed=23, h=1e-5)
+    # the volume term (mpm.volume_weight, off in the shipped config) on the same solver, weighed so it
+    # is about the rest of the loss
+    plain, ratio, unit = volume_term_parts(s, st)
+    s.configure(dataclasses.replace(cfg, volume_weight=plain / (unit * (ratio - 1.0) ** 2)))
+    fd_check(s, st, n_checks=6, seed=24, h=1e-5)
 
 
 @pytest.mark.parametrize("precision", ["float64", "float32"])
