@@ -4,7 +4,11 @@ is scaled to), against where the particles' mass lies on the grid (the same spla
 IoU): the cells holding more than half the target's interior node mass (VOLUME_FILL of the
 INTERIOR_PERCENTILE, physmorph.morph.quality) against the target's, and the body's mass-weighted
 node mass over the target's. A body packed by a share c fills ~c fewer cells at a density ~1/(1 - c)
-higher; one whose det F drifted without moving does neither (docs/study/log.md finding 246).
+higher; one whose det F drifted without moving does neither (docs/study/log.md finding 246). Then
+the exported surface's components and genus (physmorph.reports.export) drawn at the solver's
+volume, at the rest volume (every det F 1) and at the solver's volume spread evenly (every det F
+its mean): how much the genus a page reports depends on the volume the surface is drawn at
+(finding 247).
 
     python benchmarks/body_volume.py RUN.h5 PARTICLES.h5 TARGET.h5 [FRAME ...]
 
@@ -22,6 +26,8 @@ import numpy as np
 from physmorph.base.grid import Grid, splat_mass
 from physmorph.base.linalg3 import det3
 from physmorph.morph.quality import INTERIOR_PERCENTILE, VOLUME_FILL
+from physmorph.reports.export.body import components_and_genus
+from physmorph.reports.export.surface import particle_surface
 
 
 def mass_weighted_node_mass(m: np.ndarray) -> float:  # m: [R, R, R]
@@ -48,6 +54,12 @@ def main(argv: list[str]) -> None:
             print(f"frame {k}: sum V0 det F / sum V0 {(rest * det3(F)).sum() / rest.sum():.3f}, "
                   f"filled cells {int((m > fill).sum())} (the target's {target_cells}), "
                   f"mass-weighted node mass / the target's {mass_weighted_node_mass(m) / target_density:.3f}")
+            J = det3(F)
+            for label, j in (("the solver's volume", J), ("the rest volume", np.ones(len(x))),
+                             ("the solver's volume spread evenly", np.full(len(x), (rest * J).sum() / rest.sum()))):
+                surface = particle_surface(x, rest, j, grid.dx)
+                components, genus = components_and_genus(surface)
+                print(f"  surface at {label}: volume {surface.volume:.0f}, {components} component(s), genus {genus}")
 
 
 if __name__ == "__main__":
