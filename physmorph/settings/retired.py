@@ -50,4 +50,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "stray_pull_density": 0.0,  # the stray pull's outside test: the nearest grid node's target mass
     "plasticity.volume": "keep",  # the rest volume stayed the source's (target the default since 2026-12-01)
     "plasticity.volume_rate": 0.05,
+    "mpm.volume_weight": 0.0,  # no volume term in the physics loss
 }
