@@ -44,6 +44,21 @@ def _loss_at_zero_control(s: MPMSolver, cfg: MPMConfig, state: ParticleState):
     return L, splat_mass(end.x, end.mass, s.grid), s.model.target_m.to_numpy(), cfg.log_mass_eps * state.mass.mean()
 
 
+def _a_term_of_the_physics_loss(s: MPMSolver, state: ParticleState, L: float, plain: float, seed: int) -> None:
+    """A term added to the loss L (plain without it) is the physics loss's: loss() reports it whole
+    and mass_loss() without (the run's physics_loss and mass_loss), the gradients of control and
+    initial state match central finite differences, and backward_pair's mass-loss gradient
+    carries it (it belongs to the physics objective, not to the injected adjoints)."""
+    assert s.loss() == L and s.mass_loss() == pytest.approx(plain, rel=1e-12)
+    fd_check(s, state, n_checks=6, seed=seed)
+    s.forward()
+    s.backward()
+    whole = s.control_gradient()
+    s.forward()
+    n_mass, n_inj = s.backward_pair(None, None)
+    assert n_mass == pytest.approx(np.linalg.norm(whole), rel=1e-10) and n_inj == 0.0
+
+
 def test_blurred_mass_loss_level_matches_a_dense_convolution_and_fd(state):
     """mass_loss_blur sigma > 0 adds weight x sum_I (log((B m)_I + e) - log((B m*)_I + e))^2, B the
     Gaussian blur truncated at 3 sigma, zero outside the grid: the loss against the formula with B
@@ -93,15 +108,7 @@ def test_position_anchors_add_their_term_and_match_fd(state):
     pull = (weight * ((end - anchor) ** 2).sum(axis=1)).sum()
     assert pull > 0.05 * plain
     assert L == pytest.approx(plain + pull, rel=1e-10)
-    # the loss is reported whole and without the anchors' term (the run's physics_loss and mass_loss)
-    assert s.loss() == L and s.mass_loss() == pytest.approx(plain, rel=1e-12)
-    fd_check(s, state, n_checks=6, seed=12)
-    s.forward()
-    s.backward()
-    whole = s.control_gradient()
-    s.forward()
-    n_mass, n_inj = s.backward_pair(None, None)
-    assert n_mass == pytest.approx(np.linalg.norm(whole), rel=1e-10) and n_inj == 0.0
+    _a_term_of_the_physics_loss(s, state, L, plain, seed=12)
     s.backward(None, None, include_mass_loss=False)  # the injected adjoints alone: none here
     assert not s.control_gradient().any()
     s.set_position_anchors(None)
@@ -166,14 +173,7 @@ def test_volume_term_adds_its_formula_and_matches_fd(state):
     s.configure(dataclasses.replace(base, volume_weight=w))
     L = s.forward()
     assert L == pytest.approx(plain + w * unit * (ratio - 1.0) ** 2, rel=1e-10)
-    assert s.loss() == L and s.mass_loss() == pytest.approx(plain, rel=1e-12)
-    fd_check(s, state, n_checks=6, seed=31)
-    s.forward()
-    s.backward()
-    whole = s.control_gradient()
-    s.forward()
-    n_mass, n_inj = s.backward_pair(None, None)
-    assert n_mass == pytest.approx(np.linalg.norm(whole), rel=1e-10) and n_inj == 0.0
+    _a_term_of_the_physics_loss(s, state, L, plain, seed=31)
     s.configure(base)
     assert s.forward() == pytest.approx(plain, rel=1e-12)
     with pytest.raises(MPMConfigError, match="volume_weight"):
