@@ -7,20 +7,21 @@ independent chains of fused multiply-adds per element). Then one MPM frame's rol
 backward, with Taichi's kernel profiler on: per kernel its launches, its time, its share of the
 physics, and, for the kernels whose traffic is modelled below, the bytes it moves per launch, the
 rate that makes, and that rate as a share of the triad's (the roofline's memory roof). Last, P2G's
-two halves apart: its per-particle stress (the polar decomposition warm-started from the last
-substep) and its scatter into the grid (27 nodes, 108 float atomic adds), each as a kernel.
+per-particle stress (the polar decomposition warm-started from the last substep, P and the
+affine A) timed apart as a kernel of its own: the rest of P2G's time is its walk over the 27 nodes.
+With ``--markdown`` the same tables replace the generated section of docs/performance.md.
 
 Traffic model (float32, per particle per substep, each array read or written once; the grid's
 scattered traffic counted at one 16-byte node (mass + momentum) per stencil point, 27 points):
   p2g          reads x v C F Fp^-1 m V0 (3+3+9+9+9+1+1 floats) and the control dFc (9),
-               adds to 27 nodes                                    = 44*4 + 27*16 = 608 B
+               adds to 27 nodes (of its thread's lane)             = 44*4 + 27*16 = 608 B
   grid_update  reads and writes every node once (16 B each, twice) = 32 B per node
   g2p          reads x v C F (24 floats) and 27 nodes (12 B each), writes x v C F = 24*4*2 + 27*12 = 516 B
 Kernels outside the model (the adjoints, the loss, the control's updates) get their time only. A
 kernel whose data stay in the caches (the 33^3 grid's 0.6 MB) can pass the triad's rate, which is
 memory's: above 100 % it is not bound by memory at all.
 
-    .venv/bin/python benchmarks/bench_roofline.py [--n 20000] [--res 32] [--threads 2] [--reps 2]
+    .venv/bin/python benchmarks/bench_roofline.py [--n 20000] [--res 32] [--threads 2] [--reps 2] [--markdown]
 """
 
 
@@ -125,10 +126,10 @@ def physics_profile(n: int, res: int, reps: int) -> tuple:
     return kernel_times(), time.perf_counter() - t0, (res + 1) ** 3, solver
 
 
-def p2g_parts(solver, reps: int = 5) -> dict:
-    """P2G's two halves timed apart, best of ``reps`` over every substep of the last rollout: its
-    per-particle stress (Fe, the warm-started polar decomposition, P, the affine A) and its scatter
-    (the 27 nodes' 108 float atomic adds), each a kernel of the library's own functions."""
+def p2g_stress_seconds(solver, reps: int = 5) -> float:
+    """P2G's per-particle stress (Fe, the warm-started polar decomposition, P, the affine A) as a
+    kernel of the library's own functions: seconds a launch, best of ``reps`` over every substep
+    of the last rollout."""
     import taichi as ti
 
     model, traj, ctrl, n = solver.model, solver.trajectory, solver.control_field, solver.model.n
@@ -143,29 +144,87 @@ def p2g_parts(solver, reps: int = 5) -> dict:
             P = model.stress.stress_from_polar(Fe, R)
             sink[q] = (P @ Fe.transpose()).sum() + gap
 
-    @ti.kernel
-    def scatter_only(t: ti.i32):
-        for q in range(n):
-            base, fx, w, dw = model.stencil(traj.x[t, q])
-            mom = model.mass[q] * traj.v[t, q]
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = model.node(fx, w, i, j, k)
-                traj.grid_mv[base + off] += wt * (mom + traj.C[t, q] @ dpos)
-                traj.grid_m[base + off] += wt * model.mass[q]
-
-    out = {}
-    for name, kernel in (("p2g: stress", stress_only), ("p2g: scatter", scatter_only)):
-        kernel(0)
+    stress_only(0)
+    ti.sync()
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for t in range(T):
+            stress_only(t)
         ti.sync()
-        best = np.inf
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            for t in range(T):
-                kernel(t)
-            ti.sync()
-            best = min(best, time.perf_counter() - t0)
-        out[name] = best / T
-    return out
+        best = min(best, time.perf_counter() - t0)
+    return best / T
+
+
+def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float) -> list:
+    """(kernel, launches, seconds, share, bytes a launch or None, GB/s or None, share of the triad
+    or None) for every kernel above 0.2 % of the total, the slowest first."""
+    total = sum(t for _, t in times.values())
+    by_kernel: dict = {}
+    for name, (count, seconds) in times.items():
+        short = name.rsplit("_c", 1)[0]  # Taichi appends _c<k>_<id> to each compiled kernel's name
+        launches, spent = by_kernel.get(short, (0, 0.0))
+        by_kernel[short] = (launches + count, spent + seconds)
+    rows = []
+    for short, (count, seconds) in sorted(by_kernel.items(), key=lambda kv: -kv[1][1]):
+        if seconds < 0.002 * total:
+            continue
+        key = short if short in PARTICLE_BYTES or short in NODE_BYTES else None
+        per = PARTICLE_BYTES.get(key, 0) * n + NODE_BYTES.get(key, 0) * nodes if key else None
+        rate = per * count / seconds if per else None
+        rows.append((short, count, seconds, seconds / total, per, rate, rate / bandwidth if rate else None))
+    return rows
+
+
+def print_report(args, limits: dict, wall: float, rows: list, p2g_stress: float) -> None:
+    total = sum(r[2] for r in rows)
+    print(f"machine ({args.threads} threads): triad {limits['bandwidth'] / 1e9:.1f} GB/s, "
+          f"fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s")
+    print(f"physics: N={args.n}, grid {args.res}^3, {args.reps} forward+backward rollouts in {wall:.2f} s wall "
+          f"({total:.2f} s in the kernels listed)")
+    hdr = f"{'kernel':<44} {'launches':>8} {'s':>7} {'share':>6} {'B/launch':>10} {'GB/s':>6} {'of triad':>8}"
+    print(hdr + "\n" + "-" * len(hdr))
+    for short, count, seconds, share, per, rate, of_triad in rows:
+        print(f"{short[:44]:<44} {count:>8} {seconds:>7.3f} {100 * share:>5.1f}% "
+              + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * of_triad:>7.0f}%" if per else ""))
+    p2g = next((r for r in rows if r[0] == "p2g"), None)
+    if p2g:
+        print(f"p2g, {1e3 * p2g[2] / p2g[1]:.2f} ms a launch, of which its stress {1e3 * p2g_stress:.2f} ms")
+
+
+def markdown_section(args, limits: dict, wall: float, rows: list, p2g_stress: float) -> str:
+    """The generated section of docs/performance.md (between its roofline markers)."""
+    total = sum(r[2] for r in rows)
+    lines = [f"Generated by `python benchmarks/bench_roofline.py --n {args.n} --res {args.res} --threads {args.threads} "
+             f"--reps {args.reps} --markdown` at commit {commit()}: the machine's triad "
+             f"{limits['bandwidth'] / 1e9:.1f} GB/s and fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s "
+             f"on {args.threads} threads; {args.reps} forward+backward rollouts of {args.n:,} particles on "
+             f"{args.res}³ in {wall:.2f} s ({total:.2f} s in the kernels below).", "",
+             "| kernel | launches | s | share | bytes a launch | GB/s | of the triad |", "|---|---|---|---|---|---|---|"]
+    for short, count, seconds, share, per, rate, of_triad in rows:
+        lines.append(f"| `{short}` | {count} | {seconds:.3f} | {100 * share:.1f} % | "
+                     + (f"{per:,} | {rate / 1e9:.1f} | {100 * of_triad:.0f} % |" if per else " | | |"))
+    p2g = next((r for r in rows if r[0] == "p2g"), None)
+    if p2g:
+        lines += ["", f"P2G: {1e3 * p2g[2] / p2g[1]:.2f} ms a launch, of which its stress {1e3 * p2g_stress:.2f} ms "
+                      "(timed apart); the rest is its walk over the 27 nodes."]
+    return "\n".join(lines) + "\n"
+
+
+def commit() -> str:
+    import subprocess
+
+    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=os.path.dirname(__file__))
+    return out.stdout.strip() or "unknown"
+
+
+def write_section(path: str, text: str) -> None:
+    """Replace what lies between the roofline markers of ``path`` with ``text``."""
+    begin, end = "<!-- roofline: generated by benchmarks/bench_roofline.py --markdown -->", "<!-- roofline end -->"
+    doc = open(path, encoding="utf-8").read()
+    i, j = doc.index(begin) + len(begin), doc.index(end)
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(doc[:i] + "\n" + text + doc[j:])
 
 
 def main() -> None:
@@ -174,6 +233,7 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--markdown", action="store_true", help="also write the tables into docs/performance.md")
     args = ap.parse_args()
     os.environ["PHYSMORPH_KERNEL_PROFILER"] = "1"
     from physmorph.base.taichi_runtime import init_taichi
@@ -181,30 +241,12 @@ def main() -> None:
     init_taichi("cpu", threads=args.threads)
     limits = machine_limits()
     times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps)
-    total = sum(t for _, t in times.values())
-    print(f"machine ({args.threads} threads): triad {limits['bandwidth'] / 1e9:.1f} GB/s, "
-          f"fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s")
-    print(f"physics: N={args.n}, grid {args.res}^3, {args.reps} forward+backward rollouts in {wall:.2f} s wall "
-          f"({total:.2f} s in kernels)")
-    hdr = f"{'kernel':<44} {'launches':>8} {'s':>7} {'share':>6} {'B/launch':>10} {'GB/s':>6} {'of triad':>8}"
-    print(hdr + "\n" + "-" * len(hdr))
-    by_kernel: dict = {}
-    for name, (count, seconds) in times.items():
-        short = name.rsplit("_c", 1)[0]  # Taichi appends _c<k>_<id> to each compiled kernel's name
-        launches, spent = by_kernel.get(short, (0, 0.0))
-        by_kernel[short] = (launches + count, spent + seconds)
-    for short, (count, seconds) in sorted(by_kernel.items(), key=lambda kv: -kv[1][1]):
-        if seconds < 0.002 * total:
-            continue
-        key = short if short in PARTICLE_BYTES or short in NODE_BYTES else None
-        per = PARTICLE_BYTES.get(key, 0) * args.n + NODE_BYTES.get(key, 0) * nodes if key else None
-        rate = per * count / seconds if per else None
-        print(f"{short[:44]:<44} {count:>8} {seconds:>7.3f} {100 * seconds / total:>5.1f}% "
-              + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * rate / limits['bandwidth']:>7.0f}%" if per else ""))
-    p2g_launch = by_kernel.get("p2g", (1, 0.0))
-    parts = p2g_parts(solver)
-    print(f"p2g, {1e3 * p2g_launch[1] / max(p2g_launch[0], 1):.2f} ms a launch, apart: "
-          + ", ".join(f"{name.split(': ')[1]} {1e3 * sec:.2f} ms" for name, sec in parts.items()))
+    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"])
+    p2g_stress = p2g_stress_seconds(solver)
+    print_report(args, limits, wall, rows, p2g_stress)
+    if args.markdown:
+        doc = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "performance.md")
+        write_section(doc, markdown_section(args, limits, wall, rows, p2g_stress))
 
 
 if __name__ == "__main__":

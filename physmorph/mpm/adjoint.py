@@ -1,8 +1,8 @@
 """The reverse sweep's state: the adjoints of the particle state at the substep being reversed and
 of the grid, a second set of each for two seeds in one sweep (MPMSolver.backward_pair, allocated
-on first use: 96 B a particle in float32), and the per-particle scratch of the substep being
-reversed (A, Fe and its polar factors, restored from the forward's records so the backward
-computes no SVD: O(N) memory, not stored per substep).
+on first use: 96 B a particle in float32), and the per-thread lanes the reverse of G2P adds
+into (physmorph.mpm.lanes). The reverse of P2G computes A, Fe and its polar factors where it
+needs them, from the forward's records (no SVD, nothing stored).
 """
 
 import taichi as ti
@@ -23,15 +23,12 @@ class Adjoint:
         self.C_adj = mat.field(shape=N)
         self.F_adj = mat.field(shape=N)
         self.grid_v_adj = vec.field(shape=(R, R, R))
+        # the reverse of G2P adds into a copy of grid_v_adj per CPU thread (physmorph.mpm.lanes)
+        self.grid_v_adj_lanes = model.lanes.grid_field(f, R, 3)
         self.grid_mv_adj = vec.field(shape=(R, R, R))
         self.grid_m_adj = ti.field(f, shape=(R, R, R))
         self.x_adj2 = self.v_adj2 = self.C_adj2 = self.F_adj2 = None
-        self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = None
-        self.A_s = mat.field(shape=N)
-        self.Fe_s = mat.field(shape=N)
-        self.R_s = mat.field(shape=N)
-        self.S_s = mat.field(shape=N)
-        self.gap_s = ti.field(f, shape=N)
+        self.grid_v_adj2 = self.grid_mv_adj2 = self.grid_m_adj2 = self.grid_v_adj2_lanes = None
 
     def ensure_pair(self) -> None:
         """Allocate the second adjoint set (backward_pair) on first use."""
@@ -42,6 +39,7 @@ class Adjoint:
             self.C_adj2, self.F_adj2 = mat.field(shape=N), mat.field(shape=N)
             self.grid_v_adj2, self.grid_mv_adj2 = vec.field(shape=(R, R, R)), vec.field(shape=(R, R, R))
             self.grid_m_adj2 = ti.field(f, shape=(R, R, R))
+            self.grid_v_adj2_lanes = self.model.lanes.grid_field(f, R, 3)
 
     def seed(self, gx, gF, pair: bool) -> None:  # gx: [N, 3], gF: [N, 3, 3] in the solver's precision
         """The end state's adjoints: x_bar_T = gx, F_bar_T = gF, v_bar and C_bar zero (with pair,

@@ -13,6 +13,7 @@ from physmorph.base.grid import BOUNDARY_CELLS, Grid
 from physmorph.base.taichi_runtime import init_taichi
 from physmorph.settings.mpm import MPMConfig, MPMStateError
 
+from .lanes import ScatterLanes
 from .state import ParticleState
 from .stress import make_stress_funcs
 
@@ -34,7 +35,7 @@ class MPMModel:
     def __init__(self, cfg: MPMConfig, n_particles: int):
         if int(n_particles) < 1:
             raise MPMStateError(f"n_particles must be >= 1, got {n_particles}")
-        init_taichi(cfg.device, cfg.threads)
+        self.arch = init_taichi(cfg.device, cfg.threads)  # 'cpu' or 'cuda'
         self.cfg = cfg
         self.n = int(n_particles)
         self.grid = Grid(cfg.grid_res, cfg.domain_lo, cfg.domain_hi)
@@ -50,6 +51,8 @@ class MPMModel:
         # positions are clamped so the 3x3x3 stencil never leaves the grid: x_g in [1, res - 2]
         self.x_min = cfg.domain_lo + 1.0 * cfg.dx
         self.x_max = cfg.domain_lo + (cfg.grid_res - 2.0) * cfg.dx
+        # the particle loops that add into the grid, split over the CPU threads (physmorph.mpm.lanes)
+        self.lanes = ScatterLanes(self.n, on_cpu=self.arch == "cpu")
         f, N, R = self.dtype, self.n, cfg.grid_res
         self.Fp_inv = ti.types.matrix(3, 3, f).field(shape=N)
         self.mass = ti.field(f, shape=N)

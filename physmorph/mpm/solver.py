@@ -184,7 +184,7 @@ class MPMSolver:
             xa, Fa = (adjoint.x_adj2, adjoint.F_adj2) if pair else (adjoint.x_adj, adjoint.F_adj)
             self.physics_loss.backward(xa, Fa)
         for t in reversed(range(self.cfg.substeps)):
-            step.restore_p2g(t)
+            step.restore_grid(t)
             self.transfers.grid_update()
             step.clear_grid_adjoint(pair)
             step.g2p_backward(t, pair)

@@ -11,8 +11,26 @@ import taichi as ti
 
 from .adjoint import Adjoint
 from .control import ControlField
+from .lanes import LANE_BLOCK
 from .model import MPMModel
 from .trajectory import Trajectory
+
+
+@ti.func
+def grid_node_adjoint(m, vfree, vc, v_bar):
+    """The reverse of a node's grid update, v = boundary(mv / m): (mv_bar, m_bar) from the
+    velocity's adjoint v_bar (vfree = mv / m, vc after the boundary, whose zeroed components
+    pass nothing back)."""
+    mvb = ti.zero(v_bar)
+    mb = ti.zero(m)
+    if m > 0:
+        vb = v_bar
+        for a in ti.static(range(3)):
+            if vc[a] == 0.0 and vfree[a] != 0.0:
+                vb[a] = 0.0
+        mvb = vb / m
+        mb = -vb.dot(vfree) / m
+    return mvb, mb
 
 
 @ti.data_oriented
@@ -32,24 +50,23 @@ class TransferAdjoints:
                 self.adjoint.grid_v_adj2[I] = ti.Vector.zero(self.dtype, 3)
 
     @ti.kernel
-    def restore_p2g(self, t: ti.i32):
-        """The backward's scratch (A, Fe, its polar factors) and substep t's grid, from the forward's stored polar factors and grid:
-        Fe = (F + dFc_t) Fp^-1, R and gap as stored, S = sym(R^T Fe), A as in Transfers.p2g."""
-        kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
+    def restore_grid(self, t: ti.i32):
+        """Substep t's P2G grid (m_I, mv_I), as the forward stored it."""
         for I in ti.grouped(self.trajectory.grid_m):
             self.trajectory.grid_m[I] = self.trajectory.grid_m_t[t, I]
             self.trajectory.grid_mv[I] = self.trajectory.grid_mv_t[t, I]
-        for p in range(self.n):
-            Fe = (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
-            R = self.model.rotation_of(self.trajectory.R_q[t, p])
-            S0 = R.transpose() @ Fe
-            P = self.model.stress.stress_from_polar(Fe, R)
-            A = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
-            self.adjoint.A_s[p] = A
-            self.adjoint.Fe_s[p] = Fe
-            self.adjoint.R_s[p] = R
-            self.adjoint.S_s[p] = 0.5 * (S0 + S0.transpose())
-            self.adjoint.gap_s[p] = self.trajectory.gap_t[t, p]
+
+    @ti.func
+    def _restore_particle(self, t, p):
+        """Particle p's P2G quantities at substep t from the forward's records (no SVD): Fe = (F +
+        dFc_t) Fp^-1, R and the pair sum as stored, S = sym(R^T Fe), A as in Transfers.p2g."""
+        kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
+        Fe = (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
+        R = self.model.rotation_of(self.trajectory.R_q[t, p])
+        S0 = R.transpose() @ Fe
+        P = self.model.stress.stress_from_polar(Fe, R)
+        A = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
+        return Fe, R, 0.5 * (S0 + S0.transpose()), self.trajectory.gap_t[t, p], A
 
     @ti.kernel
     def p2g_backward(self, t: ti.i32, pair: ti.template()):
@@ -59,26 +76,14 @@ class TransferAdjoints:
         for p in range(self.n):
             xp = self.trajectory.x[t, p]
             base, fx, w, dw = self.model.stencil(xp)
-            A = self.adjoint.A_s[p]
+            Fe, R, S, gap, A = self._restore_particle(t, p)
             mp = self.model.mass[p]
             mom = mp * damp * self.trajectory.v[t, p]
-            vbar = ti.Vector.zero(self.dtype, 3)
-            Abar = ti.Matrix.zero(self.dtype, 3, 3)
-            xbar = ti.Vector.zero(self.dtype, 3)
+            vbar, Abar, xbar = self._p2g_node_adjoints(base, fx, w, dw, mom, A, mp, self.adjoint.grid_mv_adj, self.adjoint.grid_m_adj)
             vbar2, Abar2, xbar2 = vbar, Abar, xbar
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self.model.node(fx, w, i, j, k)
-                gw = self.model.node_grad(w, dw, i, j, k)
-                mv = mom + A @ dpos
-                mvb = self.adjoint.grid_mv_adj[base + off]
-                vbar += wt * mvb
-                Abar += wt * mvb.outer_product(dpos)
-                xbar += gw * (mvb.dot(mv) + self.adjoint.grid_m_adj[base + off] * mp) - wt * (A.transpose() @ mvb)
-                if ti.static(pair):
-                    mvb2 = self.adjoint.grid_mv_adj2[base + off]
-                    vbar2 += wt * mvb2
-                    Abar2 += wt * mvb2.outer_product(dpos)
-                    xbar2 += gw * (mvb2.dot(mv) + self.adjoint.grid_m_adj2[base + off] * mp) - wt * (A.transpose() @ mvb2)
+            if ti.static(pair):
+                vbar2, Abar2, xbar2 = self._p2g_node_adjoints(base, fx, w, dw, mom, A, mp, self.adjoint.grid_mv_adj2,
+                                                              self.adjoint.grid_m_adj2)
             # one call site of the stress's differential for both sets (each inlined copy costs
             # seconds of compilation): a loop over the sets
             for which in range(2 if ti.static(pair) else 1):
@@ -86,7 +91,7 @@ class TransferAdjoints:
                 if ti.static(pair):
                     if which == 1:
                         vb, Ab, xb = vbar2, Abar2, xbar2
-                Fhat_bar = self._p2g_F_adjoint(p, Ab)
+                Fhat_bar = self._p2g_F_adjoint(p, Ab, Fe, R, S, gap)
                 if which == 0:
                     self._add_particle_adjoints(p, t, xb, mp * damp * vb, mp * Ab, Fhat_bar, self.adjoint.x_adj,
                                                 self.adjoint.v_adj, self.adjoint.C_adj, self.adjoint.F_adj, self.control.ctrl_grad)
@@ -96,13 +101,41 @@ class TransferAdjoints:
                                                     self.adjoint.v_adj2, self.adjoint.C_adj2, self.adjoint.F_adj2, self.control.ctrl_base)
 
     @ti.func
-    def _p2g_F_adjoint(self, p, Abar):
+    def _p2g_node_adjoints(self, base, fx: ti.template(), w: ti.template(), dw: ti.template(), mom, A, mp,
+                           mv_adj: ti.template(), m_adj: ti.template()):
+        """The node loop of p2g's reverse for one adjoint set: v_bar = sum w mv_bar_I, A_bar = sum
+        w mv_bar_I (x_I - x_p)^T and x_bar = sum grad w (mv_bar_I . mv_I + m_bar_I m) - A^T v_bar.
+        As in P2G, mv_I = m v + A (x_I - x_p) grows along a row of the stencil by a column of
+        dx A, and A_bar = dx (sum w mv_bar_I off^T - v_bar fx^T): the nodes add vectors only."""
+        Adx = self.dtype(self.model.dx) * A
+        vbar = ti.Vector.zero(self.dtype, 3)
+        xbar = ti.Vector.zero(self.dtype, 3)
+        moment = ti.Matrix.zero(self.dtype, 3, 3)  # columns: sum w mv_bar_I off_a
+        for i, j in ti.ndrange(3, 3):
+            wij, dwi, dwj = w[i, 0] * w[j, 1], dw[i, 0] * w[j, 1], w[i, 0] * dw[j, 1]
+            mv = mom + Adx @ (ti.Vector([i, j, 0], self.dtype) - fx)
+            row, row_k = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3)
+            for k in range(3):
+                node = base + ti.Vector([i, j, k])
+                mvb = mv_adj[node]
+                c = (wij * w[k, 2]) * mvb
+                row += c
+                row_k += ti.cast(k, self.dtype) * c
+                gw = ti.Vector([dwi * w[k, 2], dwj * w[k, 2], wij * dw[k, 2]])
+                xbar += (mvb.dot(mv) + m_adj[node] * mp) * gw
+                mv += ti.Vector([Adx[0, 2], Adx[1, 2], Adx[2, 2]])
+            vbar += row
+            moment += ti.Matrix.cols([ti.cast(i, self.dtype) * row, ti.cast(j, self.dtype) * row, row_k])
+        Abar = self.dtype(self.model.dx) * (moment - vbar.outer_product(fx))
+        return vbar, Abar, xbar - A.transpose() @ vbar
+
+    @ti.func
+    def _p2g_F_adjoint(self, p, Abar, Fe, R, S, gap):
         """The particle part of p2g's reverse for one adjoint set: A_bar -> P_bar = tau_bar Fe ->
         Fe_bar (the stress's self-adjoint differential) -> the adjoint of F + dFc."""
         kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
-        Fe = self.adjoint.Fe_s[p]
         tau_bar = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * Abar
-        P, dP = self.model.stress.stress_and_diff_polar(Fe, self.adjoint.R_s[p], self.adjoint.S_s[p], self.adjoint.gap_s[p],
+        P, dP = self.model.stress.stress_and_diff_polar(Fe, R, S, gap,
                                                          tau_bar @ Fe)  # P_bar = tau_bar Fe
         Fe_bar = tau_bar.transpose() @ P + dP
         return Fe_bar @ self.model.Fp_inv[p].transpose()
@@ -126,63 +159,74 @@ class TransferAdjoints:
             if m > 0:
                 vfree = self.trajectory.grid_mv[I] / m
                 vc = self.model.boundary(I, vfree)
-            self._grid_adjoint_node(I, m, vfree, vc, self.adjoint.grid_v_adj, self.adjoint.grid_mv_adj, self.adjoint.grid_m_adj)
+            a = self.adjoint
+            vb = self.model.lanes.collect(a.grid_v_adj_lanes, a.grid_v_adj, I)
+            a.grid_mv_adj[I], a.grid_m_adj[I] = grid_node_adjoint(m, vfree, vc, vb)
             if ti.static(pair):
-                self._grid_adjoint_node(I, m, vfree, vc, self.adjoint.grid_v_adj2, self.adjoint.grid_mv_adj2, self.adjoint.grid_m_adj2)
-
-    @ti.func
-    def _grid_adjoint_node(self, I, m, vfree, vc, va: ti.template(), mva: ti.template(), ma: ti.template()):
-        """One adjoint set at node I: the boundary's zeroed components pass nothing back."""
-        mvb = ti.Vector.zero(self.dtype, 3)
-        mb = ti.cast(0.0, self.dtype)
-        if m > 0:
-            vb = va[I]
-            for a in ti.static(range(3)):
-                if vc[a] == 0.0 and vfree[a] != 0.0:
-                    vb[a] = 0.0
-            mvb = vb / m
-            mb = -vb.dot(vfree) / m
-        mva[I] = mvb
-        ma[I] = mb
+                vb2 = self.model.lanes.collect(a.grid_v_adj2_lanes, a.grid_v_adj2, I)
+                a.grid_mv_adj2[I], a.grid_m_adj2[I] = grid_node_adjoint(m, vfree, vc, vb2)
 
     @ti.kernel
     def g2p_backward(self, t: ti.i32, pair: ti.template()):
         """Reverse of Transfers.g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t
         (pair: also the second set's, sharing the stencil and the node loop's grid loads)."""
+        lanes = self.model.lanes
+        if ti.static(lanes.private):
+            ti.loop_config(block_dim=LANE_BLOCK)
+            for c in range(lanes.blocks):
+                for p in range(lanes.first(c), lanes.first(c + 1)):
+                    self._g2p_backward_particle(t, p, c // LANE_BLOCK, pair)
+        else:
+            for p in range(self.n):
+                self._g2p_backward_particle(t, p, 0, pair)
+
+    @ti.func
+    def _g2p_backward_particle(self, t, p, lane, pair: ti.template()):
+        """Particle p's share of g2p_backward, its grid adjoints added into lane ``lane``."""
         kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
-        for p in range(self.n):
-            xp = self.trajectory.x[t, p]
-            base, fx, w, dw = self.model.stencil(xp)
-            xbar, vbar, Cbar = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3), ti.Matrix.zero(self.dtype, 3, 3)
-            xbar2, vbar2, Cbar2 = xbar, vbar, Cbar  # set in the loop below
-            # one call site of the particle part for both sets (a loop over the sets)
-            for which in range(2 if ti.static(pair) else 1):
-                xa, va, Ca, Fa = self.adjoint.x_adj[p], self.adjoint.v_adj[p], self.adjoint.C_adj[p], self.adjoint.F_adj[p]
-                if ti.static(pair):
-                    if which == 1:
-                        xa, va, Ca, Fa = self.adjoint.x_adj2[p], self.adjoint.v_adj2[p], self.adjoint.C_adj2[p], self.adjoint.F_adj2[p]
-                xb, vb, Cb, Fb = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
-                if which == 0:
-                    xbar, vbar, Cbar = xb, vb, Cb
-                    self._set_F_adjoint(p, Fb, self.adjoint.v_adj, self.adjoint.C_adj, self.adjoint.F_adj)
-                if ti.static(pair):
-                    if which == 1:
-                        xbar2, vbar2, Cbar2 = xb, vb, Cb
-                        self._set_F_adjoint(p, Fb, self.adjoint.v_adj2, self.adjoint.C_adj2, self.adjoint.F_adj2)
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self.model.node(fx, w, i, j, k)
-                gw = self.model.node_grad(w, dw, i, j, k)
-                gv = self.trajectory.grid_v[base + off]
-                Cd = Cbar @ dpos
-                self.adjoint.grid_v_adj[base + off] += wt * (vbar + kq * Cd)
-                xbar += gw * (vbar.dot(gv) + kq * gv.dot(Cd)) - (wt * kq) * (Cbar.transpose() @ gv)
-                if ti.static(pair):
-                    Cd2 = Cbar2 @ dpos
-                    self.adjoint.grid_v_adj2[base + off] += wt * (vbar2 + kq * Cd2)
-                    xbar2 += gw * (vbar2.dot(gv) + kq * gv.dot(Cd2)) - (wt * kq) * (Cbar2.transpose() @ gv)
-            self.adjoint.x_adj[p] = xbar
+        lanes = self.model.lanes
+        xp = self.trajectory.x[t, p]
+        base, fx, w, dw = self.model.stencil(xp)
+        xbar, vbar, Cbar = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3), ti.Matrix.zero(self.dtype, 3, 3)
+        xbar2, vbar2, Cbar2 = xbar, vbar, Cbar  # set in the loop below
+        # one call site of the particle part for both sets (a loop over the sets)
+        for which in range(2 if ti.static(pair) else 1):
+            xa, va, Ca, Fa = self.adjoint.x_adj[p], self.adjoint.v_adj[p], self.adjoint.C_adj[p], self.adjoint.F_adj[p]
             if ti.static(pair):
-                self.adjoint.x_adj2[p] = xbar2
+                if which == 1:
+                    xa, va, Ca, Fa = self.adjoint.x_adj2[p], self.adjoint.v_adj2[p], self.adjoint.C_adj2[p], self.adjoint.F_adj2[p]
+            xb, vb, Cb, Fb = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
+            if which == 0:
+                xbar, vbar, Cbar = xb, vb, Cb
+                self._set_F_adjoint(p, Fb, self.adjoint.v_adj, self.adjoint.C_adj, self.adjoint.F_adj)
+            if ti.static(pair):
+                if which == 1:
+                    xbar2, vbar2, Cbar2 = xb, vb, Cb
+                    self._set_F_adjoint(p, Fb, self.adjoint.v_adj2, self.adjoint.C_adj2, self.adjoint.F_adj2)
+        # node I receives w q_I, q_I = v_bar + kq C_bar (x_I - x_p), and x_bar gains
+        # grad w (v_I . q_I) - w kq C_bar^T v_I. Along a row of the stencil q grows by a column of
+        # kq dx C_bar, and sum_I w v_I is the forward's v' (stored): the nodes add vectors only
+        Ck = (kq * self.dtype(self.model.dx)) * Cbar
+        Ck2 = (kq * self.dtype(self.model.dx)) * Cbar2
+        for i, j in ti.ndrange(3, 3):
+            wij, dwi, dwj = w[i, 0] * w[j, 1], dw[i, 0] * w[j, 1], w[i, 0] * dw[j, 1]
+            q = vbar + Ck @ (ti.Vector([i, j, 0], self.dtype) - fx)
+            q2 = vbar2 + Ck2 @ (ti.Vector([i, j, 0], self.dtype) - fx)
+            for k in range(3):
+                node = base + ti.Vector([i, j, k])
+                gv = self.trajectory.grid_v[node]
+                gw = ti.Vector([dwi * w[k, 2], dwj * w[k, 2], wij * dw[k, 2]])
+                lanes.add(self.adjoint.grid_v_adj_lanes, self.adjoint.grid_v_adj, lane, node, (wij * w[k, 2]) * q)
+                xbar += gv.dot(q) * gw
+                q += ti.Vector([Ck[0, 2], Ck[1, 2], Ck[2, 2]])
+                if ti.static(pair):
+                    lanes.add(self.adjoint.grid_v_adj2_lanes, self.adjoint.grid_v_adj2, lane, node, (wij * w[k, 2]) * q2)
+                    xbar2 += gv.dot(q2) * gw
+                    q2 += ti.Vector([Ck2[0, 2], Ck2[1, 2], Ck2[2, 2]])
+        v_new = self.trajectory.v[t + 1, p]
+        self.adjoint.x_adj[p] = xbar - kq * (Cbar.transpose() @ v_new)
+        if ti.static(pair):
+            self.adjoint.x_adj2[p] = xbar2 - kq * (Cbar2.transpose() @ v_new)
 
     @ti.func
     def _g2p_particle_adjoint(self, t, p, xbar_n, vbar_n, Cbar_n, Fbar_n):

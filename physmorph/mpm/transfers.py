@@ -6,15 +6,21 @@ physmorph/mpm/solver.py's docstring): steps acting on the model, the state and t
     G2P:  v' = sum_I w_Ip v_I,  C' = 4/dx^2 sum_I w_Ip v_I (x_I - x_p)^T,  x' = x + dt v',
           F' = (1 - s) (I + dt C') F + s F
 
-The 27-node quadratic B-spline stencil is the model's (stencil per particle, node per node); every
-transfer loops over ti.ndrange(3, 3, 3). The forward stores the rotation of Fe (as a unit
-quaternion) with its smallest pair sum and the P2G grid per substep; the adjoints
-(physmorph.mpm.transfer_adjoints) restore them instead of running P2G and its SVD again.
+The 27-node quadratic B-spline stencil is the model's (weights per particle). The transfers and
+their adjoints walk it row by row (dynamic loops over (i, j), then k: small kernels to compile):
+x_I - x_p = (off - fx) dx is affine in the node's offset, so a product with it grows by one
+column per node along a row, and a sum of outer products with it is taken once per particle from
+the nodes' moments; a node costs a few vector operations, not 3x3 products. P2G and the reverse of
+G2P add into per-thread lanes of the grid (physmorph.mpm.lanes), not with atomic adds. The forward
+stores the rotation of Fe (as a unit quaternion) with its smallest pair sum and the P2G grid per
+substep; the adjoints (physmorph.mpm.transfer_adjoints) restore them instead of running P2G and its
+SVD again.
 """
 
 import taichi as ti
 
 from .control import ControlField
+from .lanes import LANE_BLOCK
 from .model import MPMModel
 from .trajectory import Trajectory
 
@@ -36,38 +42,66 @@ class Transfers:
     @ti.kernel
     def p2g(self, t: ti.i32):
         """Fe = (F + dFc_t) Fp^-1, A = -dt V0 (4/dx^2) P(Fe) Fe^T + m C;
-        mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p.
-        The rotation of Fe and its pair sum are kept per substep (R_q, gap_t), so the backward
-        (TransferAdjoints.restore_p2g) needs no second SVD."""
+        mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p, into the lanes
+        (physmorph.mpm.lanes; store_grid sums them). The rotation of Fe and its pair sum are kept
+        per substep (R_q, gap_t), so the backward (TransferAdjoints._restore_particle) needs no second SVD."""
+        lanes = self.trajectory.lanes
+        if ti.static(lanes.private):
+            ti.loop_config(block_dim=LANE_BLOCK)
+            for c in range(lanes.blocks):
+                for p in range(lanes.first(c), lanes.first(c + 1)):
+                    self._p2g_particle(t, p, c // LANE_BLOCK)
+        else:
+            for p in range(self.n):
+                self._p2g_particle(t, p, 0)
+
+    @ti.func
+    def _p2g_particle(self, t, p, lane):
+        """Particle p's share of P2G, added into the grid's lane ``lane``."""
         kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
-        for p in range(self.n):
-            xp = self.trajectory.x[t, p]
-            base, fx, w, dw = self.model.stencil(xp)
-            Fe = (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
-            # warm start: the rotation one substep earlier. At the first substep the zero start
-            # (no rotation) makes polar_from take the SVD, so a forward depends only on the loaded
-            # state and the control; one call site, since each inlined SVD costs seconds of compile
-            R0 = ti.Matrix.zero(self.dtype, 3, 3)
-            if t > 0:
-                R0 = self.trajectory.R_prev[p]
-            R, S, gap = self.model.stress.polar_from(Fe, R0)
-            self.trajectory.R_prev[p] = R
-            self.trajectory.R_q[t, p] = self.model.quaternion_of(R)
-            self.trajectory.gap_t[t, p] = gap
-            P = self.model.stress.stress_from_polar(Fe, R)
-            A = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
-            mom = self.model.mass[p] * (1.0 - self.dtype(self.model.cfg.dt) * self.dtype(self.model.cfg.drag)) * self.trajectory.v[t, p]
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self.model.node(fx, w, i, j, k)
-                self.trajectory.grid_mv[base + off] += wt * (mom + A @ dpos)
-                self.trajectory.grid_m[base + off] += wt * self.model.mass[p]
+        lanes = self.trajectory.lanes
+        xp = self.trajectory.x[t, p]
+        base, fx, w, dw = self.model.stencil(xp)
+        Fe = (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
+        # warm start: the rotation one substep earlier. At the first substep the zero start
+        # (no rotation) makes polar_from take the SVD, so a forward depends only on the loaded
+        # state and the control; one call site, since each inlined SVD costs seconds of compile
+        R0 = ti.Matrix.zero(self.dtype, 3, 3)
+        if t > 0:
+            R0 = self.trajectory.R_prev[p]
+        R, S, gap = self.model.stress.polar_from(Fe, R0)
+        self.trajectory.R_prev[p] = R
+        self.trajectory.R_q[t, p] = self.model.quaternion_of(R)
+        self.trajectory.gap_t[t, p] = gap
+        P = self.model.stress.stress_from_polar(Fe, R)
+        A = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
+        mom = self.model.mass[p] * (1.0 - self.dtype(self.model.cfg.dt) * self.dtype(self.model.cfg.drag)) * self.trajectory.v[t, p]
+        # x_I - x_p = (off - fx) dx: along a row of the stencil A (x_I - x_p) grows by dx A's
+        # third column, so a node adds one vector rather than a 3x3 product
+        Adx = self.dtype(self.model.dx) * A
+        step_k = ti.Vector([Adx[0, 2], Adx[1, 2], Adx[2, 2]])
+        row0 = mom - Adx @ fx
+        mp = self.model.mass[p]
+        for i, j in ti.ndrange(3, 3):
+            wij = w[i, 0] * w[j, 1]
+            u = row0 + Adx @ ti.Vector([i, j, 0], self.dtype)
+            for k in range(3):
+                wt = wij * w[k, 2]
+                node = base + ti.Vector([i, j, k])
+                lanes.add(self.trajectory.grid_mv_lanes, self.trajectory.grid_mv, lane, node, wt * u)
+                lanes.add(self.trajectory.grid_m_lanes, self.trajectory.grid_m, lane, node, wt * mp)
+                u += step_k
 
     @ti.kernel
     def store_grid(self, t: ti.i32):
-        """Keep substep t's P2G grid (m_I, mv_I) for the backward."""
-        for I in ti.grouped(self.trajectory.grid_m):
-            self.trajectory.grid_m_t[t, I] = self.trajectory.grid_m[I]
-            self.trajectory.grid_mv_t[t, I] = self.trajectory.grid_mv[I]
+        """Substep t's P2G grid (m_I, mv_I): the lanes summed into the working grid, and kept for
+        the backward."""
+        tr = self.trajectory
+        for I in ti.grouped(tr.grid_m):
+            m = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
+            mv = tr.lanes.collect(tr.grid_mv_lanes, tr.grid_mv, I)
+            tr.grid_m[I], tr.grid_mv[I] = m, mv
+            tr.grid_m_t[t, I], tr.grid_mv_t[t, I] = m, mv
 
     @ti.kernel
     def grid_update(self):
@@ -85,13 +119,21 @@ class Transfers:
         for p in range(self.n):
             xp = self.trajectory.x[t, p]
             base, fx, w, dw = self.model.stencil(xp)
+            # sum w v_I (x_I - x_p)^T = dx (sum w v_I off^T - v' fx^T): the nodes add vectors, the
+            # outer products are taken once per particle
             nv = ti.Vector.zero(self.dtype, 3)
-            nC = ti.Matrix.zero(self.dtype, 3, 3)
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self.model.node(fx, w, i, j, k)
-                gv = self.trajectory.grid_v[base + off]
-                nv += wt * gv
-                nC += (4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx) * wt) * gv.outer_product(dpos)
+            moment = ti.Matrix.zero(self.dtype, 3, 3)  # columns: sum w v_I off_a
+            for i, j in ti.ndrange(3, 3):
+                wij = w[i, 0] * w[j, 1]
+                row, row_k = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3)
+                for k in range(3):
+                    c = (wij * w[k, 2]) * self.trajectory.grid_v[base + ti.Vector([i, j, k])]
+                    row += c
+                    row_k += ti.cast(k, self.dtype) * c
+                nv += row
+                moment += ti.Matrix.cols([ti.cast(i, self.dtype) * row, ti.cast(j, self.dtype) * row, row_k])
+            kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
+            nC = (kq * self.dtype(self.model.dx)) * (moment - nv.outer_product(fx))
             Fo = self.trajectory.F[t, p]
             Fn = (ti.Matrix.identity(self.dtype, 3) + self.dtype(self.model.cfg.dt) * nC) @ Fo
             self.trajectory.v[t + 1, p] = nv
