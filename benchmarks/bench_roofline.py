@@ -15,7 +15,8 @@ Traffic model (float32, per particle per substep, each array read or written onc
 scattered traffic counted at one 16-byte node (mass + momentum) per stencil point, 27 points):
   p2g          reads x v C F Fp^-1 m V0 (3+3+9+9+9+1+1 floats) and the control dFc (9),
                adds to 27 nodes (of its thread's lane)             = 44*4 + 27*16 = 608 B
-  grid_update  reads and writes every node once (16 B each, twice) = 32 B per node
+  grid_update  reads and zeroes each thread's lane of a node (16 B each, twice a lane), writes the
+               node's m, mv, their copy for the backward and v   = 32 * threads + 44 B per node
   g2p          reads x v C F (24 floats) and 27 nodes (12 B each), writes x v C F = 24*4*2 + 27*12 = 516 B
 Kernels outside the model (the adjoints, the loss, the control's updates) get their time only. A
 kernel whose data stay in the caches (the 33^3 grid's 0.6 MB) can pass the triad's rate, which is
@@ -34,7 +35,7 @@ import numpy as np
 
 # bytes per particle per launch (per node for grid kernels), as the docstring derives them
 PARTICLE_BYTES = {"p2g": 608, "g2p": 516}
-NODE_BYTES = {"grid_update": 32}
+NODE_BYTES = {"grid_update": 44}  # and 32 B per thread (kernel_rows adds it)
 TRIAD_ELEMENTS = 1 << 25  # 3 arrays of 128 MB: far past any cache
 FLOP_ELEMENTS = 1 << 18
 FLOP_ITERS = 256  # fused multiply-adds per chain per element (8 chains)
@@ -156,7 +157,7 @@ def p2g_stress_seconds(solver, reps: int = 5) -> float:
     return best / T
 
 
-def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float) -> list:
+def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, threads: int) -> list:
     """(kernel, launches, seconds, share, bytes a launch or None, GB/s or None, share of the triad
     or None) for every kernel above 0.2 % of the total, the slowest first."""
     total = sum(t for _, t in times.values())
@@ -170,7 +171,8 @@ def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float) -> list:
         if seconds < 0.002 * total:
             continue
         key = short if short in PARTICLE_BYTES or short in NODE_BYTES else None
-        per = PARTICLE_BYTES.get(key, 0) * n + NODE_BYTES.get(key, 0) * nodes if key else None
+        node_bytes = NODE_BYTES.get(key, 0) + (32 * threads if key in NODE_BYTES else 0)
+        per = PARTICLE_BYTES.get(key, 0) * n + node_bytes * nodes if key else None
         rate = per * count / seconds if per else None
         rows.append((short, count, seconds, seconds / total, per, rate, rate / bandwidth if rate else None))
     return rows
@@ -241,7 +243,7 @@ def main() -> None:
     init_taichi("cpu", threads=args.threads)
     limits = machine_limits()
     times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps)
-    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"])
+    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"], args.threads)
     p2g_stress = p2g_stress_seconds(solver)
     print_report(args, limits, wall, rows, p2g_stress)
     if args.markdown:

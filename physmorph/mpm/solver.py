@@ -123,11 +123,12 @@ class MPMSolver:
         self._require_loaded()
         self.current.new_rollout()
         step = self.transfers
+        atomic = not self.model.lanes.private  # P2G adds into the grid itself (a GPU)
         for t in range(self.cfg.substeps):
-            step.clear_grid()
+            if atomic:
+                step.clear_grid()
             step.p2g(t)
-            step.store_grid(t)
-            step.grid_update()
+            step.grid_update(t)
             step.g2p(t)
         self.current.stale()
         self.trajectory.check_finite()
@@ -184,9 +185,9 @@ class MPMSolver:
             xa, Fa = (adjoint.x_adj2, adjoint.F_adj2) if pair else (adjoint.x_adj, adjoint.F_adj)
             self.physics_loss.backward(xa, Fa)
         for t in reversed(range(self.cfg.substeps)):
-            step.restore_grid(t)
-            self.transfers.grid_update()
-            step.clear_grid_adjoint(pair)
+            step.restore_grid(t, self.transfers)
+            if not self.model.lanes.private:  # G2P's reverse adds into grid_v_adj itself (a GPU)
+                step.clear_grid_adjoint(pair)
             step.g2p_backward(t, pair)
             step.grid_backward(pair)
             step.p2g_backward(t, pair)

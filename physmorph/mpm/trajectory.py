@@ -32,7 +32,7 @@ class Trajectory:
         self.grid_mv = vec.field(shape=(R, R, R))
         self.grid_m = ti.field(f, shape=(R, R, R))
         self.grid_v = vec.field(shape=(R, R, R))
-        # P2G adds into a copy of (grid_mv, grid_m) per CPU thread, summed by store_grid
+        # P2G adds into a copy of (grid_mv, grid_m) per CPU thread, summed by Transfers.grid_update
         self.lanes = model.lanes
         self.grid_mv_lanes = self.lanes.grid_field(f, R, 3)
         self.grid_m_lanes = self.lanes.grid_field(f, R)

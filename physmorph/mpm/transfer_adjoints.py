@@ -50,11 +50,13 @@ class TransferAdjoints:
                 self.adjoint.grid_v_adj2[I] = ti.Vector.zero(self.dtype, 3)
 
     @ti.kernel
-    def restore_grid(self, t: ti.i32):
-        """Substep t's P2G grid (m_I, mv_I), as the forward stored it."""
-        for I in ti.grouped(self.trajectory.grid_m):
-            self.trajectory.grid_m[I] = self.trajectory.grid_m_t[t, I]
-            self.trajectory.grid_mv[I] = self.trajectory.grid_mv_t[t, I]
+    def restore_grid(self, t: ti.i32, transfers: ti.template()):
+        """Substep t's P2G grid (m_I, mv_I) as the forward stored it, and its velocities."""
+        tr = self.trajectory
+        for I in ti.grouped(tr.grid_m):
+            m, mv = tr.grid_m_t[t, I], tr.grid_mv_t[t, I]
+            tr.grid_m[I], tr.grid_mv[I] = m, mv
+            tr.grid_v[I] = transfers.node_velocity(I, m, mv)
 
     @ti.func
     def _restore_particle(self, t, p):

@@ -35,6 +35,7 @@ class Transfers:
 
     @ti.kernel
     def clear_grid(self):
+        """m_I and mv_I zero (before an atomic scatter into them: the loss's splat, P2G on a GPU)."""
         for I in ti.grouped(self.trajectory.grid_m):
             self.trajectory.grid_mv[I] = ti.Vector.zero(self.dtype, 3)
             self.trajectory.grid_m[I] = 0.0
@@ -43,7 +44,7 @@ class Transfers:
     def p2g(self, t: ti.i32):
         """Fe = (F + dFc_t) Fp^-1, A = -dt V0 (4/dx^2) P(Fe) Fe^T + m C;
         mv_I += w_Ip (m (1 - dt d) v_p + A_p (x_I - x_p)),  m_I += w_Ip m_p, into the lanes
-        (physmorph.mpm.lanes; store_grid sums them). The rotation of Fe and its pair sum are kept
+        (physmorph.mpm.lanes; grid_update sums them). The rotation of Fe and its pair sum are kept
         per substep (R_q, gap_t), so the backward (TransferAdjoints._restore_particle) needs no second SVD."""
         lanes = self.trajectory.lanes
         if ti.static(lanes.private):
@@ -93,25 +94,24 @@ class Transfers:
                 u += step_k
 
     @ti.kernel
-    def store_grid(self, t: ti.i32):
-        """Substep t's P2G grid (m_I, mv_I): the lanes summed into the working grid, and kept for
-        the backward."""
+    def grid_update(self, t: ti.i32):
+        """Substep t's P2G grid (m_I, mv_I): the lanes summed into the working grid and kept for the
+        backward; then v_I = mv_I / m_I (0 on empty nodes) and the boundary condition."""
         tr = self.trajectory
         for I in ti.grouped(tr.grid_m):
             m = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
             mv = tr.lanes.collect(tr.grid_mv_lanes, tr.grid_mv, I)
             tr.grid_m[I], tr.grid_mv[I] = m, mv
             tr.grid_m_t[t, I], tr.grid_mv_t[t, I] = m, mv
+            tr.grid_v[I] = self.node_velocity(I, m, mv)
 
-    @ti.kernel
-    def grid_update(self):
-        """v_I = mv_I / m_I (0 on empty nodes), then the boundary condition."""
-        for I in ti.grouped(self.trajectory.grid_m):
-            m = self.trajectory.grid_m[I]
-            v = ti.Vector.zero(self.dtype, 3)
-            if m > 0:
-                v = self.model.boundary(I, self.trajectory.grid_mv[I] / m)
-            self.trajectory.grid_v[I] = v
+    @ti.func
+    def node_velocity(self, I, m, mv):
+        """v_I = mv_I / m_I (0 on an empty node), then the boundary condition."""
+        v = ti.Vector.zero(self.dtype, 3)
+        if m > 0:
+            v = self.model.boundary(I, mv / m)
+        return v
 
     @ti.kernel
     def g2p(self, t: ti.i32):
