@@ -110,6 +110,7 @@ class TransferAdjoints:
         As in P2G, mv_I = m v + A (x_I - x_p) grows along a row of the stencil by a column of
         dx A, and A_bar = dx (sum w mv_bar_I off^T - v_bar fx^T): the nodes add vectors only."""
         Adx = self.dtype(self.model.dx) * A
+        step_k = ti.Vector([Adx[0, 2], Adx[1, 2], Adx[2, 2]])  # mv's change along a row
         vbar = ti.Vector.zero(self.dtype, 3)
         xbar = ti.Vector.zero(self.dtype, 3)
         moment = ti.Matrix.zero(self.dtype, 3, 3)  # columns: sum w mv_bar_I off_a
@@ -125,7 +126,7 @@ class TransferAdjoints:
                 row_k += ti.cast(k, self.dtype) * c
                 gw = ti.Vector([dwi * w[k, 2], dwj * w[k, 2], wij * dw[k, 2]])
                 xbar += (mvb.dot(mv) + m_adj[node] * mp) * gw
-                mv += ti.Vector([Adx[0, 2], Adx[1, 2], Adx[2, 2]])
+                mv += step_k
             vbar += row
             moment += ti.Matrix.cols([ti.cast(i, self.dtype) * row, ti.cast(j, self.dtype) * row, row_k])
         Abar = self.dtype(self.model.dx) * (moment - vbar.outer_product(fx))
@@ -210,6 +211,8 @@ class TransferAdjoints:
         # kq dx C_bar, and sum_I w v_I is the forward's v' (stored): the nodes add vectors only
         Ck = (kq * self.dtype(self.model.dx)) * Cbar
         Ck2 = (kq * self.dtype(self.model.dx)) * Cbar2
+        step_k = ti.Vector([Ck[0, 2], Ck[1, 2], Ck[2, 2]])  # q's change along a row
+        step_k2 = ti.Vector([Ck2[0, 2], Ck2[1, 2], Ck2[2, 2]])
         for i, j in ti.ndrange(3, 3):
             wij, dwi, dwj = w[i, 0] * w[j, 1], dw[i, 0] * w[j, 1], w[i, 0] * dw[j, 1]
             q = vbar + Ck @ (ti.Vector([i, j, 0], self.dtype) - fx)
@@ -220,11 +223,11 @@ class TransferAdjoints:
                 gw = ti.Vector([dwi * w[k, 2], dwj * w[k, 2], wij * dw[k, 2]])
                 lanes.add(self.adjoint.grid_v_adj_lanes, self.adjoint.grid_v_adj, lane, node, (wij * w[k, 2]) * q)
                 xbar += gv.dot(q) * gw
-                q += ti.Vector([Ck[0, 2], Ck[1, 2], Ck[2, 2]])
+                q += step_k
                 if ti.static(pair):
                     lanes.add(self.adjoint.grid_v_adj2_lanes, self.adjoint.grid_v_adj2, lane, node, (wij * w[k, 2]) * q2)
                     xbar2 += gv.dot(q2) * gw
-                    q2 += ti.Vector([Ck2[0, 2], Ck2[1, 2], Ck2[2, 2]])
+                    q2 += step_k2
         v_new = self.trajectory.v[t + 1, p]
         self.adjoint.x_adj[p] = xbar - kq * (Cbar.transpose() @ v_new)
         if ti.static(pair):
