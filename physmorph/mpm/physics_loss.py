@@ -16,6 +16,7 @@ from physmorph.settings.mpm import MPMConfigError, MPMStateError
 
 from .adjoint import Adjoint
 from .currency import Currency
+from .lanes import LANE_BLOCK
 from .model import MPMModel, checked_array
 from .state import ParticleState
 from .trajectory import Trajectory
@@ -91,14 +92,42 @@ class MassLoss:
         self._last_loss = self._last_mass_loss = float("nan")
         return self._last_loss
 
+    def splat_mass(self, t: int) -> None:
+        """m_I += sum_p w_Ip m_p of x_t (the physmorph.base.grid.splat_mass transfer) into grid_m;
+        on the CPU through the grid's lanes (physmorph.mpm.lanes), so the loss is the same on
+        every run."""
+        self._splat_into_lanes(t)
+        if self.trajectory.lanes.private:
+            self._collect_mass()
+
     @ti.kernel
-    def splat_mass(self, t: ti.i32):
-        """m_I += sum_p w_Ip m_p of x_t (the physmorph.base.grid.splat_mass transfer)."""
-        for p in range(self.n):
-            base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self.model.node(fx, w, i, j, k)
-                self.trajectory.grid_m[base + off] += wt * self.model.mass[p]
+    def _collect_mass(self):
+        """grid_m = the lanes' sum in lane order (the lanes zeroed)."""
+        tr = self.trajectory
+        for I in ti.grouped(tr.grid_m):
+            tr.grid_m[I] = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
+
+    @ti.kernel
+    def _splat_into_lanes(self, t: ti.i32):
+        """splat_mass's particle loop: into the lanes (CPU) or grid_m itself (GPU, atomic adds)."""
+        lanes = self.trajectory.lanes
+        if ti.static(lanes.private):
+            ti.loop_config(block_dim=LANE_BLOCK)
+            for c in range(lanes.blocks):
+                for p in range(lanes.first(c), lanes.first(c + 1)):
+                    self._splat_particle(t, p, c // LANE_BLOCK)
+        else:
+            for p in range(self.n):
+                self._splat_particle(t, p, 0)
+
+    @ti.func
+    def _splat_particle(self, t, p, lane):
+        """Particle p's w_Ip m_p added into the grid's lane ``lane``."""
+        lanes = self.trajectory.lanes
+        base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
+        for i, j, k in ti.ndrange(3, 3, 3):
+            off, dpos, wt = self.model.node(fx, w, i, j, k)
+            lanes.add(self.trajectory.grid_m_lanes, self.trajectory.grid_m, lane, base + off, wt * self.model.mass[p])
 
     @ti.kernel
     def _mass_loss(self, log_eps: ti.f64, overfill_w: ti.f64):

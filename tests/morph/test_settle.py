@@ -201,7 +201,9 @@ def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, ship
 def test_the_accepted_frame_kept_in_files_is_the_one_kept_in_memory(tiny, shipped_run, monkeypatch):
     """On the CPU the accepted frame and its control are written to the partial run and read back
     when a frame is undone (FrameJudge.keep_accepted, as in shipped_run); kept in memory instead (the
-    GPU's way), the run is the same (to the rounding of the threads' atomic sums).
+    GPU's way), the run is the same: on the CPU the physics' sums are the same on every run
+    (physmorph.mpm.lanes) and the tiny images' render runs on one thread, so what remains is the
+    order in which the threads' float64 partial sums of the loss meet (~1e-15 of it).
     Slow: a whole 39-frame tiny full morph of its own, compared with shipped_run's."""
     _, d = tiny
 
@@ -214,7 +216,7 @@ def test_the_accepted_frame_kept_in_files_is_the_one_kept_in_memory(tiny, shippe
     on_disk = shipped_run[0]
     assert np.nansum(np.asarray(held["settling"]) == 2.0) > 0
     for key in ("alpha_mse", "physics_loss", "settling", "step_size", "volume_iou"):
-        np.testing.assert_allclose(held[key], on_disk[key], rtol=1e-4, err_msg=key)
+        np.testing.assert_allclose(held[key], on_disk[key], rtol=1e-9, err_msg=key)
 
 
 def test_a_spilled_accepted_frame_reads_back_exactly(tmp_path):
