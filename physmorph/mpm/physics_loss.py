@@ -39,6 +39,7 @@ class MassLoss:
         if cfg.mass_loss_blur > 0:
             self.blur_w = ti.field(f, shape=2 * self._blur_radius + 1)
             self.blur_w.from_numpy(blur_weights(cfg.mass_loss_blur).astype(self.np_dtype))
+        self.splat = GridMassSplat(model, trajectory)
         self.anchors = PositionAnchors(model, trajectory)
         self.volume = VolumeTerm(model, trajectory)
         self.reset()
@@ -61,7 +62,7 @@ class MassLoss:
         """The loss of the stored end state (the grid cleared first by the caller), its adjoint
         dL/dm_I in the grid's; returns it with the anchors' and the volume term (loss()), keeping
         it and the mass loss alone (mass_loss())."""
-        self.splat_mass(self.model.cfg.substeps)
+        self.splat.splat_mass(self.model.cfg.substeps)
         self._loss_with_adjoint()
         self._last_mass_loss = float(self.loss_acc[None])
         if self.anchors.active:
@@ -74,7 +75,7 @@ class MassLoss:
     def backward(self, xa, Fa) -> None:
         """x_bar_T += dL/dx_T and F_bar_T += dL/dF_T of the stored end state's loss into the adjoint
         set ``xa``, ``Fa`` (the grid cleared first by the caller; the kept losses stay as they are)."""
-        self.splat_mass(self.model.cfg.substeps)
+        self.splat.splat_mass(self.model.cfg.substeps)
         self._loss_with_adjoint()
         self._loss_backward(xa)
         if self.anchors.active:
@@ -91,43 +92,6 @@ class MassLoss:
         """A forward without a target: its loss is nan."""
         self._last_loss = self._last_mass_loss = float("nan")
         return self._last_loss
-
-    def splat_mass(self, t: int) -> None:
-        """m_I += sum_p w_Ip m_p of x_t (the physmorph.base.grid.splat_mass transfer) into grid_m;
-        on the CPU through the grid's lanes (physmorph.mpm.lanes), so the loss is the same on
-        every run."""
-        self._splat_into_lanes(t)
-        if self.trajectory.lanes.private:
-            self._collect_mass()
-
-    @ti.kernel
-    def _collect_mass(self):
-        """grid_m = the lanes' sum in lane order (the lanes zeroed)."""
-        tr = self.trajectory
-        for I in ti.grouped(tr.grid_m):
-            tr.grid_m[I] = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
-
-    @ti.kernel
-    def _splat_into_lanes(self, t: ti.i32):
-        """splat_mass's particle loop: into the lanes (CPU) or grid_m itself (GPU, atomic adds)."""
-        lanes = self.trajectory.lanes
-        if ti.static(lanes.private):
-            ti.loop_config(block_dim=LANE_BLOCK)
-            for c in range(lanes.blocks):
-                for p in range(lanes.first(c), lanes.first(c + 1)):
-                    self._splat_particle(t, p, c // LANE_BLOCK)
-        else:
-            for p in range(self.n):
-                self._splat_particle(t, p, 0)
-
-    @ti.func
-    def _splat_particle(self, t, p, lane):
-        """Particle p's w_Ip m_p added into the grid's lane ``lane``."""
-        lanes = self.trajectory.lanes
-        base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
-        for i, j, k in ti.ndrange(3, 3, 3):
-            off, dpos, wt = self.model.node(fx, w, i, j, k)
-            lanes.add(self.trajectory.grid_m_lanes, self.trajectory.grid_m, lane, base + off, wt * self.model.mass[p])
 
     @ti.kernel
     def _mass_loss(self, log_eps: ti.f64, overfill_w: ti.f64):
@@ -288,6 +252,51 @@ class MassLoss:
         if self._last_mass_loss is None:
             raise RuntimeError("mass_loss needs a forward first")
         return self._last_mass_loss
+
+
+@ti.data_oriented
+class GridMassSplat:
+    """The grid mass of the particles at a substep, into the trajectory's working grid_m."""
+
+    def __init__(self, model: MPMModel, trajectory: Trajectory):
+        self.model, self.trajectory, self.n = model, trajectory, model.n
+
+    def splat_mass(self, t: int) -> None:
+        """m_I += sum_p w_Ip m_p of x_t (the physmorph.base.grid.splat_mass transfer) into grid_m;
+        on the CPU through the grid's lanes (physmorph.mpm.lanes), so the loss is the same on
+        every run."""
+        self._splat_into_lanes(t)
+        if self.trajectory.lanes.private:
+            self._collect_mass()
+
+    @ti.kernel
+    def _collect_mass(self):
+        """grid_m = the lanes' sum in lane order (the lanes zeroed)."""
+        tr = self.trajectory
+        for I in ti.grouped(tr.grid_m):
+            tr.grid_m[I] = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
+
+    @ti.kernel
+    def _splat_into_lanes(self, t: ti.i32):
+        """splat_mass's particle loop: into the lanes (CPU) or grid_m itself (GPU, atomic adds)."""
+        lanes = self.trajectory.lanes
+        if ti.static(lanes.private):
+            ti.loop_config(block_dim=LANE_BLOCK)
+            for c in range(lanes.blocks):
+                for p in range(lanes.first(c), lanes.first(c + 1)):
+                    self._splat_particle(t, p, c // LANE_BLOCK)
+        else:
+            for p in range(self.n):
+                self._splat_particle(t, p, 0)
+
+    @ti.func
+    def _splat_particle(self, t, p, lane):
+        """Particle p's w_Ip m_p added into the grid's lane ``lane``."""
+        lanes = self.trajectory.lanes
+        base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
+        for i, j, k in ti.ndrange(3, 3, 3):
+            off, dpos, wt = self.model.node(fx, w, i, j, k)
+            lanes.add(self.trajectory.grid_m_lanes, self.trajectory.grid_m, lane, base + off, wt * self.model.mass[p])
 
 
 @ti.data_oriented

@@ -228,7 +228,7 @@ class MPMSolver:
     def grid_mass(self) -> np.ndarray:  # [res, res, res]
         """Grid mass of x_T from the last forward (valid right after forward/rollout)."""
         self.transfers.clear_grid()
-        self.physics_loss.splat_mass(self.cfg.substeps)
+        self.physics_loss.splat.splat_mass(self.cfg.substeps)
         return self.trajectory.grid_m.to_numpy().astype(np.float64)
 
     def bytes_per_particle_substep(self) -> int:
