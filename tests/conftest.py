@@ -25,6 +25,18 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("PHYSMORPH_QUICK_COMPILE", "1")
 
 
+def pytest_configure(config):
+    """In each of the suite's worker processes (pytest-xdist, one per core) torch runs on one
+    thread: two workers with two OpenMP threads each oversubscribe the cores, and the threads
+    waiting at each small op's barrier cost the tests 18-30 % of their time (tests/morph and
+    tests/mpm, measured back to back twice). Taichi keeps its threads (the lanes' tests need
+    two); the workflow jobs the tests start set their own (the profile's `threads`)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import torch
+
+        torch.set_num_threads(1)
+
+
 @pytest.fixture
 def checkpoint_every_frame(monkeypatch):
     """A checkpoint every frame: the tests that kill a run or read its checkpoint commit frames
