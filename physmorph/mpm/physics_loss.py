@@ -274,7 +274,7 @@ class GridMassSplat:
         """grid_m = the lanes' sum in lane order (the lanes zeroed)."""
         tr = self.trajectory
         for I in ti.grouped(tr.grid_m):
-            tr.grid_m[I] = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
+            tr.grid_m[I], _ = tr.lanes.collect_mass_momentum(tr.grid_mvm_lanes, tr.grid_mv, tr.grid_m, I)
 
     @ti.kernel
     def _splat_into_lanes(self, t: ti.i32):
@@ -296,7 +296,11 @@ class GridMassSplat:
         base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
         for i, j, k in ti.ndrange(3, 3, 3):
             off, dpos, wt = self.model.node(fx, w, i, j, k)
-            lanes.add(self.trajectory.grid_m_lanes, self.trajectory.grid_m, lane, base + off, wt * self.model.mass[p])
+            if ti.static(lanes.private):  # the packed lanes of P2G, with no momentum
+                lanes.add_mass_momentum(self.trajectory.grid_mvm_lanes, self.trajectory.grid_mv, self.trajectory.grid_m,
+                                        lane, base + off, ti.Vector.zero(self.model.dtype, 3), wt * self.model.mass[p])
+            else:
+                self.trajectory.grid_m[base + off] += wt * self.model.mass[p]
 
 
 @ti.data_oriented

@@ -32,10 +32,10 @@ class Trajectory:
         self.grid_mv = vec.field(shape=(R, R, R))
         self.grid_m = ti.field(f, shape=(R, R, R))
         self.grid_v = vec.field(shape=(R, R, R))
-        # P2G adds into a copy of (grid_mv, grid_m) per CPU thread, summed by Transfers.grid_update
+        # P2G adds into a copy of (grid_mv, grid_m) per CPU thread, packed as one 4-vector a node,
+        # summed by Transfers.grid_update
         self.lanes = model.lanes
-        self.grid_mv_lanes = self.lanes.grid_field(f, R, 3)
-        self.grid_m_lanes = self.lanes.grid_field(f, R)
+        self.grid_mvm_lanes = self.lanes.grid_field(f, R, 4)
         # the forward's rotation of Fe and smallest pair sum per substep, and its P2G grid: the
         # backward restores them instead of running P2G (and its SVD) again, which was 55 % of a
         # backward (kernel profiler, 471K particles). The rotation is kept as a unit quaternion

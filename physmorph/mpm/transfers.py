@@ -89,8 +89,8 @@ class Transfers:
             for k in range(3):
                 wt = wij * w[k, 2]
                 node = base + ti.Vector([i, j, k])
-                lanes.add(self.trajectory.grid_mv_lanes, self.trajectory.grid_mv, lane, node, wt * u)
-                lanes.add(self.trajectory.grid_m_lanes, self.trajectory.grid_m, lane, node, wt * mp)
+                lanes.add_mass_momentum(self.trajectory.grid_mvm_lanes, self.trajectory.grid_mv, self.trajectory.grid_m,
+                                        lane, node, wt * u, wt * mp)
                 u += step_k
 
     @ti.kernel
@@ -99,8 +99,7 @@ class Transfers:
         backward; then v_I = mv_I / m_I (0 on empty nodes) and the boundary condition."""
         tr = self.trajectory
         for I in ti.grouped(tr.grid_m):
-            m = tr.lanes.collect(tr.grid_m_lanes, tr.grid_m, I)
-            mv = tr.lanes.collect(tr.grid_mv_lanes, tr.grid_mv, I)
+            m, mv = tr.lanes.collect_mass_momentum(tr.grid_mvm_lanes, tr.grid_mv, tr.grid_m, I)
             tr.grid_m[I], tr.grid_mv[I] = m, mv
             tr.grid_m_t[t, I], tr.grid_mv_t[t, I] = m, mv
             tr.grid_v[I] = self.node_velocity(I, m, mv)
