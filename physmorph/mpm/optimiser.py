@@ -10,10 +10,7 @@ frames. Both end with a forward of the updated dFc, so the solver's rollout() re
 import numpy as np
 
 from physmorph.settings.mpm import STEP_VOLUME_MODES, MPMDivergenceError
-
-# the injection calibration's backward_pair from this many particle-substeps on (n x substeps;
-# below, its kernels' compilation costs more than it saves in a run: docs/performance.md)
-PAIR_MIN_PARTICLE_STEPS = 1_000_000
+from physmorph.settings.solver_memory import PAIR_MIN_PARTICLE_STEPS
 
 
 def frame_summary(loss_initial: float, loss_final: float, losses: list, grad_norm: float, iters: int,

@@ -9,7 +9,7 @@ import os
 from dataclasses import dataclass
 
 from physmorph.settings.sections import SamplingConfig, ShapeSettings, TargetConfig
-from physmorph.settings.solver_memory import bytes_per_particle_substep
+from physmorph.settings.solver_memory import PAIR_MIN_PARTICLE_STEPS, bytes_per_particle_substep, grid_lane_bytes_per_node
 
 
 BASE_PROCESS_MB = 600.0  # python + numpy + torch + taichi runtime, measured ~500 MB
@@ -65,9 +65,10 @@ def target_memory(sampling: SamplingConfig, target: TargetConfig, stage: str) ->
 
 
 def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: TargetConfig, mpm, domain,
-                 stage: str, n_particles: int | None = None) -> MemoryEstimate:
+                 stage: str, n_particles: int | None = None, threads: int = 1) -> MemoryEstimate:
     """A morph's peak memory; ``n_particles``: the sampled count when the particles exist (a
-    scheduler's request then follows the real run), else estimated from the shape's size."""
+    scheduler's request then follows the real run), else estimated from the shape's size;
+    ``threads``: the job's CPU threads, each with its lanes' copy of the grid (none on a GPU)."""
     n = particle_estimate(source, sampling, domain) if n_particles is None else int(n_particles)
     scale = 2 if mpm.precision == "float64" else 1
     slots = mpm.substeps  # one control slot per substep
@@ -77,7 +78,11 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
     per_particle = (mpm.substeps * bytes_per_particle_substep(mpm) + slots * (72 + moments) * scale
                     + MORPH_BYTES_PER_PARTICLE)
     pixels = target.cameras * target.width * target.height
-    grid = sampling.grid_res ** 3 * (64 + 16 * mpm.substeps) * scale  # and the P2G grid kept per substep
+    lanes = 0 if getattr(mpm, "device", "cpu") == "cuda" else max(1, int(threads))
+    per_node = (64 + 16 * mpm.substeps) * scale + grid_lane_bytes_per_node(
+        mpm.precision, lanes, n * mpm.substeps >= PAIR_MIN_PARTICLE_STEPS)  # the P2G grid kept per substep, the lanes
+    grid = sampling.grid_res ** 3 * per_node
     mb = BASE_PROCESS_MB + (n * per_particle + grid + pixels * 64) / 2**20
     return MemoryEstimate(stage, mb, f"~{n:,} particles x {per_particle:,.0f} B + grid {sampling.grid_res}^3 x "
-                                     f"{64 * scale} B + {target.cameras} x {target.width}x{target.height} images x 64 B")
+                                     f"{per_node:,.0f} B ({lanes} lanes) + {target.cameras} x {target.width}x{target.height} "
+                                     f"images x 64 B")

@@ -12,11 +12,27 @@ from __future__ import annotations
 from physmorph.settings.mpm import MPMConfig
 
 FLOATS_PER_PARTICLE_SUBSTEP = 3 + 3 + 9 + 9 + 4 + 1  # x, v, C, F, the rotation's quaternion, the pair sum
+# the injection calibration's backward_pair from this many particle-substeps on (n x substeps;
+# below, its kernels' compilation costs more than it saves in a run: docs/performance.md)
+PAIR_MIN_PARTICLE_STEPS = 1_000_000
+# Per grid node and CPU thread, the lanes' copies of the grid (physmorph.mpm.lanes): P2G's (momentum,
+# mass) and the reverse of G2P's velocity adjoint; with backward_pair a second velocity adjoint
+LANE_FLOATS_PER_NODE = 4 + 3
+PAIR_LANE_FLOATS_PER_NODE = 3
+# Per grid node, backward_pair's second set of grid adjoints (velocity, momentum, mass)
+PAIR_GRID_FLOATS_PER_NODE = 3 + 3 + 1
 
 
 def float_bytes(precision: str) -> int:
     """Bytes of one float of the solver at ``precision`` (MPMConfig.precision)."""
     return 8 if precision == "float64" else 4
+
+
+def grid_lane_bytes_per_node(precision: str, threads: int, pair: bool) -> int:
+    """Bytes per grid node of the CPU lanes at ``threads`` threads, and of backward_pair's second
+    grid adjoints where ``pair`` (none of the lanes on a GPU: pass threads=0)."""
+    floats = threads * (LANE_FLOATS_PER_NODE + (PAIR_LANE_FLOATS_PER_NODE if pair else 0))
+    return (floats + (PAIR_GRID_FLOATS_PER_NODE if pair else 0)) * float_bytes(precision)
 
 
 def bytes_per_particle_substep(cfg: MPMConfig) -> int:

@@ -235,7 +235,7 @@ class Settings:
             out.append(target_memory(self.sampling, self.target, f"rasterize_target {shape}"))
         for name in sorted(self.experiments):
             out.append(morph_memory(self.shapes[self.experiments[name].source], self.sampling, self.target,
-                                    mpm, self.domain, f"morph {name}"))
+                                    mpm, self.domain, f"morph {name}", threads=self.threads))
         if self.tradeoff is not None:
             src = self.shapes[self.experiments[self.tradeoff.experiment].source]
             try:
@@ -247,7 +247,8 @@ class Settings:
                                    ppc_interior=p.ppc_interior)
                 target = replace(self.target, width=p.width, height=p.height)
                 point_mpm = types.SimpleNamespace(substeps=mpm.substeps, precision=p.precision, optimizer=mpm.optimizer)
-                out.append(morph_memory(src, sampling, target, point_mpm, self.domain, f"tradeoff point {pname}"))
+                out.append(morph_memory(src, sampling, target, point_mpm, self.domain, f"tradeoff point {pname}",
+                                        threads=p.threads))
         return out
 
     def check_memory(self, mpm=None) -> None:

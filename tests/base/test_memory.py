@@ -55,3 +55,27 @@ def test_the_morph_estimate_asks_the_solvers_storage(monkeypatch):
     monkeypatch.setattr(memory_model, "bytes_per_particle_substep", lambda cfg: bytes_per_particle_substep(cfg) + extra)
     after = memory_model.morph_memory(*args, n_particles=n).mb
     assert after - before == pytest.approx(n * s.mpm.substeps * extra / 2**20)
+
+
+def test_the_morph_estimate_holds_each_threads_lanes():
+    """Each CPU thread's lanes hold a copy of the grid (physmorph.mpm.lanes): the estimate grows by
+    that copy per thread, in the solver's precision, and not on a GPU (no lanes there); the lanes
+    the solver allocates are the floats the memory module counts."""
+    import dataclasses
+
+    from physmorph.mpm.solver import MPMSolver
+    from physmorph.settings import memory_model
+    from physmorph.settings import workflow as config
+    from physmorph.settings.mpm import MPMConfig
+    from physmorph.settings.solver_memory import LANE_FLOATS_PER_NODE
+
+    s = config.load_settings("config/config.yaml")
+    args = (s.shape("iso"), s.sampling, s.target, s.mpm, s.domain, "")
+    one, eight = (memory_model.morph_memory(*args, n_particles=10_000, threads=t).mb for t in (1, 8))
+    assert eight - one == pytest.approx(7 * s.sampling.grid_res ** 3 * LANE_FLOATS_PER_NODE * 4 / 2**20)
+    gpu = (dataclasses.replace(s.mpm, device="cuda"), s.domain, "")
+    assert memory_model.morph_memory(*args[:3], *gpu, n_particles=10_000, threads=8).mb < one
+    solver = MPMSolver(MPMConfig(grid_res=16, device="cpu"), 8)
+    lanes = solver.model.lanes
+    fields = (solver.trajectory.grid_mvm_lanes, solver.adjoint.grid_v_adj_lanes)
+    assert sum(f.n for f in fields) == LANE_FLOATS_PER_NODE and {f.shape for f in fields} == {(lanes.count, 16, 16, 16)}

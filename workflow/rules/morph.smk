@@ -23,8 +23,8 @@ rule morph:
     threads: cluster_threads("morph", S.threads)
     resources:
         # from the sampled particle count once the particles exist (the estimate before)
-        mem_mb=lambda wc, input: mb(morph_memory(experiment_source(wc.experiment), S.sampling, S.target, S.mpm,
-                                                 S.domain, "", stored_particle_count(input.particles))),
+        mem_mb=lambda wc, input, threads: mb(morph_memory(experiment_source(wc.experiment), S.sampling, S.target, S.mpm,
+                                                          S.domain, "", stored_particle_count(input.particles), threads)),
         runtime=lambda wc, input: morph_runtime_min(
             stored_particle_count(input.particles)
             or particle_estimate(experiment_source(wc.experiment), S.sampling, S.domain),

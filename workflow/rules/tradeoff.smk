@@ -47,8 +47,9 @@ rule tradeoff_point:
         f"{R}/benchmarks/tradeoff/{{point}}.tsv"
     threads: lambda wc: cluster_threads("tradeoff_point", POINTS[wc.point].threads)(wc)
     resources:
-        mem_mb=lambda wc: mb(morph_memory(experiment_source(S.tradeoff.experiment), point_settings(wc.point)[0],
-                                          point_settings(wc.point)[1], point_settings(wc.point)[2].mpm, S.domain, "")),
+        mem_mb=lambda wc, threads: mb(morph_memory(experiment_source(S.tradeoff.experiment), point_settings(wc.point)[0],
+                                                   point_settings(wc.point)[1], point_settings(wc.point)[2].mpm, S.domain, "",
+                                                   threads=threads)),
         runtime=lambda wc: morph_runtime_min(particle_estimate(experiment_source(S.tradeoff.experiment),
                                                                point_settings(wc.point)[0], S.domain), POINTS[wc.point].frames),
         gpu=S.morph_gpus,
