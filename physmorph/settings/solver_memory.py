@@ -3,7 +3,7 @@
 The backward restores each substep's forward state instead of recomputing it, so a frame holds,
 per particle and substep, x and v (3 floats each), C and F (9 each), and the forward's polar
 rotation of Fe as a unit quaternion (4) with its smallest pair sum (1): 29 floats in the solver's
-precision. The memory estimate of a morph (physmorph.settings.workflow.morph_memory) asks this module, as
+precision. The memory estimate of a morph (physmorph.settings.memory_model.morph_memory) asks this module, as
 the solver does, so the two cannot disagree.
 """
 
