@@ -18,7 +18,19 @@ scattered traffic counted at one 16-byte node (mass + momentum) per stencil poin
   grid_update  reads and zeroes each thread's lane of a node (16 B each, twice a lane), writes the
                node's m, mv, their copy for the backward and v   = 32 * threads + 44 B per node
   g2p          reads x v C F (24 floats) and 27 nodes (12 B each), writes x v C F = 24*4*2 + 27*12 = 516 B
-Kernels outside the model (the adjoints, the loss, the control's updates) get their time only. A
+Operation model (per particle, or per node for the grid, counted from the kernels' code: +, -, x,
+/ one each, and sqrt, pow, floor, sin, cos, acos one each though they take many cycles; a fused
+multiply-add is two, as the peak probe counts them):
+  p2g          the stencil's weights 63, Fe 54, the warm-started polar decomposition ~880 (two
+               Newton steps of ~370: R^T Fe 45, its symmetric part 18, the largest eigenvalue 54,
+               the gap's check 22, the 3x3 solve 90, the step's rotation 140; then S, the
+               eigenvalue and the check once more ~140), the quaternion 15, P 83, A 77, the
+               momentum and the rows' starts 6 + 27 + 9*19, the 27 nodes 27*12  = ~1,700 FLOP
+  g2p          the stencil 63, the rows 9*19 and their 27 nodes 27*13, C 30, F 57, the blend 28
+               and its volume scale 39 (isochoric), x 6                       = ~745 FLOP
+  grid_update  the lanes' sum 4 (threads - 1) and v = mv / m 3 per node
+P2G's stress (everything before its node walk, ~1,110 FLOP) is timed apart, so its rate is given too.
+Kernels outside the models (the adjoints, the loss, the control's updates) get their time only. A
 kernel whose data stay in the caches (the 33^3 grid's 0.6 MB) can pass the triad's rate, which is
 memory's: above 100 % it is not bound by memory at all.
 
@@ -36,6 +48,10 @@ import numpy as np
 # bytes per particle per launch (per node for grid kernels), as the docstring derives them
 PARTICLE_BYTES = {"p2g": 608, "g2p": 516}
 NODE_BYTES = {"grid_update": 44}  # and 32 B per thread (kernel_rows adds it)
+# floating-point operations per particle per launch (per node for grid kernels), as the docstring counts them
+PARTICLE_FLOPS = {"p2g": 1700, "g2p": 745}
+NODE_FLOPS = {"grid_update": 3}  # and 4 per thread after the first (kernel_rows adds it)
+P2G_STRESS_FLOPS = 1110
 TRIAD_ELEMENTS = 1 << 25  # 3 arrays of 128 MB: far past any cache
 FLOP_ELEMENTS = 1 << 18
 FLOP_ITERS = 256  # fused multiply-adds per chain per element (8 chains)
@@ -157,9 +173,10 @@ def p2g_stress_seconds(solver, reps: int = 5) -> float:
     return best / T
 
 
-def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, threads: int) -> list:
+def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, threads: int, peak: float) -> list:
     """(kernel, launches, seconds, share, bytes a launch or None, GB/s or None, share of the triad
-    or None) for every kernel above 0.2 % of the total, the slowest first."""
+    or None, FLOP/s or None, share of the FMA peak or None) for every kernel above 0.2 % of the
+    total, the slowest first."""
     total = sum(t for _, t in times.values())
     by_kernel: dict = {}
     for name, (count, seconds) in times.items():
@@ -174,7 +191,10 @@ def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, threads: int)
         node_bytes = NODE_BYTES.get(key, 0) + (32 * threads if key in NODE_BYTES else 0)
         per = PARTICLE_BYTES.get(key, 0) * n + node_bytes * nodes if key else None
         rate = per * count / seconds if per else None
-        rows.append((short, count, seconds, seconds / total, per, rate, rate / bandwidth if rate else None))
+        ops = PARTICLE_FLOPS.get(key, 0) * n + (NODE_FLOPS.get(key, 0) + 4 * (threads - 1)) * nodes * (key in NODE_FLOPS)
+        flops = ops * count / seconds if key else None
+        rows.append((short, count, seconds, seconds / total, per, rate, rate / bandwidth if rate else None,
+                     flops, flops / peak if flops else None))
     return rows
 
 
@@ -184,14 +204,17 @@ def print_report(args, limits: dict, wall: float, rows: list, p2g_stress: float)
           f"fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s")
     print(f"physics: N={args.n}, grid {args.res}^3, {args.reps} forward+backward rollouts in {wall:.2f} s wall "
           f"({total:.2f} s in the kernels listed)")
-    hdr = f"{'kernel':<44} {'launches':>8} {'s':>7} {'share':>6} {'B/launch':>10} {'GB/s':>6} {'of triad':>8}"
+    hdr = (f"{'kernel':<36} {'launches':>8} {'s':>7} {'share':>6} {'B/launch':>10} {'GB/s':>6} {'of triad':>8} "
+           f"{'GFLOP/s':>7} {'of FMA':>6}")
     print(hdr + "\n" + "-" * len(hdr))
-    for short, count, seconds, share, per, rate, of_triad in rows:
-        print(f"{short[:44]:<44} {count:>8} {seconds:>7.3f} {100 * share:>5.1f}% "
-              + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * of_triad:>7.0f}%" if per else ""))
+    for short, count, seconds, share, per, rate, of_triad, flops, of_peak in rows:
+        print(f"{short[:36]:<36} {count:>8} {seconds:>7.3f} {100 * share:>5.1f}% "
+              + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * of_triad:>7.0f}% {flops / 1e9:>7.1f} {100 * of_peak:>5.1f}%"
+                 if per else ""))
     p2g = next((r for r in rows if r[0] == "p2g"), None)
     if p2g:
-        print(f"p2g, {1e3 * p2g[2] / p2g[1]:.2f} ms a launch, of which its stress {1e3 * p2g_stress:.2f} ms")
+        print(f"p2g, {1e3 * p2g[2] / p2g[1]:.2f} ms a launch, of which its stress {1e3 * p2g_stress:.2f} ms "
+              f"({P2G_STRESS_FLOPS * args.n / p2g_stress / 1e9:.1f} GFLOP/s)")
 
 
 def markdown_section(args, limits: dict, wall: float, rows: list, p2g_stress: float) -> str:
@@ -202,14 +225,18 @@ def markdown_section(args, limits: dict, wall: float, rows: list, p2g_stress: fl
              f"{limits['bandwidth'] / 1e9:.1f} GB/s and fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s "
              f"on {args.threads} threads; {args.reps} forward+backward rollouts of {args.n:,} particles on "
              f"{args.res}³ in {wall:.2f} s ({total:.2f} s in the kernels below).", "",
-             "| kernel | launches | s | share | bytes a launch | GB/s | of the triad |", "|---|---|---|---|---|---|---|"]
-    for short, count, seconds, share, per, rate, of_triad in rows:
+             "| kernel | launches | s | share | bytes a launch | GB/s | of the triad | GFLOP/s | of the FMA peak |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for short, count, seconds, share, per, rate, of_triad, flops, of_peak in rows:
         lines.append(f"| `{short}` | {count} | {seconds:.3f} | {100 * share:.1f} % | "
-                     + (f"{per:,} | {rate / 1e9:.1f} | {100 * of_triad:.0f} % |" if per else " | | |"))
+                     + (f"{per:,} | {rate / 1e9:.1f} | {100 * of_triad:.0f} % | {flops / 1e9:.1f} | {100 * of_peak:.1f} % |"
+                        if per else " | | | | |"))
     p2g = next((r for r in rows if r[0] == "p2g"), None)
     if p2g:
         lines += ["", f"P2G: {1e3 * p2g[2] / p2g[1]:.2f} ms a launch, of which its stress {1e3 * p2g_stress:.2f} ms "
-                      "(timed apart); the rest is its walk over the 27 nodes."]
+                      f"(timed apart: {P2G_STRESS_FLOPS * args.n / p2g_stress / 1e9:.1f} GFLOP/s by the operation "
+                      "model); the rest is its walk over the 27 nodes. Bytes and operations are the script's models "
+                      "(its docstring), times the kernel profiler's."]
     return "\n".join(lines) + "\n"
 
 
@@ -243,7 +270,7 @@ def main() -> None:
     init_taichi("cpu", threads=args.threads)
     limits = machine_limits()
     times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps)
-    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"], args.threads)
+    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"], args.threads, limits["flops"])
     p2g_stress = p2g_stress_seconds(solver)
     print_report(args, limits, wall, rows, p2g_stress)
     if args.markdown:
