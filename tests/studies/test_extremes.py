@@ -10,7 +10,6 @@ import dataclasses
 import math
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from physmorph.morph.stability import MorphDivergenceError
 from physmorph.studies.stability_map import (ERROR_FIELDS, FAILURES, KNOBS, MAP_EXPERIMENT, OUTCOMES, CellRun, build_map,
                                      classify)
 from physmorph.stages import prepare_mesh_stage
+from snakemake_runs import plan_here
 
 REPO = Path(__file__).resolve().parents[2]
 ALLOWED = tuple(o for o in OUTCOMES if o not in FAILURES)
@@ -260,10 +260,7 @@ def test_the_map_writes_a_table_and_a_figure_with_failures_first(tmp_path):
 def test_the_workflow_plans_one_job_per_cell_and_none_for_a_refused_cells_inputs(tmp_path, cells):
     for name in ("Snakefile", "config", "workflow"):
         (tmp_path / name).symlink_to(REPO / name)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run([str(Path(sys.executable).with_name("snakemake")), "-n", "--cores", "2", "stability_map",
-                          "--configfile", "config/test.yaml"], cwd=tmp_path, capture_output=True, text=True,
-                         timeout=300, env=env)
+    out = plan_here(tmp_path, ["-n", "--cores", "2", "stability_map", "--configfile", "config/test.yaml"])
     text = out.stdout + out.stderr
     assert out.returncode == 0, text[-3000:]
     assert f"stability_cell           {len(cells)}" in text, text[-2000:]

@@ -1,7 +1,8 @@
 """The README's commands, as written: each `snakemake` command of its code blocks is planned (a dry
-run, in a scratch working directory, with the README's own `mine.yaml`), and the run-file summary
-command runs on a run file. The SLURM command is covered by tests/workflow/test_slurm.py (it needs a cluster);
-`make` targets wrap these commands."""
+run through Snakemake's own command line in the test's process, in a scratch working directory,
+with the README's own `mine.yaml`), and the run-file summary command runs on a run file. The SLURM
+command is covered by tests/workflow/test_slurm.py (it needs a cluster); `make` targets wrap these
+commands."""
 
 from __future__ import annotations
 
@@ -15,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from physmorph.records.runfile import RunKey, RunWriter
+from snakemake_runs import plan_here
 
 REPO = Path(__file__).resolve().parents[2]
 README = REPO / "README.md"
-SNAKEMAKE = Path(sys.executable).with_name("snakemake")
 
 
 def _blocks(lang: str) -> list[str]:
@@ -81,8 +82,7 @@ def test_readme_snakemake_command_plans_as_written(command, tmp_path, mesh_dir, 
         del args[i:i + 2]
     if "-n" not in args:
         args.insert(0, "-n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run([str(SNAKEMAKE), *args], cwd=tmp_path, capture_output=True, text=True, timeout=600, env=env)
+    out = plan_here(tmp_path, args)  # the command's own words, through Snakemake's command line
     text = out.stdout + out.stderr
     assert out.returncode == 0, f"{command}\n{text[-4000:]}"
     targets = [a for a in args if not a.startswith("-") and "=" not in a and not a.endswith(".yaml") and a != "2"]
