@@ -12,7 +12,6 @@ import pytest
 from physmorph.settings.workflow import load_settings
 from physmorph.morph.quality import gap_closed
 from physmorph.records.runfile import read_metrics
-from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -44,18 +43,15 @@ def test_profile_lists_several_files_merged_in_order():
 
 
 @pytest.fixture(scope="module")
-def test_profile_results(tmp_path_factory, mesh_dir):
-    """iso particles and a bunny target of the test profile, laid out as results/{profile}/ is."""
+def test_profile_results(tmp_path_factory, tiny):
+    """The session's tiny iso particles and bunny target (conftest), laid out as results/{profile}/ is."""
+    cfg, made = tiny
     root = tmp_path_factory.mktemp("results")
-    cfg = load_settings(REPO / "config" / "config.yaml", REPO / "config" / "test.yaml")
-    s, tag = cfg.sampling, cfg.sampling.tag
-    d = root / cfg.profile
-    (d / "particles").mkdir(parents=True)
-    (d / "targets").mkdir()
-    prepare_mesh_stage("iso", cfg.shapes["iso"], None, root / "iso.h5")
-    prepare_mesh_stage("bunny", cfg.shapes["bunny"], mesh_dir / "stanford-bunny.obj", root / "bunny.h5")
-    sample_particles_stage(root / "iso.h5", d / "particles" / f"iso_{tag}.h5", root / "p.png", s, 0)
-    rasterize_target_stage(root / "bunny.h5", d / "targets" / f"bunny_{tag}.h5", root / "t.png", s, cfg.target, 0)
+    tag = cfg.sampling.tag
+    for folder, name, path in (("particles", f"iso_{tag}.h5", made / "p_iso.h5"),
+                               ("targets", f"bunny_{tag}.h5", made / "t_bunny.h5")):
+        (root / cfg.profile / folder).mkdir(parents=True)
+        (root / cfg.profile / folder / name).symlink_to(path)
     return root
 
 
