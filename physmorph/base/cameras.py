@@ -117,16 +117,23 @@ def ring_cameras(
     width: int = 320,
     height: int = 180,
     distance: float = 48.0,
+    elevation_spread_deg: float = 0.0,
 ) -> Cameras:
-    """``count`` cameras evenly spaced in azimuth around +y, ``elevation_deg`` above the xz plane,
-    all looking at the origin from ``distance``; the vertical field of view is ``fov_y_deg``."""
+    """``count`` cameras evenly spaced in azimuth around +y, ``elevation_deg`` above the xz plane
+    (with ``elevation_spread_deg``, the even views that much higher and the odd ones that much
+    lower: a ring at two heights), all looking at the origin from ``distance``; the vertical field
+    of view is ``fov_y_deg``."""
     if count < 1:
         raise ValueError(f"camera count must be >= 1, got {count}")
-    el = np.deg2rad(elevation_deg)
+    for el_deg in (elevation_deg + elevation_spread_deg, elevation_deg - elevation_spread_deg):
+        if not -90.0 < el_deg < 90.0:  # at a pole look_at's up vector is the view direction
+            raise ValueError(f"camera elevation {el_deg} degrees is not between -90 and 90 "
+                             f"(elevation {elevation_deg}, spread {elevation_spread_deg})")
     fy = 0.5 * height / np.tan(0.5 * np.deg2rad(fov_y_deg))
     w2c, k = [], []
     for v in range(count):
         az = 2.0 * np.pi * v / count
+        el = np.deg2rad(elevation_deg + (elevation_spread_deg if v % 2 == 0 else -elevation_spread_deg))
         eye = distance * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
         w2c.append(look_at(eye, np.zeros(3), np.array([0.0, 1.0, 0.0])))
         k.append([fy, fy, 0.5 * width, 0.5 * height])

@@ -373,7 +373,7 @@ def target_cameras(settings):
     from physmorph.base.cameras import ring_cameras
 
     t = settings.target
-    return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance)
+    return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width, t.height, t.distance, t.elevation_spread_deg)
 
 
 def main(argv: list[str] | None = None) -> int:

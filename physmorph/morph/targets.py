@@ -131,7 +131,7 @@ def rasterize_target(
         shape = str(f.attrs.get("shape", Path(mesh_h5).stem))
     grid = Grid(sampling.grid_res)
     cams = ring_cameras(target_cfg.cameras, target_cfg.elevation_deg, target_cfg.fov_y_deg,
-                        target_cfg.width, target_cfg.height, target_cfg.distance)
+                        target_cfg.width, target_cfg.height, target_cfg.distance, target_cfg.elevation_spread_deg)
     alpha, depth = rasterize_mesh(mesh, cams, target_cfg.supersample)
     cropped = cropped_views(alpha)
     if cropped:

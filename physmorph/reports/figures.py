@@ -62,7 +62,8 @@ def _saved_frames(f: h5py.File) -> list[str]:
 
 def figure_cameras(target: TargetConfig | dict, scale: int = 2):
     t = target if isinstance(target, TargetConfig) else TargetConfig(**target)
-    return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance)
+    return ring_cameras(t.cameras, t.elevation_deg, t.fov_y_deg, t.width * scale, t.height * scale, t.distance,
+                        t.elevation_spread_deg)
 
 
 def _experiment_field(f: h5py.File, key: str) -> str | None:

@@ -86,6 +86,9 @@ class TargetConfig:
     cameras: Annotated[Int, setting("views of the target, evenly spaced on the ring", ge=1)] = 8
     elevation_deg: Annotated[Float, setting("camera elevation above the horizontal", "degrees",
                                             ge=-89, le=89)] = 21.0
+    elevation_spread_deg: Annotated[Float, setting("views alternate this far above and below the elevation "
+                                                   "(even views above, odd below); 0 = one ring", "degrees",
+                                                   ge=0, le=89)] = 0.0
     fov_y_deg: Annotated[Float, setting("vertical field of view", "degrees", gt=0, lt=180)] = 40.0
     distance: Annotated[Float, setting("camera distance from the origin", "domain units", gt=0)] = 36.0
     width: Annotated[Int, setting("image width", "pixels", ge=4)] = 160
@@ -94,6 +97,14 @@ class TargetConfig:
                                         ge=1, le=8)] = 3
     surface_points: Annotated[Int, setting("target surface samples for Chamfer distances and plasticity",
                                            ge=100)] = 20000
+
+    def __post_init__(self) -> None:
+        """Both heights of the ring within the poles (at a pole a view's up is its direction)."""
+        for height in (self.elevation_deg + self.elevation_spread_deg, self.elevation_deg - self.elevation_spread_deg):
+            if not -90.0 < height < 90.0:
+                raise Refused("elevation_spread_deg", f"elevation_spread_deg: the views at {height:g} degrees "
+                                                      f"(elevation {self.elevation_deg:g} ± {self.elevation_spread_deg:g}) "
+                                                      "are past a pole; keep elevation ± spread between -90 and 90")
 
 
 @settings_dataclass

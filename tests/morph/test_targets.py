@@ -41,6 +41,23 @@ def test_ring_cameras_geometry():
     assert np.allclose(R @ np.transpose(R, (0, 2, 1)), np.eye(3), atol=1e-12)
 
 
+def test_a_ring_at_two_heights_alternates_its_views_and_keeps_their_azimuths():
+    """target.elevation_spread_deg: even views that much above the ring's elevation, odd ones below,
+    each still looking at the origin from the same distance and azimuth; 0 is the one ring."""
+    one = ring_cameras(count=8, elevation_deg=21.0, distance=40.0, width=64, height=48)
+    two = ring_cameras(count=8, elevation_deg=21.0, distance=40.0, width=64, height=48, elevation_spread_deg=30.0)
+    el = np.degrees(np.arcsin(two.centers[:, 1] / 40.0))
+    np.testing.assert_allclose(el, [51.0, -9.0] * 4)
+    np.testing.assert_allclose(np.arctan2(two.centers[:, 0], two.centers[:, 2]),
+                               np.arctan2(one.centers[:, 0], one.centers[:, 2]), atol=1e-12)
+    uv, z = two.project(np.zeros((1, 3)))
+    assert np.allclose(uv[:, 0], [32.0, 24.0]) and np.allclose(z, 40.0)
+    same = ring_cameras(count=8, elevation_deg=21.0, distance=40.0, width=64, height=48, elevation_spread_deg=0.0)
+    np.testing.assert_array_equal(same.world_to_cam, one.world_to_cam)
+    with pytest.raises(ValueError, match="camera elevation 91.0 degrees is not between -90 and 90"):
+        ring_cameras(count=2, elevation_deg=60.0, elevation_spread_deg=31.0)
+
+
 def test_sphere_silhouette_area_and_depth():
     r, D = 6.0, 40.0
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=r)

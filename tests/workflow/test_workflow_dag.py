@@ -47,6 +47,8 @@ def test_bad_config_stops_with_the_key(tmp_path):
     ("morph={frames: 0}", "config key 'morph.frames'"),
     ("morph={cameras: 100}", "config key 'morph.cameras': 100 render-loss views, but the target has only 8"),
     ("mpm={optimizer: sgd}", "config key 'mpm.optimizer': 'sgd' is not allowed (allowed: adam, normalized_gd)"),
+    ("target={elevation_spread_deg: 80}", "config key 'target.elevation_spread_deg': elevation_spread_deg: the views "
+                                          "at 101 degrees (elevation 21 ± 80) are past a pole"),
 ])
 def test_dry_run_refuses_bad_settings_naming_the_key(tmp_path, override, message):
     out = _run(_workdir(tmp_path), "-n", "tables", "--config", override, check=False)
