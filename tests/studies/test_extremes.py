@@ -26,7 +26,6 @@ from physmorph.settings.mpm import MPMDivergenceError
 from physmorph.morph.stability import MorphDivergenceError
 from physmorph.studies.stability_map import (ERROR_FIELDS, FAILURES, KNOBS, MAP_EXPERIMENT, OUTCOMES, CellRun, build_map,
                                      classify)
-from physmorph.stages import prepare_mesh_stage
 from snakemake_runs import plan_here
 
 REPO = Path(__file__).resolve().parents[2]
@@ -271,12 +270,13 @@ def test_the_workflow_plans_one_job_per_cell_and_none_for_a_refused_cells_inputs
 # ------------------------------------------------------------------------------ the extreme cells that run
 
 @pytest.fixture(scope="module")
-def meshes(tmp_path_factory, mesh_dir):
-    """The prepared iso and bunny meshes (a cell samples and rasterizes them at its resolution)."""
+def meshes(tmp_path_factory, tiny):
+    """The prepared iso and bunny meshes (a cell samples and rasterizes them at its resolution):
+    the session's tiny ones (conftest), linked into a folder of this module's."""
+    _, made = tiny
     d = tmp_path_factory.mktemp("extremes")
-    cfg = load_settings(REPO / "config" / "config.yaml", REPO / "config" / "test.yaml")
-    prepare_mesh_stage("iso", cfg.shapes["iso"], None, d / "iso.h5")
-    prepare_mesh_stage("bunny", cfg.shapes["bunny"], mesh_dir / "stanford-bunny.obj", d / "bunny.h5")
+    for name in ("iso.h5", "bunny.h5"):
+        (d / name).symlink_to(made / name)
     return d
 
 
