@@ -110,6 +110,12 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     return m
 
 
+def height_past_a_pole(elevation_deg: float, spread_deg: float = 0.0) -> float | None:
+    """The first of a ring's two heights (elevation ± spread, degrees) at or past a pole, where
+    look_at's up vector would be the view direction; None when both lie strictly between."""
+    return next((h for h in (elevation_deg + spread_deg, elevation_deg - spread_deg) if not -90.0 < h < 90.0), None)
+
+
 def ring_cameras(
     count: int = 8,
     elevation_deg: float = 21.0,
@@ -125,10 +131,10 @@ def ring_cameras(
     of view is ``fov_y_deg``."""
     if count < 1:
         raise ValueError(f"camera count must be >= 1, got {count}")
-    for el_deg in (elevation_deg + elevation_spread_deg, elevation_deg - elevation_spread_deg):
-        if not -90.0 < el_deg < 90.0:  # at a pole look_at's up vector is the view direction
-            raise ValueError(f"camera elevation {el_deg} degrees is not between -90 and 90 "
-                             f"(elevation {elevation_deg}, spread {elevation_spread_deg})")
+    past = height_past_a_pole(elevation_deg, elevation_spread_deg)
+    if past is not None:
+        raise ValueError(f"camera elevation {past} degrees is not between -90 and 90 "
+                         f"(elevation {elevation_deg}, spread {elevation_spread_deg})")
     fy = 0.5 * height / np.tan(0.5 * np.deg2rad(fov_y_deg))
     w2c, k = [], []
     for v in range(count):

@@ -10,6 +10,7 @@ import re
 from dataclasses import field, replace
 from typing import Annotated, Any, Literal
 
+from physmorph.base.cameras import height_past_a_pole
 from physmorph.settings.errors import ConfigError
 from physmorph.settings.base import Float, Int, Refused, setting, settings_dataclass
 
@@ -100,11 +101,11 @@ class TargetConfig:
 
     def __post_init__(self) -> None:
         """Both heights of the ring within the poles (at a pole a view's up is its direction)."""
-        for height in (self.elevation_deg + self.elevation_spread_deg, self.elevation_deg - self.elevation_spread_deg):
-            if not -90.0 < height < 90.0:
-                raise Refused("elevation_spread_deg", f"elevation_spread_deg: the views at {height:g} degrees "
-                                                      f"(elevation {self.elevation_deg:g} ± {self.elevation_spread_deg:g}) "
-                                                      "are past a pole; keep elevation ± spread between -90 and 90")
+        past = height_past_a_pole(self.elevation_deg, self.elevation_spread_deg)
+        if past is not None:
+            raise Refused("elevation_spread_deg", f"elevation_spread_deg: the views at {past:g} degrees "
+                                                  f"(elevation {self.elevation_deg:g} ± {self.elevation_spread_deg:g}) "
+                                                  "are past a pole; keep elevation ± spread between -90 and 90")
 
 
 @settings_dataclass
