@@ -189,9 +189,12 @@ def stamp_checksum(f: h5py.File, written: Mapping[str, np.ndarray] | None = None
     return content
 
 
-def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete it and rerun the stage that writes it") -> str | None:
+def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete it and rerun the stage that writes it",
+                    written: Mapping[str, np.ndarray] | None = None) -> str | None:
     """Check ``content_sha256`` against the file's content; StageInputError naming the file when it
-    differs, is unreadable or (``required``) is missing. Returns the checksum (None if absent)."""
+    differs, is unreadable or (``required``) is missing. Returns the checksum (None if absent).
+    ``written``: dataset name -> the array just read from it, hashed in its place (as in
+    content_checksum)."""
     path = f.filename
     try:
         stored = f.attrs.get(CHECKSUM_ATTR)
@@ -204,7 +207,7 @@ def verify_checksum(f: h5py.File, required: bool = True, remedy: str = "delete i
         return None
     try:
         stored_data = f.attrs.get(DATA_ATTR)  # absent in run files and in files written before it existed
-        actual, data = _digests(f, data=stored_data is not None)
+        actual, data = _digests(f, written=written, data=stored_data is not None)
     except (OSError, RuntimeError, KeyError, ValueError) as exc:
         raise StageInputError(f"{path}: unreadable content ({exc}); the file is damaged (torn or overwritten): {remedy}") from exc
     for what, kept, computed in (("checksum", stored, actual), ("data digest", stored_data, data)):

@@ -205,7 +205,9 @@ def _open_run_h5(path: Path, remedy: str) -> h5py.File:
                            f"overwritten; {remedy}") from exc
 
 
-def _check_format(f: h5py.File, path: Path, fmt: str, remedy: str) -> None:
+def _check_format(f: h5py.File, path: Path, fmt: str, remedy: str, read: dict | None = None) -> None:
+    """The format tag and the content checksum of ``f``; ``read``: dataset name -> the array just
+    read from it, hashed in its place (each dataset is read once)."""
     try:
         found = f.attrs.get("format")
     except (OSError, RuntimeError, KeyError) as exc:
@@ -213,7 +215,7 @@ def _check_format(f: h5py.File, path: Path, fmt: str, remedy: str) -> None:
     if found is None or str(found) != fmt:
         raise RunFileError(f"{path}: not a {fmt} file (format {found!r}): a foreign or older file; {remedy}")
     try:
-        verify_checksum(f, remedy=remedy)
+        verify_checksum(f, remedy=remedy, written=read)
     except StageInputError as exc:
         raise RunFileError(str(exc)) from exc
 
@@ -349,13 +351,13 @@ class RunWriter:
             self.meta = dict(f["meta"].attrs)
         return ck
 
-    def _read_frame(self, path: Path, frame: int, arrays: bool = True) -> dict:
+    def _read_frame(self, path: Path, frame: int) -> dict:
+        """A committed frame file's content, verified (_read_frame_file), of this run and frame."""
         remedy = f"delete {self.dir} (rm -r '{self.dir}') and rerun to restart the run"
-        with _open_run_h5(path, remedy) as f:
-            _check_format(f, path, FRAME_FORMAT, remedy)
-            if int(f.attrs["frame"]) != frame or str(f.attrs["run_key"]) != self.key.digest:
-                raise RunFileError(f"{path}: belongs to another run or frame (frame {int(f.attrs['frame'])}); {remedy}")
-            return _frame_content(f, arrays)
+        content = _read_frame_file(path, remedy)
+        if content["frame"] != frame or content["run_key"] != self.key.digest:
+            raise RunFileError(f"{path}: belongs to another run or frame (frame {content['frame']}); {remedy}")
+        return content
 
     def frame_metrics(self, frame: int) -> tuple[dict, np.ndarray]:  # {name: value}, [V]
         """A committed frame's scalars and its alpha MSE per view."""
@@ -444,24 +446,27 @@ class RunWriter:
         last = self.last_frame
         if last < 0:
             raise RuntimeError(f"{self.dir}: no committed frame to finish the run with")
-        # metrics and warnings of every frame; the arrays are copied one frame at a time (at the
-        # paper's scale all of them together are ~0.7 GB)
-        frames = [self._read_frame(self.dir / frame_name(k), k, arrays=False) for k in range(last + 1)]
         segments = self.segments_now()
 
         def fill(f: h5py.File) -> dict:
             f.attrs.update(self.meta)
             f.attrs.update(self.key.attrs())
-            g = f.create_group("metrics")
-            for name in SCALARS + ("alpha_mse_views",):
-                g.create_dataset(name, data=np.stack([_frame_metric(fr, name) for fr in frames]))
             f.create_group("states")
-            written = {}
+            # each frame file is read (and verified) once: its arrays are copied at once, one frame
+            # at a time (at the paper's scale all of them together are ~0.7 GB); metrics and
+            # warnings are kept
+            frames = []
             for k in range(last + 1):
-                for group, arrays in self._read_frame(self.dir / frame_name(k), k)["arrays"].items():
+                frame = self._read_frame(self.dir / frame_name(k), k)
+                for group, arrays in frame.pop("arrays").items():
                     s = f.create_group(f"{group}/frame_{k:04d}")
                     for name, arr in arrays.items():
                         s.create_dataset(name, data=arr, **STATE_COMPRESSION)
+                frames.append(frame)
+            g = f.create_group("metrics")
+            for name in SCALARS + ("alpha_mse_views",):
+                g.create_dataset(name, data=np.stack([_frame_metric(fr, name) for fr in frames]))
+            written = {}
             write_provenance(f, config, self.started)
             f.attrs.update(attrs)
             f.attrs.update(status=status, frames_completed=last,
@@ -476,13 +481,34 @@ class RunWriter:
         return self.out
 
 
-def _frame_content(f: h5py.File, arrays: bool = True) -> dict:
-    """A frame file's metrics, warnings and meta, and with ``arrays`` its saved state or motion
+# the finished file's array groups -> the frame file's groups that hold them
+FRAME_GROUPS = {"states": "state", "motion": "motion"}
+
+
+def _read_frame_file(path: Path, remedy: str) -> dict:
+    """A frame file's content (_frame_content), verified against its checksum: each dataset is read
+    once and its arrays hashed from memory. A file too damaged to read is named by its format tag's
+    or checksum's failure, with ``remedy``."""
+    with _open_run_h5(path, remedy) as f:
+        try:
+            content = _frame_content(f)
+        except (OSError, KeyError, ValueError, RuntimeError, TypeError):
+            content = None  # damaged or foreign: _check_format says which
+        read = None if content is None else {f"{FRAME_GROUPS[out]}/{name}": a
+                                             for out, arrays in content["arrays"].items() for name, a in arrays.items()}
+        _check_format(f, path, FRAME_FORMAT, remedy, read=read)
+        if content is None:
+            raise RunFileError(f"{path}: malformed frame file (its checksum holds, its groups do not); {remedy}")
+        return content
+
+
+def _frame_content(f: h5py.File) -> dict:
+    """A frame file's metrics, warnings and meta, and its saved state or motion
     ({"states": {...}} or {"motion": {...}}, stored as they were written)."""
-    held = {"states": "state", "motion": "motion"}
     return {"metrics": {k: f["metrics"][k][()] for k in f["metrics"]},
-            "arrays": {out: {k: f[g][k][()] for k in f[g]} for out, g in held.items() if g in f} if arrays else {},
+            "arrays": {out: {k: f[g][k][()] for k in f[g]} for out, g in FRAME_GROUPS.items() if g in f},
             "warnings": json.loads(str(f.attrs["warnings"])), "peak_rss_mb": float(f.attrs["peak_rss_mb"]),
+            "frame": int(f.attrs["frame"]), "run_key": str(f.attrs["run_key"]),
             "meta": dict(f["meta"].attrs) if "meta" in f else None}
 
 
@@ -505,9 +531,7 @@ def _partial_metrics(d: Path) -> dict[str, np.ndarray]:
                 raise RunFileError(f"{path}: missing, but the checkpoint says frame {resumes_after} was committed; "
                                    f"{remedy}")
             break
-        with _open_run_h5(path, remedy) as f:
-            _check_format(f, path, FRAME_FORMAT, remedy)
-            frames.append(_frame_content(f))
+        frames.append(_read_frame_file(path, remedy))
     out = {name: np.stack([_frame_metric(fr, name) for fr in frames]) for name in SCALARS + ("alpha_mse_views",)}
     out["attrs"] = {**(frames[0]["meta"] or {}), "status": "running", "frames_completed": len(frames) - 1,
                     "resumes_after": resumes_after, "warnings": json.dumps([w for fr in frames for w in fr["warnings"]])}

@@ -20,9 +20,6 @@ from physmorph.morph.steering import stray_pull_anchors
 from physmorph.stages import rasterize_target_stage, sample_particles_stage
 
 
-pytestmark = pytest.mark.usefixtures("checkpoint_every_frame")  # conftest
-
-
 def _run(tiny, experiment, out_name, **changes):
     """One tiny run; without the experiment's release frames unless a test asks for them."""
     cfg, d = tiny
@@ -296,6 +293,7 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
             np.testing.assert_allclose(entry[k], factor * end[k - 1], rtol=1e-6, atol=1e-12)
 
 
+@pytest.mark.usefixtures("checkpoint_every_frame")  # conftest: it kills a run
 def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_first_restart(tiny, monkeypatch):
     """morph.overfill_onset first_restart (the default): every frame up to the one whose objective
     first rose (its momentum restart fires) runs with the packing term's weight 0, every later frame

@@ -25,9 +25,6 @@ TEST_RESOLUTION = {"sampling": {"ppc_surface": 1}, "target": {"width": 48, "heig
                    "surface": {"voxels": 32}}
 
 
-pytestmark = pytest.mark.usefixtures("checkpoint_every_frame")  # conftest
-
-
 def shipped(frames: int, **changes) -> MorphConfig:
     """iso -> bunny full at the shipped method settings, the test profile's resolution."""
     cfg = load_settings("config/config.yaml", overrides=TEST_RESOLUTION)
@@ -172,6 +169,7 @@ class _Killed(Exception):
     pass
 
 
+@pytest.mark.usefixtures("checkpoint_every_frame")  # conftest: it kills a run
 def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, shipped_run, monkeypatch):
     """Killed in frame 38, after the gate has undone frames (from frame 35 in this run), the run
     resumes from its checkpoint (the accepted state) to the uninterrupted run. Slow: a 39-frame

@@ -5,6 +5,7 @@ and reading runs imports neither taichi nor torch."""
 import errno
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -234,6 +235,49 @@ def test_damaged_checkpoint_is_refused_naming_file_reason_and_remedy(tmp_path, h
     assert str(ck) in msg and "rm -r" in msg and "restart" in msg
     assert ("not a readable HDF5 file" in msg or "does not match its checksum" in msg or "unreadable" in msg), msg
     assert ck.exists()  # nothing is deleted behind the user's back
+
+
+def _damage_frame(path: Path, how: str) -> None:
+    """A committed frame file damaged: its stored alpha MSE (uncompressed, 1/2 in frame 1) changed to
+    another float, or the whole file truncated or zero-filled."""
+    if how == "a metric changed":
+        data = path.read_bytes()
+        i = data.index(np.float64(0.5).tobytes())
+        path.write_bytes(data[:i] + np.float64(0.25).tobytes() + data[i + 8:])
+    else:
+        _damage(path, how)
+
+
+@pytest.mark.parametrize("how", ["truncated", "zero-filled", "a metric changed"])
+def test_a_damaged_frame_file_is_refused_at_resume_at_finish_and_in_the_partial_metrics(tmp_path, how):
+    """Each committed frame file is verified whenever it is read (its datasets read once and hashed
+    from memory): by a resume, by the finish that assembles the run, and by a partial run's metrics."""
+    out = tmp_path / "run.h5"
+    _write_frames(out, 3)
+    frame1 = runfile.partial_dir(out) / "frame_0001.h5"
+    _damage_frame(frame1, how)
+    expected = ("not a readable HDF5 file", "does not match its checksum", "unreadable")
+
+    def refused(err) -> None:
+        msg = str(err.value)
+        assert str(frame1) in msg and "rm -r" in msg and any(e in msg for e in expected), msg
+
+    with RunWriter(out, KEY) as w, pytest.raises(RunFileError) as err:
+        w.resume(log=lambda m: None)
+    refused(err)
+    with pytest.raises(RunFileError) as err:
+        read_metrics(runfile.partial_dir(out))
+    refused(err)
+    # damaged after a resume, before the finish: the finish refuses it and writes no run file
+    shutil.rmtree(runfile.partial_dir(out))
+    _write_frames(out, 3)
+    with RunWriter(out, KEY) as w:
+        w.resume(log=lambda m: None)
+        _damage_frame(frame1, how)
+        with pytest.raises(RunFileError) as err:
+            w.finish("complete", {}, {"frames": 3})
+    refused(err)
+    assert not out.exists() and frame1.exists()  # nothing deleted, nothing half written
 
 
 def test_foreign_file_as_checkpoint_is_refused(tmp_path):
