@@ -52,7 +52,8 @@ from physmorph.plasticity.step import absorbed_rest, chamfer_plasticity_step, ne
 from physmorph.render.api import render_and_grad
 from physmorph.settings.render import LOSS_SCALARS
 from physmorph.morph.stability import MorphDivergenceError, StabilityMonitor, check_state
-from physmorph.records.runfile import RunKey, RunWriter, summarize_run
+from physmorph.records.runfile import RunWriter, summarize_run
+from physmorph.records.runkey import RunKey
 from physmorph.morph.steering import ControlDecay, StrayPull
 from physmorph.morph.surface_mask import update_surface_mask
 from physmorph.plasticity.transport import destinations_in_grid_mass

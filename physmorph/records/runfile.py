@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import hashlib
 import json
 import os
 import shutil
@@ -54,6 +53,7 @@ import numpy as np
 from physmorph.settings.render import LOSS_SCALARS
 from physmorph.records.h5io import (StageInputError, code_state, content_checksum, fsync_path, peak_rss_mb, stamp_checksum, verify_checksum,
                             write_provenance)
+from physmorph.records.runkey import RunKey
 from physmorph.records.runfile_cli import CHECKPOINT_NAME, LOCK_NAME, METRICS_CHECKSUM_ATTR, not_a_run  # the names a run leaves on disk
 
 # Per-frame scalar metrics, in the order they appear in the run file's /metrics group: the one
@@ -96,55 +96,6 @@ def partial_dir(out: str | os.PathLike) -> Path:
 
 def frame_name(frame: int) -> str:
     return f"frame_{frame:04d}.h5"
-
-
-# ----------------------------------------------------------------------------------- run key
-@dataclass(frozen=True)
-class RunKey:
-    """What a checkpoint may be resumed with: the run's settings and the content of its inputs."""
-
-    settings: str  # the run's settings as sorted JSON
-    inputs: tuple[tuple[str, str], ...]  # (role, content checksum), e.g. ("target", "3f1c...")
-
-    @property
-    def digest(self) -> str:
-        blob = json.dumps({"settings": self.settings, "inputs": [list(p) for p in self.inputs]}, sort_keys=True)
-        return hashlib.sha256(blob.encode("utf-8")).hexdigest()
-
-    def attrs(self) -> dict[str, str]:
-        return {"run_key": self.digest, "config_record": self.settings,
-                "input_checksums": json.dumps(dict(self.inputs), sort_keys=True)}
-
-    @classmethod
-    def from_attrs(cls, attrs) -> "RunKey":
-        inputs = json.loads(str(attrs["input_checksums"]))
-        return cls(str(attrs["config_record"]), tuple(sorted(inputs.items())))
-
-    def changes_from(self, old: "RunKey") -> list[str]:
-        """Why a run with key ``old`` cannot be resumed as this one (empty when it can)."""
-        out = []
-        new_in, old_in = dict(self.inputs), dict(old.inputs)
-        for role in sorted(set(new_in) | set(old_in)):
-            if new_in.get(role) != old_in.get(role):
-                out.append(f"input '{role}' changed (content checksum {str(old_in.get(role))[:12]} -> "
-                           f"{str(new_in.get(role))[:12]})")
-        if self.settings != old.settings:
-            try:
-                a, b = json.loads(old.settings), json.loads(self.settings)
-                keys = sorted(_changed_keys(a, b))
-            except ValueError:
-                keys = []
-            out.append("settings changed" + (f" ({', '.join(keys[:6])})" if keys else ""))
-        return out
-
-
-def _changed_keys(a, b, prefix: str = "") -> list[str]:
-    if isinstance(a, dict) and isinstance(b, dict):
-        out = []
-        for k in set(a) | set(b):
-            out += _changed_keys(a.get(k), b.get(k), f"{prefix}{k}.")
-        return out
-    return [] if a == b else [prefix.rstrip(".")]
 
 
 # ------------------------------------------------------------------------- atomic file writes

@@ -31,7 +31,7 @@ LOCK_NAME = "LOCK"  # in a partial run's directory: the writer's lock
 CHECKPOINT_NAME = "checkpoint.h5"  # in a partial run's directory, beside its frame_XXXX.h5
 METRICS_CHECKSUM_ATTR = "metrics_sha256"
 # Attributes a finished run file has and no other file physmorph writes: its run key and the
-# checksums of its inputs (physmorph.records.runfile.RunKey.attrs) and of its metrics.
+# checksums of its inputs (physmorph.records.runkey.RunKey.attrs) and of its metrics.
 RUN_FILE_ATTRS = ("run_key", "input_checksums", METRICS_CHECKSUM_ATTR)
 PARTIAL_ENTRIES = (LOCK_NAME, CHECKPOINT_NAME)  # beside frame_XXXX.h5, what a partial run's directory holds
 TRACE_BYTES = 1 << 20  # where a run file's attribute names are (its first kilobytes: attributes come first)

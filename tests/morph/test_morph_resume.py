@@ -19,7 +19,8 @@ from physmorph.morph.stability import MorphDivergenceError
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.records.runfile import read_metrics
 from physmorph.records.h5io import stored_checksum, stored_identity
-from physmorph.records.runfile import RunFileError, RunKey, RunLockedError, RunWriter, read_checkpoint
+from physmorph.records.runfile import RunFileError, RunLockedError, RunWriter, read_checkpoint
+from physmorph.records.runkey import RunKey
 from physmorph.stages import rasterize_target_stage
 
 pytestmark = pytest.mark.usefixtures("checkpoint_every_frame")

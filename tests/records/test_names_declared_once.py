@@ -11,7 +11,8 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from physmorph.records.runfile import SCALARS, RunKey, RunWriter
+from physmorph.records.runfile import SCALARS, RunWriter
+from physmorph.records.runkey import RunKey
 from physmorph.settings.base import fields_of_job
 from physmorph.settings.export import ExportConfig
 from physmorph.settings.render import LOSS_SCALARS, LOSS_TERMS

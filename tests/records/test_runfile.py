@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 import physmorph.records.runfile as runfile
-from physmorph.records.runfile import (SCALARS, RunFileError, RunKey, RunLockedError, RunWriter, describe_run, read_checkpoint,
+from physmorph.records.runfile import (SCALARS, RunFileError, RunLockedError, RunWriter, describe_run, read_checkpoint,
                                read_metrics)
+from physmorph.records.runkey import RunKey
 
 REPO = Path(__file__).resolve().parents[2]
 KEY = RunKey(json.dumps({"frames": 3}), (("particles", "aa" * 32), ("target", "bb" * 32)))
@@ -366,7 +367,8 @@ def test_disk_full_keeps_the_last_committed_frame(tmp_path, monkeypatch):
 
 _HOLDER = """
 import sys, time
-from physmorph.records.runfile import RunKey, RunWriter
+from physmorph.records.runfile import RunWriter
+from physmorph.records.runkey import RunKey
 w = RunWriter(sys.argv[1], RunKey('{"frames": 3}', (("particles", "aa" * 32), ("target", "bb" * 32))))
 w.acquire()
 print("locked", flush=True)

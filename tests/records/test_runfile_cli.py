@@ -13,7 +13,8 @@ import h5py
 import numpy as np
 import pytest
 
-from physmorph.records.runfile import RunFileError, RunKey, RunWriter, describe_run, partial_dir, read_metrics
+from physmorph.records.runfile import RunFileError, RunWriter, describe_run, partial_dir, read_metrics
+from physmorph.records.runkey import RunKey
 from physmorph.records.runfile_cli import main
 
 REPO = Path(__file__).resolve().parents[2]

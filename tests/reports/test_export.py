@@ -19,7 +19,8 @@ from physmorph.meshes.prepare import load_mesh, prepare_mesh
 from physmorph.meshes.shapes import ShapeSpec
 from physmorph.meshes.particles import sample_particles
 from physmorph.settings.render import RenderConfig
-from physmorph.records.runfile import RunFileError, RunKey, RunWriter
+from physmorph.records.runfile import RunFileError, RunWriter
+from physmorph.records.runkey import RunKey
 
 SIGMA0 = 0.35
 
@@ -315,7 +316,8 @@ def test_a_run_without_every_frames_motion_ends_the_video_job_in_one_line(tmp_pa
     import subprocess
     import sys
 
-    from physmorph.records.runfile import RunKey, RunWriter
+    from physmorph.records.runfile import RunWriter
+    from physmorph.records.runkey import RunKey
 
     run = tmp_path / "old.h5"
     key = RunKey(json.dumps({"frames": 2}), (("particles", "aa" * 32), ("target", "bb" * 32)))

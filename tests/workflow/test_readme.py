@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from physmorph.records.runfile import RunKey, RunWriter
+from physmorph.records.runfile import RunWriter
+from physmorph.records.runkey import RunKey
 from snakemake_runs import plan_here
 
 REPO = Path(__file__).resolve().parents[2]
