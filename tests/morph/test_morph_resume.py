@@ -45,7 +45,8 @@ class _Killed(Exception):
 @pytest.mark.parametrize("correspondence", ["nearest", "transport"])
 def test_resume_equals_uninterrupted_run(tiny, monkeypatch, correspondence):
     """Killed in frame 4, a run resumes to the uninterrupted one, with the transport plan's
-    destinations (computed at the first update, not checkpointed) recomputed on resume."""
+    destinations (computed at the first update, not checkpointed) recomputed on resume. Slow (~11 s
+    for the first case): two tiny morphs of 5 frames, and the first case compiles the solver's kernels."""
     plasticity = dataclasses.replace(morph_config(tiny[0], "iso_bunny_full").plasticity, start_frame=2,
                                      correspondence=correspondence)
     frames = dict(frames=5, plasticity=plasticity)

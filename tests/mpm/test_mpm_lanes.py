@@ -86,7 +86,8 @@ def test_the_lanes_add_what_numpy_adds_exactly(on_cpu):
 
 def test_the_solver_with_atomic_adds_computes_what_its_lanes_compute(monkeypatch, state):
     """The GPU's path (one lane, atomic adds), built on the CPU, against the lanes' solver: the
-    same forward, and the same gradients from a backward and from a paired backward."""
+    same forward, and the same gradients from a backward and from a paired backward. Slow (~11 s):
+    the atomic solver is a second build of every kernel (the lanes' solver is the module's shared one)."""
     from mpm_cases import cfg64, make, random_control
     from physmorph.mpm import model as model_module
 

@@ -283,7 +283,8 @@ def meshes(tmp_path_factory, tiny):
 @pytest.mark.parametrize("name", ["step_size-x10", "gamma-10", "eta-1"])
 def test_the_most_extreme_running_cells_end_in_an_allowed_outcome(base, cells, meshes, name):
     """The largest step, gain and plasticity rate, 5 frames (two with plasticity), in this process:
-    they share one compiled solver (none of the three is a kernel setting)."""
+    they share one compiled solver (none of the three is a kernel setting). Slow (~11 s for the
+    first cell): it builds that solver."""
     short = {"experiments": {MAP_EXPERIMENT: {"frames": 5, "release_frames": 0}}}
     cell = dataclasses.replace(cells[name], overrides=deep_merge(cells[name].overrides, short))
     work = meshes / name
