@@ -148,7 +148,8 @@ class MorphRun:
         if self.stray.on:
             if self.nearest_d is None:
                 self.nearest_d, self.nearest_i = self.inputs.nearest_target(fs.state.x)
-            self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.inputs.target)
+            self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.inputs.target,
+                              self.transport_destinations() if self.stray.to_destination else None)
         self.decay.apply(solver)
         try:
             calibration = frame_calibration(cfg, fs, solver, self.inputs.inject_F, self.inputs.inject_x, k,

@@ -6,7 +6,8 @@ restart_keep, restart_control_keep). StepSchedule: the optimiser's step per fram
 backed off after each frame the settle phase undid (settle_backoff).
 ControlDecay: dFc <- decay dFc at each frame's start (control_decay).
 OverfillOnset: the packing term waits for the objective's first rise (overfill_onset).
-StrayPull: anchors for particles that stray off the target (stray_pull, the full method's).
+StrayPull: anchors for particles that stray off the target (stray_pull, the full method's), and
+for those far from their transport destination (destination_pull).
 """
 
 from __future__ import annotations
@@ -92,15 +93,37 @@ class OverfillOnset:
 
 
 class StrayPull:
-    """The stray pull's anchors on the solver's loss (component C with the plasticity: the full
-    method's): see stray_pull_anchors."""
+    """The stray and destination pulls' anchors on the solver's loss (component C with the
+    plasticity: the full method's): see stray_pull_anchors and destination_pull_anchors."""
 
     def __init__(self, cfg: MorphConfig):
         self.cfg = cfg
-        self.on = cfg.stray_pull > 0 and cfg.method == "full"
+        self.to_destination = (cfg.destination_pull > 0 and cfg.method == "full"
+                               and cfg.plasticity.correspondence == "transport")
+        self.on = (cfg.stray_pull > 0 and cfg.method == "full") or self.to_destination
 
-    def anchor(self, solver, st: ParticleState, nearest_d, nearest_i, target) -> None:
-        solver.set_position_anchors(*stray_pull_anchors(st.x, st.mass, nearest_d, nearest_i, target, self.cfg))
+    def anchor(self, solver, st: ParticleState, nearest_d, nearest_i, target,
+               destination: np.ndarray | None = None) -> None:  # destination: [N, 3]
+        anchors, weight = stray_pull_anchors(st.x, st.mass, nearest_d, nearest_i, target, self.cfg)
+        if self.to_destination:
+            to, w_to = destination_pull_anchors(st.x, st.mass, destination, target.grid, self.cfg)
+            take = (weight == 0.0) & (w_to > 0.0)  # a stray keeps its own anchor
+            anchors, weight = np.where(take[:, None], to, anchors), np.where(take, w_to, weight)
+        solver.set_position_anchors(anchors, weight)
+
+
+def destination_pull_anchors(x: np.ndarray,  # [N, 3]
+                             mass: np.ndarray,  # [N]
+                             destination: np.ndarray,  # [N, 3] each particle's transport destination
+                             grid, cfg: MorphConfig) -> tuple[np.ndarray, np.ndarray]:  # [N, 3], [N]
+    """The destination pull's anchors and weights (MorphConfig.destination_pull): a particle more
+    than destination_pull_onset cells from its destination T_p gets the anchor T_p and the weight
+    destination_pull m_p / (density dx^3) / dx^2 (the solver adds w_p |x_T,p - T_p|^2); every
+    other particle weight 0."""
+    cell_mass = cfg.mpm.density * grid.dx ** 3
+    far = np.linalg.norm(x - destination, axis=1) > cfg.destination_pull_onset * grid.dx
+    weight = np.where(far, cfg.destination_pull * mass / cell_mass / grid.dx ** 2, 0.0)
+    return np.asarray(destination, dtype=np.float64), weight
 
 
 def stray_pull_anchors(x: np.ndarray,  # [N, 3]

@@ -105,6 +105,17 @@ class MorphConfig:
         "a particle is outside the target for the stray pull where the target's grid density at it (trilinear, in "
         "units of the material's) is at most this; 0: where its nearest grid node holds no target mass", ge=0,
         lt=1)] = 0.0
+    # The destination pull: destination_pull x (m_p / (density dx^3)) |x_T,p - T_p|^2 / dx^2 for a
+    # particle more than destination_pull_onset cells from T_p, its transport destination (the
+    # plasticity's plan, fixed for the run), where the stray pull leaves it unanchored. The grid's loss
+    # moves material a few cells at most, and the rest shape carries the plan's destinations only
+    # through their Jacobian: a region that must travel through the body (into a letter's tip, a
+    # head) is carried by neither (docs/study/log.md). Not in the paper.
+    destination_pull: Annotated[Float, setting(
+        "method full with correspondence transport: weight of a pull on each particle toward its transport "
+        "destination (a cell of material one cell from it costs this; 0: off)", ge=0)] = 0.0
+    destination_pull_onset: Annotated[Float, setting(
+        "the destination pull acts on particles more than this far from their destination", "cells", ge=0)] = 2.0
 
     # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)

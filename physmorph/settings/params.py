@@ -86,7 +86,7 @@ def morph_params(cfg) -> str:
 
     Settings at their defaults are left out (see ``without_defaults``: a new option reruns
     nothing), and so are settings the run's method never reads, so changing them reruns nothing:
-    plasticity and the stray pull outside ``full``, the injection gains and their calibration (and the
+    plasticity and the stray and destination pulls outside ``full``, the injection gains and their calibration (and the
     settle phase, unless it judges the physics loss) for ``physics_only``,
     ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
     it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
@@ -96,7 +96,7 @@ def morph_params(cfg) -> str:
     d.get("mpm", {}).pop("threads", None)
     if cfg.method != "full":
         d.pop("plasticity", None)
-        for k in ("stray_pull", "stray_pull_onset", "stray_pull_density"):
+        for k in ("stray_pull", "stray_pull_onset", "stray_pull_density", "destination_pull", "destination_pull_onset"):
             d.pop(k, None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):

@@ -51,4 +51,6 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "plasticity.volume": "keep",  # the rest volume stayed the source's (target the default since 2026-12-01)
     "plasticity.volume_rate": 0.05,
     "mpm.volume_weight": 0.0,  # no volume term in the physics loss
+    "destination_pull": 0.0,  # no pull toward the transport destinations
+    "destination_pull_onset": 2.0,
 }
