@@ -33,7 +33,7 @@ def missing_pieces(body: trimesh.Trimesh, target: trimesh.Trimesh, voxel: float,
     """Print the body against the target on voxels of side ``voxel``: IoU, missing pieces, outside."""
     lo = np.minimum(body.bounds[0], target.bounds[0]) - 2 * voxel
     hi = np.maximum(body.bounds[1], target.bounds[1]) + 2 * voxel
-    axes = [np.arange(a, b, voxel) for a, b in zip(lo, hi)]
+    axes = [np.arange(a, b, voxel) + voxel / 2 for a, b in zip(lo, hi)]  # voxel centres: none on a bound's face
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [V, 3]
     shape = tuple(len(a) for a in axes)
     in_target, in_body = target.contains(points).reshape(shape), body.contains(points).reshape(shape)
