@@ -1,22 +1,11 @@
 """The study's gap finder (benchmarks/body_gaps.py): a body that lacks a known piece of its target
 is reported with that piece (its size, centre and depth) and the voxels it puts outside."""
 
-import importlib.util
-from pathlib import Path
-
 import trimesh
 
-REPO = Path(__file__).resolve().parents[2]
+from benchmark_scripts import load_benchmark
 
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-body_gaps = _load("body_gaps")
+body_gaps = load_benchmark("body_gaps")
 
 
 def test_a_missing_slab_is_found_with_its_size_centre_and_depth(capsys):

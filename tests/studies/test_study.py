@@ -2,7 +2,6 @@
 the row it records is the run's own numbers."""
 
 import csv
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,17 +12,12 @@ from physmorph.settings.workflow import load_settings
 from physmorph.morph.quality import gap_closed
 from physmorph.records.runfile import read_metrics
 
+from benchmark_scripts import load_benchmark
+
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-study = _load("study_convergence")
+study = load_benchmark("study_convergence")
 
 
 def test_set_items_become_a_nested_override_with_yaml_values():
@@ -105,7 +99,7 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     res = test_profile_results / "test"
     with h5py.File(res / "particles" / f"iso_{tag}.h5", "r") as f:
         mass = f["mass"][()]
-    saved = _load("study_volume_iou").saved_volume_metrics(str(run), mass, load_target(res / "targets" / f"bunny_{tag}.h5"))
+    saved = load_benchmark("study_volume_iou").saved_volume_metrics(str(run), mass, load_target(res / "targets" / f"bunny_{tag}.h5"))
     assert sorted(saved) == [0, 2]
     for k, v in saved.items():
         assert v["volume_iou"] == pytest.approx(m["volume_iou"][k], abs=0.01)
