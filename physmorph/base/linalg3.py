@@ -44,13 +44,17 @@ def symmetric_eigenvalues(A: np.ndarray) -> np.ndarray:  # [N, 3, 3] symmetric -
 def singular_values(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3]
     """Singular values of each M, descending (>= 0): the square roots of the eigenvalues of M^T M."""
     M = np.asarray(M, dtype=np.float64)
-    e = symmetric_eigenvalues(np.einsum("nji,njk->nik", M, M))
-    s = np.sqrt(np.maximum(e, 0.0))
+    return _singular_values(M, np.matmul(M.transpose(0, 2, 1), M))
+
+
+def _singular_values(M: np.ndarray,  # [N, 3, 3]
+                     C: np.ndarray) -> np.ndarray:  # [N, 3, 3] M^T M -> [N, 3]
+    s = np.sqrt(np.maximum(symmetric_eigenvalues(C), 0.0))
     # The smallest from |det M| = s1 s2 s3: det M is accurate to eps relative where the eigenvalue
     # of M^T M is accurate only to eps ||M||^2, so a vanishing s3 keeps its relative precision.
     s12 = s[:, 0] * s[:, 1]
     ok = s12 > 0
-    s[ok, 2] = np.minimum(np.abs(det3(M[ok])) / s12[ok], s[ok, 1])
+    s[:, 2] = np.where(ok, np.minimum(np.abs(det3(M)) / np.where(ok, s12, 1.0), s[:, 1]), s[:, 2])
     return s
 
 
@@ -60,3 +64,51 @@ def signed_singular_values(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3]
     s = singular_values(M)
     s[det3(M) < 0, 2] *= -1.0
     return s
+
+
+def inverse3(M: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3, 3]
+    """Inverses by the adjugate over the determinant, a few vector operations (np.linalg.inv
+    factors each matrix: 0.26 s against ~0.03 s for 471K matrices). Accurate to about eps times
+    the matrix's condition number, as a factorisation is; raises LinAlgError for a singular or
+    non-finite matrix, as np.linalg.inv does for a singular one."""
+    M = np.asarray(M, dtype=np.float64)
+    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    d, e, f = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
+    g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
+    adj = np.empty_like(M)
+    adj[:, 0, 0] = e * i - f * h
+    adj[:, 0, 1] = c * h - b * i
+    adj[:, 0, 2] = b * f - c * e
+    adj[:, 1, 0] = f * g - d * i
+    adj[:, 1, 1] = a * i - c * g
+    adj[:, 1, 2] = c * d - a * f
+    adj[:, 2, 0] = d * h - e * g
+    adj[:, 2, 1] = b * g - a * h
+    adj[:, 2, 2] = a * e - b * d
+    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
+    bad = ~np.isfinite(det) | (det == 0.0)
+    if bad.any():
+        raise np.linalg.LinAlgError(f"matrix {int(np.argmax(bad))} of {len(M)} is singular or not finite (det {det[bad][0]})")
+    adj /= det[:, None, None]
+    return adj
+
+
+def right_stretch(F: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3, 3]
+    """U = sqrt(F^T F), the symmetric positive stretch of F = R U (V diag(s) V^T for F = W diag(s)
+    V^T), without an SVD: with C = F^T F and the invariants of U from its eigenvalues s (the
+    singular values of F), I1 = s1 + s2 + s3, I2 = s1 s2 + s2 s3 + s3 s1, I3 = s1 s2 s3,
+    U = (-C^2 + (I1^2 - I2) C + I1 I3 I) / (I1 I2 - I3) (Cayley-Hamilton; Hoger and Carlson 1984).
+    The denominator is (s1 + s2)(s2 + s3)(s3 + s1) > 0 unless two singular values vanish. The
+    invariants are symmetric in s, so a repeated pair's sqrt(eps) error (singular_values) cancels
+    in them to first order: U to ~1e-12 relative for the matrices of a morph (np.linalg.svd: 1.4 s
+    against ~0.1 s for 471K)."""
+    F = np.asarray(F, dtype=np.float64)
+    C = np.matmul(F.transpose(0, 2, 1), F)
+    s = _singular_values(F, C)
+    i1 = s.sum(axis=1)
+    i2 = s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 2] * s[:, 0]
+    i3 = np.abs(det3(F))
+    U = (i1 * i1 - i2)[:, None, None] * C - np.matmul(C, C)
+    U[:, [0, 1, 2], [0, 1, 2]] += (i1 * i3)[:, None]
+    U /= (i1 * i2 - i3)[:, None, None]
+    return U

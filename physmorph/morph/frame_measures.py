@@ -28,6 +28,7 @@ import numpy as np
 import taichi as ti
 
 from physmorph.base.grid import Grid
+from physmorph.base.linalg3 import inverse3
 from physmorph.settings.mpm import MPMConfig
 from physmorph.mpm.state import volume_energy_density
 from physmorph.base.taichi_runtime import ensure_taichi
@@ -157,8 +158,7 @@ def frame_strain(F_start: np.ndarray,  # [N, 3, 3] F at the frame's start
         raise ValueError(f"F_start has shape {F_start.shape} and F_end {F_end.shape}; they must match")
     if not len(F_start):
         return 0.0
-    # F_end F_start^-1 = X  <=>  F_start^T X^T = F_end^T
-    frame = np.linalg.solve(F_start.transpose(0, 2, 1), F_end.transpose(0, 2, 1)).transpose(0, 2, 1)
+    frame = F_end @ inverse3(F_start)
     return float(np.quantile(np.linalg.norm(frame - np.eye(3), axis=(1, 2)), quantile))
 
 

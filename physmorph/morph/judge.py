@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 
+from physmorph.base.linalg3 import inverse3
 from physmorph.morph.frame_state import FrameState
 from physmorph.morph.inputs import MorphInputs
 from physmorph.morph.settle import AcceptedFrame, settle_gate
@@ -107,5 +108,5 @@ def absorb_at_rest(st: ParticleState, solver: MPMSolver, cfg: MorphConfig) -> Pa
     Fp = absorbed_rest(st.F, solver.control_mean(), st.Fp, cfg.plasticity)
     rebase_to = rebase_reference(cfg.plasticity, True, Fp, Fp)
     if rebase_to is not None:
-        solver.rebase_control(st.F, np.linalg.solve(st.Fp, rebase_to))
+        solver.rebase_control(st.F, inverse3(st.Fp) @ rebase_to)
     return dataclasses.replace(st, Fp=Fp)

@@ -42,6 +42,7 @@ from physmorph.morph.inputs import MorphInputs
 from physmorph.records.h5io import stored_identity
 from physmorph.morph.injection import frame_calibration
 from physmorph.morph.judge import FrameJudge
+from physmorph.base.linalg3 import inverse3
 from physmorph.base.memory import release_free_memory
 from physmorph.settings.morph import MorphConfig
 from physmorph.settings.mpm import MPMError
@@ -242,7 +243,7 @@ class MorphRun:
             raise MorphDivergenceError(f"{exc} (completed frames are kept in {self.run.dir})") from exc
         rebase_to = rebase_reference(cfg.plasticity, absorbing, Fp_from, pl.Fp)
         if rebase_to is not None:
-            solver.rebase_control(st.F, np.linalg.solve(Fp_old, rebase_to))
+            solver.rebase_control(st.F, inverse3(Fp_old) @ rebase_to)
 
     def frame(self, k: int) -> bool:
         """Frame k's phases, committed; False where the run stops (a position_inject divergence)."""

@@ -10,6 +10,7 @@ import numpy as np
 import taichi as ti
 
 from physmorph.base.grid import BOUNDARY_CELLS, Grid
+from physmorph.base.linalg3 import inverse3
 from physmorph.base.taichi_runtime import init_taichi
 from physmorph.settings.mpm import MPMConfig, MPMStateError
 
@@ -73,7 +74,7 @@ class MPMModel:
                 f"x of particle {p} = {st.x[p].tolist()} is outside the usable domain "
                 f"[{self.x_min}, {self.x_max}] (the B-spline stencil would leave the grid)")
         dt_ = self.np_dtype
-        self.Fp_inv.from_numpy(np.linalg.inv(st.Fp).astype(dt_))
+        self.Fp_inv.from_numpy(inverse3(st.Fp).astype(dt_))
         self.mass.from_numpy(st.mass.astype(dt_))
         self.vol.from_numpy(st.volume.astype(dt_))
         weight = st.volume.max() / st.volume if self.cfg.step_per_volume else np.ones(self.n)

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from physmorph.base.linalg3 import det3, singular_values
+from physmorph.base.linalg3 import det3, inverse3, right_stretch, singular_values
 from physmorph.settings.plasticity import PlasticityConfig  # noqa: F401 (declared with the settings)
 
 if TYPE_CHECKING:  # scipy.spatial is imported where it is used: the workflow reads the config classes at every start
@@ -126,7 +126,7 @@ def rebase_control(
     With the control re-based the step is absorbed, and Fp changes only the reference against
     which later deformation is measured.
     """
-    M = np.linalg.solve(Fp_old, Fp_new)  # Fp_old^-1 Fp_new, [N, 3, 3]
+    M = inverse3(Fp_old) @ Fp_new  # Fp_old^-1 Fp_new, [N, 3, 3]
     return np.einsum("tnij,njk->tnik", F[None] + control, M) - F[None]
 
 
@@ -149,7 +149,7 @@ def absorb_control(
     A = F + control_mean  # [N, 3, 3]
     ok = det3(A) > 1e-3
     out = Fp.copy()
-    out[ok] = 0.0 * Fp[ok] + Fp[ok] @ np.linalg.solve(A[ok], F[ok])
+    out[ok] = 0.0 * Fp[ok] + Fp[ok] @ (inverse3(A[ok]) @ F[ok])
     return out
 
 
@@ -167,11 +167,9 @@ def absorb_shape(
     (rebase_control) the running morph sees the same stress, and a released one has none.
     Particles with det F <= 1e-3 (near-inverted) keep their Fp.
     """
-    _, sig, Vt = np.linalg.svd(F)
-    S = np.einsum("nji,nj,njk->nik", Vt, sig, Vt)  # V diag(sigma) V^T, symmetric positive
     ok = det3(F) > 1e-3
     out = Fp.copy()
-    out[ok] = 0.0 * Fp[ok] + S[ok]  # 0 Fp: see absorb_control
+    out[ok] = 0.0 * Fp[ok] + right_stretch(F[ok])  # V diag(sigma) V^T without the SVD; 0 Fp: see absorb_control
     return out
 
 

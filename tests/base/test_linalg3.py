@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from physmorph.base.linalg3 import det3, signed_singular_values, singular_values, symmetric_eigenvalues
+from physmorph.base.linalg3 import det3, inverse3, right_stretch, signed_singular_values, singular_values, symmetric_eigenvalues
 from physmorph.mpm.state import fixed_corotated_energy_density, polar_rotation
 
 
@@ -80,3 +80,43 @@ def test_energy_density_unchanged_by_the_closed_form():
     shear = 2.0 * ((F - R) ** 2).sum(axis=(1, 2))
     got = fixed_corotated_energy_density(F, 2.0, 3.0)
     np.testing.assert_allclose(got, shear + 1.5 * (J - 1.0) ** 2, rtol=1e-9, atol=1e-12)
+
+
+def test_inverses_match_numpy_and_refuse_singular_matrices():
+    """inverse3 against np.linalg.inv on the invertible cases (inverted ones among them), to round-off
+    times the condition number; a singular matrix raises LinAlgError as NumPy's does."""
+    M = _cases()
+    ok = np.abs(np.linalg.det(M)) > 1e-6 * np.abs(M).reshape(len(M), -1).max(axis=1) ** 3
+    A = M[ok]
+    want = np.linalg.inv(A)
+    cond = np.linalg.cond(A)
+    err = np.abs(inverse3(A) - want).reshape(len(A), -1).max(axis=1) / np.abs(want).reshape(len(A), -1).max(axis=1)
+    assert np.all(err <= 1e-14 * cond)
+    np.testing.assert_allclose(inverse3(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-11 * cond.max())
+    assert (np.linalg.det(A) < 0).sum() > 50
+    with pytest.raises(np.linalg.LinAlgError, match="matrix 1 of 2"):
+        inverse3(np.stack([np.eye(3), np.diag([1.0, 0.0, 2.0])]))
+    assert inverse3(np.zeros((0, 3, 3))).shape == (0, 3, 3)
+
+
+def _stretch_by_svd(F: np.ndarray) -> np.ndarray:  # [N, 3, 3]
+    """The reference: V diag(s) V^T from F = W diag(s) V^T."""
+    _, s, Vt = np.linalg.svd(F)
+    return np.einsum("nji,nj,njk->nik", Vt, s, Vt)
+
+
+def test_right_stretch_matches_the_svd():
+    """sqrt(F^T F) in closed form against the SVD's V diag(s) V^T: repeated singular values (a pure
+    rotation, a uniaxial stretch), inverted and nearly flat matrices, to 1e-12 of |F|; symmetric;
+    and F = R U with R a rotation where det F > 0."""
+    F = _cases()
+    keep = np.linalg.svd(F, compute_uv=False)[:, 1] > 1e-9  # U is defined unless two values vanish
+    F = F[keep]
+    U = right_stretch(F)
+    scale = np.abs(F).reshape(len(F), -1).max(axis=1)[:, None, None]
+    assert np.all(np.abs(U - _stretch_by_svd(F)) <= 1e-12 * scale + 1e-15)
+    np.testing.assert_array_equal(U, U.transpose(0, 2, 1))
+    pos = np.linalg.det(F) > 1e-3 * scale[:, 0, 0] ** 3
+    R = F[pos] @ np.linalg.inv(U[pos])
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-10)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-10)
