@@ -21,7 +21,7 @@ WHEEL_DIR ?= /opt/wheels
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 WHEELS := $(if $(filter cuda,$(DEVICE)),,$(if $(wildcard $(WHEEL_DIR)),--find-links $(WHEEL_DIR),--extra-index-url $(TORCH_CPU_INDEX)))
 
-.PHONY: venv conda-env tables figures tradeoff export morph report test gpu-check slurm-check dag recover clean-venv
+.PHONY: venv conda-env tables figures tradeoff export morph report test gpu-check gpu-bundle slurm-check dag recover clean-venv
 
 $(STAMP): $(LOCK) pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -71,6 +71,14 @@ test: $(STAMP)
 # make venv DEVICE=cuda).
 gpu-check: $(STAMP)
 	$(VENV)/bin/python -m pytest -m gpu -n 0 -rs tests/test_gpu.py
+
+# What a lent GPU machine without network needs for the GPU check (benchmarks/gpu_bundle.py):
+# .gpu_bundle/ with the packages its image lacks, for its Python (PYTHON_DEVICE), and the raw
+# meshes from MESH_DIR; there, `bash benchmarks/gpu_check.sh` with .gpu_bundle carried.
+PYTHON_DEVICE ?= 3.12
+MESH_DIR ?= ../shared/meshes
+gpu-bundle: $(STAMP)
+	$(VENV)/bin/python benchmarks/gpu_bundle.py --python $(PYTHON_DEVICE) --mesh-dir $(MESH_DIR)
 
 # The SLURM profile on a one-node SLURM cluster brought up on this machine (root, Debian; docs/cluster.md).
 slurm-check: $(STAMP)
