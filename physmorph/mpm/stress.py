@@ -55,6 +55,20 @@ def _cofactor_diff(F, dF):
     return ti.Matrix.cols([c0, c1, c2])
 
 
+@ti.func
+def pair_sums_exceed(S, c):
+    """Whether every pair sum s_i + s_j of the symmetric S's eigenvalues exceeds c, i.e.
+    tr S - lambda_max(S) > c: A = (tr S - c) I - S (eigenvalues s_i + s_j - c) is positive definite,
+    which Sylvester's criterion reads off its leading principal minors, without the eigenvalue's
+    arccos and cos."""
+    t = S.trace() - c
+    a00, a11, a22 = t - S[0, 0], t - S[1, 1], t - S[2, 2]
+    a01, a02, a12 = -S[0, 1], -S[0, 2], -S[1, 2]
+    minor2 = a00 * a11 - a01 * a01
+    det = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+    return (a00 > 0.0) & (minor2 > 0.0) & (det > 0.0)
+
+
 def make_newton_funcs(dtype):
     """The pieces of a Newton step on the rotation of Fe, for one float type: skew_solve, axial,
     hat, and newton_step (R <- R exp(omega^)); the stress's differential shares the first three."""
@@ -143,7 +157,9 @@ def make_rotation_funcs(dtype):
         (its SVD) where R0 is not a rotation (no earlier substep), where the steps have not
         converged after a few, or where gap is small or negative: near an inversion, or a step
         that found another stationary rotation (R flipped by pi about an axis of S, which
-        negates two eigenvalues of S and makes gap negative)."""
+        negates two eigenvalues of S and makes gap negative). Within the steps the pair sums are
+        only tested against that bound (pair_sums_exceed), which also keeps the step's solve clear
+        of its floor; the converged rotation's gap is computed once."""
         R = R0
         converged = False
         gap = dtype(0.0)
@@ -151,10 +167,11 @@ def make_rotation_funcs(dtype):
             for _ in range(warm_steps):
                 S0 = R.transpose() @ Fe
                 S = 0.5 * (S0 + S0.transpose())
-                gap = S.trace() - largest_eigenvalue(S)
-                if gap < dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum()):
+                bound = dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum())
+                if not pair_sums_exceed(S, bound):
                     break
-                R, th = newton_step(R, S0, S, gap)
+                # gap > bound, far above skew_solve's floor (1e-6 |S|): the bound stands in for it
+                R, th = newton_step(R, S0, S, bound)
                 if th < dtype(warm_tol):  # the step's error is ~th^2: below the float's precision
                     converged = True
                     break
