@@ -49,6 +49,7 @@ from physmorph.settings.mpm import MPMError
 from physmorph.mpm.solver import MPMSolver
 from physmorph.mpm.state import ParticleState
 from physmorph.morph.quality import gap_closed
+from physmorph.morph.reabsorb import reabsorb_frame
 from physmorph.plasticity.step import absorbed_rest, chamfer_plasticity_step, neighbour_pool, rebase_reference
 from physmorph.render.api import render_and_grad
 from physmorph.settings.render import LOSS_SCALARS
@@ -266,6 +267,7 @@ class MorphRun:
         res = self.render(scal)
         t3 = time.time()
         self.plasticity(k)
+        scal["reabsorbed"] = reabsorb_frame(self.fs, self.nearest_d, self.nearest_i, self.inputs, self.cfg)
         t4 = time.time()
         every_view = res is not None and len(self.inputs.views) == self.inputs.V
         m, per_view, dm = self.inputs.measure(fs.state, fs.mask, alpha=res.alpha if res is not None and self.inputs.loss_render_is_metric else None,

@@ -64,7 +64,7 @@ SCALARS = (
     "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", *LOSS_SCALARS.values(),
     "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "rest_volume", "mask_size",
-    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "reabsorbed", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 MOTION = {"x": np.float32, "F": np.float16}  # what every other frame keeps (the module docstring)

@@ -116,6 +116,12 @@ class MorphConfig:
         "destination (a cell of material one cell from it costs this; 0: off)", ge=0)] = 0.0
     destination_pull_onset: Annotated[Float, setting(
         "the destination pull acts on particles more than this far from their destination", "cells", ge=0)] = 2.0
+    # Spray the control cannot move (a lone particle's stress moves it not at all) moved back into the
+    # body between frames (physmorph.morph.reabsorb). Not in the paper: its adaptive particle
+    # redistribution, the reabsorbing part.
+    reabsorb_strays: Annotated[Bool, setting(
+        "method full: after each frame, particles torn off the body and outside the target (the stray pull's test) "
+        "join the body particle nearest their nearest target surface point, with its state")] = False
 
     # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)

@@ -96,7 +96,8 @@ def morph_params(cfg) -> str:
     d.get("mpm", {}).pop("threads", None)
     if cfg.method != "full":
         d.pop("plasticity", None)
-        for k in ("stray_pull", "stray_pull_onset", "stray_pull_density", "destination_pull", "destination_pull_onset"):
+        for k in ("stray_pull", "stray_pull_onset", "stray_pull_density", "destination_pull", "destination_pull_onset",
+                  "reabsorb_strays"):
             d.pop(k, None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):

@@ -53,4 +53,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "mpm.volume_weight": 0.0,  # no volume term in the physics loss
     "destination_pull": 0.0,  # no pull toward the transport destinations
     "destination_pull_onset": 2.0,
+    "reabsorb_strays": False,  # spray left where it tore off
 }
