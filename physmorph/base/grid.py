@@ -102,3 +102,18 @@ def blur_weights(sigma: float) -> np.ndarray:  # [2 r + 1]
     k = np.arange(-r, r + 1, dtype=np.float64)
     w = np.exp(-k ** 2 / (2.0 * sigma ** 2))
     return w / w.sum()
+
+
+def occupied_pieces(x: np.ndarray,  # [N, 3] positions
+                    dx: float) -> tuple[np.ndarray, int]:  # [N] piece of each point (1..count), count
+    """The connected pieces of the cells of side dx the points occupy (26-connected: cells sharing a
+    face, an edge or a corner), scipy.ndimage.label on a grid with a free layer around them; each
+    point's piece label and the number of pieces."""
+    from scipy import ndimage
+
+    x = np.asarray(x, np.float64)
+    cell = np.floor((x - x.min(axis=0)) / dx).astype(np.int64) + 1
+    occupied = np.zeros(tuple(cell.max(axis=0) + 2), dtype=bool)
+    occupied[tuple(cell.T)] = True
+    labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    return labels[tuple(cell.T)], int(count)

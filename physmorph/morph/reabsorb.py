@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from physmorph.base.grid import occupied_pieces
 from physmorph.mpm.state import ParticleState
 
 # A detached piece holding at least this share of the material is a part of the body, not spray.
@@ -37,13 +38,7 @@ def detached_pieces(x: np.ndarray,  # [N, 3]
                     dx: float) -> np.ndarray:  # [N] bool
     """Particles in a connected piece of occupied cells (side dx, 26-connected) other than the one
     of most mass, the piece holding less than SPRAY_PIECE_SHARE of the mass."""
-    from scipy import ndimage
-
-    cell = np.floor((x - x.min(axis=0)) / dx).astype(np.int64) + 1  # a free layer around the body
-    occupied = np.zeros(tuple(cell.max(axis=0) + 2), dtype=bool)
-    occupied[tuple(cell.T)] = True
-    labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
-    piece = labels[tuple(cell.T)]  # [N] 1..count
+    piece, count = occupied_pieces(x, dx)
     piece_mass = np.bincount(piece, weights=mass, minlength=count + 1)
     small = piece_mass < SPRAY_PIECE_SHARE * mass.sum()
     small[int(np.argmax(piece_mass))] = False

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from physmorph.base.grid import occupied_pieces
+
 ROUGHNESS_PASSES = 50
 P95 = 95.0
 
@@ -26,16 +28,10 @@ def largest_body_outside_share(x: np.ndarray,  # [N, 3] positions
                                mass: np.ndarray,  # [N] masses (or any per-particle weight)
                                dx: float) -> float:
     """Share of the weight outside the largest connected body (the module docstring): O(N), the
-    occupied cells labelled by scipy.ndimage.label with 26-connectivity."""
-    from scipy import ndimage
-
-    x = np.asarray(x, np.float64)
+    occupied cells in 26-connected pieces (physmorph.base.grid.occupied_pieces)."""
     w = np.asarray(mass, np.float64)
-    cell = np.floor((x - x.min(axis=0)) / dx).astype(np.int64) + 1  # a free layer around the body
-    occupied = np.zeros(tuple(cell.max(axis=0) + 2), dtype=bool)
-    occupied[tuple(cell.T)] = True
-    labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
-    body = np.bincount(labels[tuple(cell.T)], weights=w, minlength=count + 1)
+    piece, count = occupied_pieces(x, dx)
+    body = np.bincount(piece, weights=w, minlength=count + 1)
     return float(max(0.0, 1.0 - body.max() / w.sum()))  # one body: 0, not its rounding (-1e-16)
 
 
