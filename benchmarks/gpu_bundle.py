@@ -109,7 +109,8 @@ def pack(folders: list[Path], archive: Path) -> None:
 
 
 def copy_meshes(mesh_dir: Path, dest: Path) -> list[str]:
-    """The raw meshes of config/config.yaml into ``dest``, checksums verified; their names."""
+    """The raw meshes of config/config.yaml into ``dest``, checksums verified; their names. Raises
+    FetchError naming the mesh a mirror lacks or holds with another checksum."""
     from physmorph.meshes.fetch import fetch_mesh
     from physmorph.settings.workflow import load_settings
 
@@ -145,9 +146,9 @@ def build(out: Path, python: str, mesh_dir: Path) -> dict:
     with tempfile.TemporaryDirectory(dir=parent, prefix=".gpu_bundle_build") as tmp:
         staging = Path(tmp) / "bundle"
         site = Path(tmp) / "site"
+        meshes = copy_meshes(mesh_dir, Path(tmp) / "meshes")  # first: a bad mirror is named before the download
         install_site(pins, python, site)
         removed = strip_site(site)
-        meshes = copy_meshes(mesh_dir, Path(tmp) / "meshes")
         staging.mkdir()
         pack([site, Path(tmp) / "meshes"], staging / "bundle.tar.xz")
         digest = hashlib.sha256((staging / "bundle.tar.xz").read_bytes()).hexdigest()
@@ -168,7 +169,12 @@ def main() -> None:
                     help="a local mirror of the raw meshes (default: $PHYSMORPH_MESH_DIR, else ../shared/meshes)")
     ap.add_argument("--out", type=Path, default=REPO / ".gpu_bundle")
     args = ap.parse_args()
-    sizes = build(args.out, args.python, args.mesh_dir)
+    from physmorph.meshes.errors import FetchError
+
+    try:
+        sizes = build(args.out, args.python, args.mesh_dir)
+    except FetchError as exc:
+        raise SystemExit(f"{exc} (--mesh-dir names a local mirror of the raw meshes)") from None
     tree = travelling_bytes()
     total = tree + sizes["bundle"]
     mib = 2.0**20

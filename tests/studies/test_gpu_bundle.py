@@ -103,3 +103,14 @@ def test_the_check_refuses_a_bundle_for_another_python(tmp_path):
     assert res.returncode == 2
     assert "built for Python 2.7" in res.stderr and "PYTHON_DEVICE=" in res.stderr
     assert "===" not in res.stdout
+
+
+def test_a_missing_mirror_is_named_in_one_line_before_any_download(tmp_path, monkeypatch):
+    """The meshes are checked first: a mirror without them stops the builder with the mesh and the
+    folder named, before pip runs and without leaving a bundle."""
+    monkeypatch.setattr(bundle, "install_site", lambda *a: pytest.fail("pip ran before the meshes were checked"))
+    monkeypatch.setattr("sys.argv", ["gpu_bundle.py", "--mesh-dir", str(tmp_path / "none"), "--out", str(tmp_path / "b")])
+    with pytest.raises(SystemExit, match=r"stanford-bunny.obj: not found in mesh mirror .*none.*--mesh-dir"):
+        bundle.main()
+    assert not (tmp_path / "b").exists()
+    assert not list(tmp_path.glob(".gpu_bundle_build*"))
