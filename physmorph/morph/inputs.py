@@ -60,7 +60,8 @@ class MorphInputs:
         # would then be lowered by smearing the excess thinly. The target's mass distribution is
         # rescaled to the source's total mass (its shape is what is matched).
         self.mass_ratio = float(parts.mass.sum() / target.grid_mass.sum())
-        self.solver.set_target_grid_mass(target.grid_mass * self.mass_ratio)
+        self.target_mass = target.grid_mass * self.mass_ratio  # [R, R, R] what the physics matches
+        self.solver.set_target_grid_mass(self.target_mass)
         # a target of another volume is named once in the log and in the run file's warnings
         self.source_volume = parts.mesh_volume if np.isfinite(parts.mesh_volume) else float(parts.volume.sum())
         self.target_volume_ratio = float(target.volume) / self.source_volume

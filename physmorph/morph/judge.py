@@ -14,6 +14,7 @@ from physmorph.base.linalg3 import inverse3
 from physmorph.morph.frame_state import FrameState
 from physmorph.morph.inputs import MorphInputs
 from physmorph.morph.settle import AcceptedFrame, settle_gate
+from physmorph.morph.waypoints import physics_objective
 from physmorph.morph.steering import MomentumRestart, OverfillOnset, StepSchedule
 from physmorph.mpm.solver import MPMSolver
 from physmorph.mpm.state import ParticleState
@@ -28,7 +29,8 @@ class FrameJudge:
     def __init__(self, cfg: MorphConfig, solver: MPMSolver, inputs: MorphInputs, run: RunWriter, log):
         self.cfg, self.solver, self.inputs, self.run, self.log = cfg, solver, inputs, run, log
         # MorphConfig.settle: the last phase's gate over frames (physmorph.morph.settle)
-        self.gate = settle_gate(cfg.settle, cfg.settle_objective, inputs.want_grad, cfg.settle_backoff)
+        self.gate = settle_gate(cfg.settle, cfg.settle_objective, inputs.want_grad, cfg.settle_backoff,
+                                physics_key=physics_objective(cfg))
         self.onset = OverfillOnset(cfg)
 
     def begin(self, start: int, fs: FrameState, checkpoint) -> None:

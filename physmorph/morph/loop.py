@@ -58,6 +58,7 @@ from physmorph.records.runfile import RunWriter, summarize_run
 from physmorph.records.runkey import RunKey
 from physmorph.morph.steering import ControlDecay, StrayPull
 from physmorph.morph.surface_mask import update_surface_mask
+from physmorph.morph.waypoints import Waypoints
 from physmorph.plasticity.transport import destinations_in_grid_mass
 
 
@@ -93,6 +94,7 @@ class MorphRun:
         self.monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
         self.judge = FrameJudge(cfg, self.solver, self.inputs, run, log=lambda msg: log(f"[{name}] {msg}"))
         self.decay, self.stray = ControlDecay(cfg), StrayPull(cfg)
+        self.waypoints = Waypoints(cfg, self.inputs.target_mass, self.inputs.target.grid)
 
     # ---------------------------------------------------------------------------- start or resume
     def begin(self) -> int:
@@ -153,6 +155,8 @@ class MorphRun:
             self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.inputs.target,
                               self.transport_destinations() if self.stray.to_destination else None)
         self.decay.apply(solver)
+        if self.waypoints.on:
+            self.waypoints.aim(solver, fs.state.x, fs.state.mass, self.transport_destinations())
         try:
             calibration = frame_calibration(cfg, fs, solver, self.inputs.inject_F, self.inputs.inject_x, k,
                                             lambda msg: self.log(f"[{self.name}] {msg}"))
@@ -255,10 +259,12 @@ class MorphRun:
             return False
         stats, new, frame_step = physics
         strain = self.advance(new)
+        # the frames' aims differ: what the restart compares, and the mass loss, against the target itself
+        to_target = self.waypoints.loss_to_target(solver) if self.waypoints.on else np.nan
         t1 = time.time()
         self.mask()
         t2 = time.time()
-        scal = {"injection_scale": fs.injection_scale if self.inputs.want_grad else np.nan,
+        scal = {"physics_loss_to_target": to_target, "injection_scale": fs.injection_scale if self.inputs.want_grad else np.nan,
                 "physics_loss_initial": stats["loss_initial"], "physics_loss": stats["loss_final"],
                 "mass_loss": solver.mass_loss(), "frame_strain": strain,
                 "delta_E_percent": stats["delta_E_percent"], "mpm_grad_norm": stats["grad_norm"], "step_size": frame_step,

@@ -123,9 +123,12 @@ class SettleGate:
         self.last_restart = int(ck.get("last_restart", -1))
 
 
-def settle_gate(onset: str, objective: str, renders: bool, backoff: float) -> SettleGate:
+def settle_gate(onset: str, objective: str, renders: bool, backoff: float,
+                physics_key: str = "physics_loss") -> SettleGate:
     """The gate of a run (MorphConfig.settle, settle_objective, settle_backoff); a method that does
-    not render (physics_only) is gated only on the physics objective, so it never reads the images."""
+    not render (physics_only) is gated only on the physics objective, so it never reads the images.
+    ``physics_key``: the frame's scalar the physics objective reads (against the target itself
+    where the frames aim at waypoints)."""
     if objective != "physics" and not renders:
         onset = "off"
-    return SettleGate(onset, OBJECTIVES[objective], backoff)
+    return SettleGate(onset, physics_key if objective == "physics" else OBJECTIVES[objective], backoff)

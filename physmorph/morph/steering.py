@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from physmorph.settings.morph import MorphConfig
+from physmorph.morph.waypoints import physics_objective
 from physmorph.mpm.state import ParticleState
 
 
@@ -24,8 +25,10 @@ class MomentumRestart:
     def __init__(self, cfg: MorphConfig, previous: float = float("nan"), before_previous: float = float("nan")):
         # the objective whose rise restarts the momentum, and starts the packing term (the mass loss
         # where the restart is off, so the onset does not depend on it)
-        self.on = {"mass_loss": "physics_loss", "alpha_mse": "alpha_mse"}.get(cfg.momentum_restart)
-        self.rise_on = self.on or "physics_loss"
+        # (against the target itself where the frames aim at waypoints: physmorph.morph.waypoints)
+        physics = physics_objective(cfg)
+        self.on = {"mass_loss": physics, "alpha_mse": "alpha_mse"}.get(cfg.momentum_restart)
+        self.rise_on = self.on or physics
         self.two_back = cfg.restart_reference == "two_back"
         self.keep, self.control_keep = cfg.restart_keep, cfg.restart_control_keep
         self.previous, self.before_previous = previous, before_previous

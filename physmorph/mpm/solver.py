@@ -225,6 +225,15 @@ class MPMSolver:
         return {name: f.to_numpy().astype(np.float64)
                 for name, f in (("x", a.x_adj), ("v", a.v_adj), ("C", a.C_adj), ("F", a.F_adj))}
 
+    def end_loss(self) -> float:
+        """The physics loss of the last forward's end state against the target set now (e.g. another
+        one since), without running the substeps again; loss() and mass_loss() then report it."""
+        self._require_loaded()
+        if self.current.rollout == 0:
+            raise RuntimeError("end_loss needs a forward first")
+        self.transfers.clear_grid()
+        return self.physics_loss.evaluate()
+
     def grid_mass(self) -> np.ndarray:  # [res, res, res]
         """Grid mass of x_T from the last forward (valid right after forward/rollout)."""
         self.transfers.clear_grid()

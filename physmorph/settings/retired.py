@@ -54,4 +54,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "destination_pull": 0.0,  # no pull toward the transport destinations
     "destination_pull_onset": 2.0,
     "reabsorb_strays": False,  # spray left where it tore off
+    "waypoint_cells": 0.0,  # each frame's physics aims at the target itself
 }

@@ -1,0 +1,90 @@
+"""Each frame's physics aimed at a waypoint along the transport plan (MorphConfig.waypoint_cells).
+
+The grid's mass loss pulls only where a node's mass differs from the target's: material that has
+to cross a region already at the target's density (into a letter's tip, a duck's head) sees no
+pull, and the mid bodies stop with their heads hollow and their bays full (docs/study/log.md,
+finding 253). The plasticity's transport plan says where each particle's mass belongs. The
+waypoint target adds the plan's next step to the target the physics aims at:
+
+    m*_I = max(0, m_target,I + sum_p w_Ip m_p (y_p) - sum_p w_Ip m_p (x_p)),
+    y_p = x_p + min(1, s dx / |d_p - x_p|) (d_p - x_p)  where |d_p - x_p| > onset dx, else x_p,
+
+x_p the particle at the frame's start, d_p its transport destination, s = waypoint_cells: the
+residual m_target - m(x) is what the plain loss sees, and m(y) - m(x) is the mass flux of moving
+every far particle s cells along its plan. Where every particle is within the onset of its
+destination m* is the target itself. Not in the paper (its future work: topology-aware
+correspondences).
+
+The physics loss of a frame then aims at a field that changes from frame to frame, so the
+momentum restart, the packing term's onset and the settle phase, which compare the physics loss
+between frames, read it against the target itself: the end state's loss is evaluated again with
+the target set back (``physics_loss_to_target``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from physmorph.base.grid import Grid, splat_mass
+from physmorph.settings.morph import MorphConfig
+
+# the frame's scalar the restart reads where the waypoints are on (physmorph.records.runfile.SCALARS)
+TO_TARGET = "physics_loss_to_target"
+
+
+def waypoint_positions(x: np.ndarray,  # [N, 3] the particles at the frame's start
+                       destination: np.ndarray,  # [N, 3] their transport destinations
+                       step: float, onset: float) -> np.ndarray:  # [N, 3]
+    """y_p: each particle farther than ``onset`` from its destination moved ``step`` toward it
+    (at most onto it); every other particle where it is (lengths in domain units)."""
+    to = destination - x
+    dist = np.linalg.norm(to, axis=1)
+    share = np.where(dist > onset, np.minimum(1.0, step / np.maximum(dist, 1e-300)), 0.0)
+    return x + share[:, None] * to
+
+
+def waypoint_grid_mass(x: np.ndarray,  # [N, 3]
+                       mass: np.ndarray,  # [N]
+                       destination: np.ndarray,  # [N, 3]
+                       target_mass: np.ndarray,  # [R, R, R] the target's grid mass, at the source's total mass
+                       grid: Grid, step_cells: float, onset_cells: float) -> np.ndarray:  # [R, R, R]
+    """m* = max(0, target + m(y) - m(x)) of the module docstring: the target plus the plan's
+    next step of ``step_cells`` for every particle more than ``onset_cells`` from its destination."""
+    y = waypoint_positions(x, destination, step_cells * grid.dx, onset_cells * grid.dx)
+    moving = np.any(y != x, axis=1)
+    if not moving.any():
+        return np.asarray(target_mass, dtype=np.float64).copy()
+    # only the moving particles contribute to the flux m(y) - m(x)
+    flux = splat_mass(y[moving], mass[moving], grid) - splat_mass(x[moving], mass[moving], grid)
+    return np.maximum(0.0, target_mass + flux)
+
+
+def waypoints_on(cfg: MorphConfig) -> bool:
+    """Whether a run aims its frames at waypoints (the full method's transport plan, a step > 0)."""
+    return cfg.waypoint_cells > 0 and cfg.method == "full" and cfg.plasticity.correspondence == "transport"
+
+
+def physics_objective(cfg: MorphConfig) -> str:
+    """The frame's scalar that compares the physics loss between frames: against the target itself."""
+    return TO_TARGET if waypoints_on(cfg) else "physics_loss"
+
+
+class Waypoints:
+    """The waypoint target over a run: set on the solver before each frame's physics, and the end
+    state's physics loss against the target itself after it (MorphConfig.waypoint_cells)."""
+
+    def __init__(self, cfg: MorphConfig, target_mass: np.ndarray, grid: Grid):  # target_mass: [R, R, R]
+        self.on = waypoints_on(cfg)
+        self.step, self.onset = cfg.waypoint_cells, cfg.destination_pull_onset
+        self.target_mass, self.grid = target_mass, grid
+
+    def aim(self, solver, x: np.ndarray, mass: np.ndarray,  # x: [N, 3], mass: [N]
+            destination: np.ndarray) -> None:  # [N, 3]
+        """The frame's waypoint target on the solver (before its physics)."""
+        solver.set_target_grid_mass(waypoint_grid_mass(x, mass, destination, self.target_mass, self.grid,
+                                                       self.step, self.onset))
+
+    def loss_to_target(self, solver) -> float:
+        """The target set back on the solver and the end state's physics loss against it."""
+        solver.set_target_grid_mass(self.target_mass)
+        return solver.end_loss()

@@ -1,0 +1,92 @@
+"""Each frame's physics aimed at a waypoint along the transport plan (MorphConfig.waypoint_cells,
+physmorph.morph.waypoints)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import physmorph.morph.waypoints as waypoints
+from physmorph.base.grid import Grid, splat_mass
+from physmorph.morph.loop import morph_config, run_morph
+from physmorph.morph.steering import MomentumRestart
+from physmorph.morph.waypoints import TO_TARGET, waypoint_grid_mass, waypoint_positions, waypoints_on
+from physmorph.records.runfile import read_metrics
+
+
+def test_far_particles_step_toward_their_destination_and_near_ones_stay():
+    x = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [2.0, 0.0, 0.0]])
+    d = np.array([[10.0, 0.0, 0.0], [0.0, 0.0, 1.5], [1.0, 1.0, 1.2], [0.0, 0.0, 0.0]])
+    y = waypoint_positions(x, d, step=2.0, onset=0.5)
+    np.testing.assert_allclose(y[0], [2.0, 0.0, 0.0])  # 2 along a 10-long way
+    np.testing.assert_allclose(y[1], [0.0, 0.0, 1.5])  # 1.5 < 2: onto the destination, not past it
+    np.testing.assert_array_equal(y[2], x[2])  # within the onset: where it is
+    np.testing.assert_allclose(y[3], [0.0, 0.0, 0.0])
+
+
+def test_the_waypoint_target_is_the_target_plus_the_moving_particles_flux():
+    """m* = max(0, target + m(y) - m(x)) over the particles that move; where none moves, the target
+    itself; the flux keeps the total mass where nothing is clipped."""
+    grid = Grid(32)  # domain [-16, 16], dx 1
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-2.0, 2.0, size=(200, 3))
+    mass = rng.uniform(0.5, 1.5, 200)
+    d = x.copy()
+    d[:50, 0] += 6.0  # 6 cells to go
+    target = splat_mass(d, mass, grid)
+    m = waypoint_grid_mass(x, mass, d, target, grid, step_cells=2.0, onset_cells=2.0)
+    y = x.copy()
+    y[:50, 0] += 2.0  # 2 cells
+    expected = np.maximum(0.0, target + splat_mass(y[:50], mass[:50], grid) - splat_mass(x[:50], mass[:50], grid))
+    np.testing.assert_allclose(m, expected, atol=1e-12)
+    assert (m >= 0).all()
+    # every particle within the onset: the target, unchanged
+    np.testing.assert_array_equal(waypoint_grid_mass(x, mass, d, target, grid, 2.0, onset_cells=7.0), target)
+    # a target the flux never drives below zero keeps its total
+    roomy = target + 10.0
+    np.testing.assert_allclose(waypoint_grid_mass(x, mass, d, roomy, grid, 2.0, 2.0).sum(), roomy.sum(), rtol=1e-12)
+
+
+def test_the_restart_reads_the_loss_against_the_target_where_waypoints_are_on(tiny):
+    cfg, _ = tiny
+    base = morph_config(cfg, "iso_bunny_full")
+    on = dataclasses.replace(base, waypoint_cells=1.0)
+    assert not waypoints_on(base) and waypoints_on(on)
+    assert MomentumRestart(base).rise_on == "physics_loss" and MomentumRestart(on).rise_on == TO_TARGET
+    assert not waypoints_on(dataclasses.replace(on, method="f_inject"))
+
+
+def test_a_run_aims_each_frame_at_its_waypoints_and_judges_against_the_target(tiny, monkeypatch):
+    """A tiny full morph with waypoints: each frame's physics is given the waypoint target of its
+    start state, then the target itself, whose end-state loss the frame records; with a step that
+    moves no particle (an onset past every destination) the run is the run without waypoints.
+    Slow (~8 s): three tiny full morphs of 2 frames."""
+    cfg, d = tiny
+    base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2)
+    aims = []
+    real = waypoints.waypoint_grid_mass
+
+    def recorded(x, mass, destination, target_mass, grid, step, onset):
+        m = real(x, mass, destination, target_mass, grid, step, onset)
+        aims.append((np.abs(m - target_mass).sum(), target_mass.sum()))
+        return m
+
+    monkeypatch.setattr(waypoints, "waypoint_grid_mass", recorded)
+    runs = {}
+    for tag, over in (("off", {}), ("on", {"waypoint_cells": 2.0}),
+                      ("still", {"waypoint_cells": 2.0, "destination_pull_onset": 1e6})):
+        out = d / f"waypoints_{tag}.h5"
+        run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, dataclasses.replace(base, **over), name=out.stem)
+        runs[tag] = read_metrics(out)
+    assert len(aims) == 4  # two frames each for the two runs with waypoints
+    assert all(moved > 1e-3 * total for moved, total in aims[:2])  # the plan moved the aim
+    assert all(moved == 0.0 for moved, _ in aims[2:])
+    on, off, still = runs["on"], runs["off"], runs["still"]
+    assert np.isnan(off[TO_TARGET]).all() and np.isnan(on[TO_TARGET][0])
+    assert np.isfinite(on[TO_TARGET][1:]).all()
+    # the physics loss is the waypoint's; the mass loss, like the recorded to-target loss, the target's
+    assert not np.allclose(on["physics_loss"][1:], on[TO_TARGET][1:], rtol=1e-6)
+    np.testing.assert_array_equal(still[TO_TARGET][1:], still["physics_loss"][1:])
+    for key in ("alpha_mse", "physics_loss", "mass_loss", "volume_iou"):
+        np.testing.assert_array_equal(still[key], off[key])
