@@ -58,7 +58,7 @@ from physmorph.records.runfile import RunWriter, summarize_run
 from physmorph.records.runkey import RunKey
 from physmorph.morph.steering import ControlDecay, StrayPull
 from physmorph.morph.surface_mask import update_surface_mask
-from physmorph.morph.waypoints import Waypoints
+from physmorph.morph.waypoints import Waypoints, plan_push
 from physmorph.plasticity.transport import destinations_in_grid_mass
 
 
@@ -148,6 +148,10 @@ class MorphRun:
         (the optimiser's stats, the state at the frame's end, the frame's step), None where a
         position_inject run diverged (recorded: instability is its finding)."""
         cfg, solver, fs = self.cfg, self.solver, self.fs
+        if cfg.plan_push > 0 and self.waypoints.plan:
+            fs.state = dataclasses.replace(fs.state, v=fs.state.v + plan_push(
+                fs.state.x, self.transport_destinations(), cfg.plan_push, cfg.destination_pull_onset,
+                self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt))
         solver.load_state(fs.state)
         if self.stray.on:
             if self.nearest_d is None:

@@ -15,6 +15,10 @@ every far particle s cells along its plan. Where every particle is within the on
 destination m* is the target itself. Not in the paper (its future work: topology-aware
 correspondences).
 
+``plan_push`` moves the material along the same steps directly: at each frame's start every far
+particle is given the velocity that would carry it that far over the frame (MorphConfig.plan_push),
+outside the optimisation (no gradient passes through it).
+
 The physics loss of a frame then aims at a field that changes from frame to frame, so the
 momentum restart, the packing term's onset and the settle phase, which compare the physics loss
 between frames, read it against the target itself: the end state's loss is evaluated again with
@@ -59,6 +63,15 @@ def waypoint_grid_mass(x: np.ndarray,  # [N, 3]
     return np.maximum(0.0, target_mass + flux)
 
 
+def plan_push(x: np.ndarray,  # [N, 3] the particles at the frame's start
+              destination: np.ndarray,  # [N, 3] their transport destinations
+              cells: float, onset_cells: float, dx: float, frame_time: float) -> np.ndarray:  # [N, 3]
+    """MorphConfig.plan_push: the velocity added to each particle more than ``onset_cells`` from its
+    destination that would carry it ``cells`` toward it over the frame (at most onto it), zero for
+    every other particle: (y_p - x_p) / frame_time with y_p its waypoint."""
+    return (waypoint_positions(x, destination, cells * dx, onset_cells * dx) - x) / frame_time
+
+
 def waypoints_on(cfg: MorphConfig) -> bool:
     """Whether a run aims its frames at waypoints (the full method's transport plan, a step > 0)."""
     return cfg.waypoint_cells > 0 and cfg.method == "full" and cfg.plasticity.correspondence == "transport"
@@ -75,6 +88,7 @@ class Waypoints:
 
     def __init__(self, cfg: MorphConfig, target_mass: np.ndarray, grid: Grid):  # target_mass: [R, R, R]
         self.on = waypoints_on(cfg)
+        self.plan = cfg.method == "full" and cfg.plasticity.correspondence == "transport"  # the plan exists
         self.step, self.onset = cfg.waypoint_cells, cfg.destination_pull_onset
         self.target_mass, self.grid = target_mass, grid
 

@@ -115,7 +115,7 @@ class MorphConfig:
         "method full with correspondence transport: weight of a pull on each particle toward its transport "
         "destination (a cell of material one cell from it costs this; 0: off)", ge=0)] = 0.0
     destination_pull_onset: Annotated[Float, setting(
-        "the destination pull and the waypoint target act on particles more than this far from their destination",
+        "the destination pull, the waypoint target and the plan's push act on particles more than this far from their destination",
         "cells", ge=0)] = 2.0
     # Each frame's physics aimed at the target plus the plan's next step (physmorph.morph.waypoints):
     # the mass loss's residual does not pull material through a region already at the target's
@@ -124,6 +124,10 @@ class MorphConfig:
         "method full with correspondence transport: each frame's physics aims at the target's grid mass plus the "
         "mass flux of moving every particle this far along its transport plan (0: at the target itself)", "cells",
         ge=0)] = 0.0
+    plan_push: Annotated[Float, setting(
+        "method full with correspondence transport: at each frame's start every particle more than "
+        "destination_pull_onset cells from its transport destination is given the velocity that would carry it this "
+        "far toward it over the frame (at most onto it; 0: off)", "cells", ge=0)] = 0.0
     # Spray the control cannot move (a lone particle's stress moves it not at all) moved back into the
     # body between frames (physmorph.morph.reabsorb). Not in the paper: its adaptive particle
     # redistribution, the reabsorbing part.

@@ -55,4 +55,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "destination_pull_onset": 2.0,
     "reabsorb_strays": False,  # spray left where it tore off
     "waypoint_cells": 0.0,  # each frame's physics aims at the target itself
+    "plan_push": 0.0,  # no velocity along the transport plan
 }

@@ -11,7 +11,7 @@ import physmorph.morph.waypoints as waypoints
 from physmorph.base.grid import Grid, splat_mass
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.morph.steering import MomentumRestart
-from physmorph.morph.waypoints import TO_TARGET, waypoint_grid_mass, waypoint_positions, waypoints_on
+from physmorph.morph.waypoints import TO_TARGET, plan_push, waypoint_grid_mass, waypoint_positions, waypoints_on
 from physmorph.records.runfile import read_metrics
 
 
@@ -90,3 +90,37 @@ def test_a_run_aims_each_frame_at_its_waypoints_and_judges_against_the_target(ti
     np.testing.assert_array_equal(still[TO_TARGET][1:], still["physics_loss"][1:])
     for key in ("alpha_mse", "physics_loss", "mass_loss", "volume_iou"):
         np.testing.assert_array_equal(still[key], off[key])
+
+
+def test_the_push_carries_far_particles_their_step_over_the_frame():
+    x = np.zeros((3, 3))
+    d = np.array([[8.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.5]])
+    v = plan_push(x, d, cells=2.0, onset_cells=1.0, dx=0.5, frame_time=0.25)
+    np.testing.assert_allclose(v[0], [4.0, 0.0, 0.0])  # 2 cells of 0.5 in 0.25 s
+    np.testing.assert_allclose(v[1], [0.0, 4.0, 0.0])  # 1.0 away: onto it, no farther
+    np.testing.assert_array_equal(v[2], 0.0)  # within the onset's cell
+
+
+def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
+    """The physics of each frame is loaded with the frame's start state plus the plan's push (the
+    state committed at the frame's end is the solver's). Slow (~3 s): a tiny full morph of 2 frames."""
+    cfg, d = tiny
+    base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2,
+                               plan_push=1.0)
+    from physmorph.mpm.solver import MPMSolver
+
+    loaded, real_load = [], MPMSolver.load_state
+    monkeypatch.setattr(MPMSolver, "load_state", lambda self, st: (loaded.append(st.v.copy()), real_load(self, st))[1])
+    pushes, real_push = [], waypoints.plan_push
+    import physmorph.morph.loop as loop
+
+    def recorded(*a, **k):
+        pushes.append(real_push(*a, **k))
+        return pushes[-1]
+
+    monkeypatch.setattr(loop, "plan_push", recorded)
+    out = d / "push_on.h5"
+    run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, base, name=out.stem)
+    assert len(pushes) == 2 and np.abs(pushes[0]).max() > 0
+    # frame 1 starts at rest: the solver's first state's velocity is the push itself
+    np.testing.assert_array_equal(loaded[0], pushes[0])
