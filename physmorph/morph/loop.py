@@ -58,7 +58,7 @@ from physmorph.records.runfile import RunWriter, summarize_run
 from physmorph.records.runkey import RunKey
 from physmorph.morph.steering import ControlDecay, StrayPull
 from physmorph.morph.surface_mask import update_surface_mask
-from physmorph.morph.waypoints import Waypoints, plan_push
+from physmorph.morph.waypoints import Waypoints, plan_distance, plan_push
 from physmorph.plasticity.transport import destinations_in_grid_mass
 
 
@@ -278,6 +278,9 @@ class MorphRun:
         t3 = time.time()
         self.plasticity(k)
         scal["reabsorbed"] = reabsorb_frame(self.fs, self.nearest_d, self.nearest_i, self.inputs, self.cfg)
+        if self.waypoints.plan:
+            scal["plan_distance"] = plan_distance(fs.state.x, fs.state.mass, self.transport_destinations(),
+                                                  self.inputs.target.grid.dx)
         t4 = time.time()
         every_view = res is not None and len(self.inputs.views) == self.inputs.V
         m, per_view, dm = self.inputs.measure(fs.state, fs.mask, alpha=res.alpha if res is not None and self.inputs.loss_render_is_metric else None,

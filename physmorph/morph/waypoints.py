@@ -72,6 +72,15 @@ def plan_push(x: np.ndarray,  # [N, 3] the particles at the frame's start
     return (waypoint_positions(x, destination, cells * dx, onset_cells * dx) - x) / frame_time
 
 
+def plan_distance(x: np.ndarray,  # [N, 3]
+                  mass: np.ndarray,  # [N]
+                  destination: np.ndarray,  # [N, 3]
+                  dx: float) -> float:
+    """The mass-weighted mean distance of the particles to their transport destinations, in cells
+    (the run file's plan_distance: how far the material is from where the plan sends it)."""
+    return float(np.average(np.linalg.norm(x - destination, axis=1), weights=mass) / dx)
+
+
 def waypoints_on(cfg: MorphConfig) -> bool:
     """Whether a run aims its frames at waypoints (the full method's transport plan, a step > 0)."""
     return cfg.waypoint_cells > 0 and cfg.method == "full" and cfg.plasticity.correspondence == "transport"

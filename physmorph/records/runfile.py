@@ -61,12 +61,13 @@ from physmorph.records.runfile_cli import CHECKPOINT_NAME, LOCK_NAME, METRICS_CH
 # physics_loss: the loss the frame's control minimised, at its end (the mass loss with the packing
 # term, for the full method plus the stray pull's term); mass_loss: the same without the pull's term;
 # physics_loss_to_target: with morph.waypoint_cells, the end state's physics loss against the target
-# itself (the frames' aims differ), and mass_loss then against the target too.
+# itself (the frames' aims differ), and mass_loss then against the target too; plan_distance: the
+# full method's mass-weighted mean distance to the transport destinations, in cells.
 SCALARS = (
     "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", *LOSS_SCALARS.values(),
     "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "rest_volume", "mask_size",
-    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "reabsorbed", "physics_loss_to_target", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "reabsorbed", "physics_loss_to_target", "plan_distance", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 MOTION = {"x": np.float32, "F": np.float16}  # what every other frame keeps (the module docstring)

@@ -11,8 +11,14 @@ import physmorph.morph.waypoints as waypoints
 from physmorph.base.grid import Grid, splat_mass
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.morph.steering import MomentumRestart
-from physmorph.morph.waypoints import TO_TARGET, plan_push, waypoint_grid_mass, waypoint_positions, waypoints_on
+from physmorph.morph.waypoints import TO_TARGET, plan_distance, plan_push, waypoint_grid_mass, waypoint_positions, waypoints_on
 from physmorph.records.runfile import read_metrics
+
+
+def test_the_plan_distance_is_the_mass_weighted_mean_in_cells():
+    x = np.zeros((2, 3))
+    d = np.array([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert plan_distance(x, np.array([3.0, 1.0]), d, dx=0.5) == 3.0  # (3 x 4 cells + 1 x 0) / 4
 
 
 def test_far_particles_step_toward_their_destination_and_near_ones_stay():
@@ -122,5 +128,7 @@ def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
     out = d / "push_on.h5"
     run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, base, name=out.stem)
     assert len(pushes) == 2 and np.abs(pushes[0]).max() > 0
+    m = read_metrics(out)
+    assert np.isnan(m["plan_distance"][0]) and (m["plan_distance"][1:] > 0).all()
     # frame 1 starts at rest: the solver's first state's velocity is the push itself
     np.testing.assert_array_equal(loaded[0], pushes[0])
