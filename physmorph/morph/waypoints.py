@@ -15,14 +15,16 @@ every far particle s cells along its plan. Where every particle is within the on
 destination m* is the target itself. Not in the paper (its future work: topology-aware
 correspondences).
 
-``plan_push`` moves the material along the same steps directly: at each frame's start every far
-particle is given the velocity that would carry it that far over the frame (MorphConfig.plan_push),
-outside the optimisation (no gradient passes through it).
-
 The physics loss of a frame then aims at a field that changes from frame to frame, so the
 momentum restart, the packing term's onset and the settle phase, which compare the physics loss
 between frames, read it against the target itself: the end state's loss is evaluated again with
 the target set back (``physics_loss_to_target``).
+
+``plan_push`` moves the material along the same steps directly: at each frame's start every far
+particle is given the velocity that would carry it that far over the frame (MorphConfig.plan_push),
+outside the optimisation (no gradient passes through it). The waypoint target reaches the material
+only through the control's one-frame rollout, which moves a particle's neighbours rather than the
+particle, and carries nothing; the push does (docs/study/log.md, findings 264-265).
 """
 
 from __future__ import annotations

@@ -124,6 +124,10 @@ class MorphConfig:
         "method full with correspondence transport: each frame's physics aims at the target's grid mass plus the "
         "mass flux of moving every particle this far along its transport plan (0: at the target itself)", "cells",
         ge=0)] = 0.0
+    # The same steps given to the material as velocity at each frame's start, outside the
+    # optimisation: the control moves a particle's neighbours, not the particle, so neither the
+    # waypoint target nor the destination pull carries a region through the body; the push does
+    # (docs/study/log.md part 64). Not in the paper (its future work: particle redistribution).
     plan_push: Annotated[Float, setting(
         "method full with correspondence transport: at each frame's start every particle more than "
         "destination_pull_onset cells from its transport destination is given the velocity that would carry it this "
