@@ -65,37 +65,26 @@ def test_the_restart_reads_the_loss_against_the_target_where_waypoints_are_on(ti
 
 def test_a_run_aims_each_frame_at_its_waypoints_and_judges_against_the_target(tiny, monkeypatch):
     """A tiny full morph with waypoints: each frame's physics is given the waypoint target of its
-    start state, then the target itself, whose end-state loss the frame records; with a step that
-    moves no particle (an onset past every destination) the run is the run without waypoints.
-    Slow (~8 s): three tiny full morphs of 2 frames."""
+    start state (moved off the target by the plan), then the target itself, whose end-state loss
+    the frame records beside the waypoint's physics loss. Slow (~3 s): a tiny full morph of 2 frames."""
     cfg, d = tiny
-    base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2)
-    aims = []
-    real = waypoints.waypoint_grid_mass
+    base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2,
+                               waypoint_cells=2.0)
+    aims, real = [], waypoints.waypoint_grid_mass
 
     def recorded(x, mass, destination, target_mass, grid, step, onset):
         m = real(x, mass, destination, target_mass, grid, step, onset)
-        aims.append((np.abs(m - target_mass).sum(), target_mass.sum()))
+        aims.append(np.abs(m - target_mass).sum() / target_mass.sum())
         return m
 
     monkeypatch.setattr(waypoints, "waypoint_grid_mass", recorded)
-    runs = {}
-    for tag, over in (("off", {}), ("on", {"waypoint_cells": 2.0}),
-                      ("still", {"waypoint_cells": 2.0, "destination_pull_onset": 1e6})):
-        out = d / f"waypoints_{tag}.h5"
-        run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, dataclasses.replace(base, **over), name=out.stem)
-        runs[tag] = read_metrics(out)
-    assert len(aims) == 4  # two frames each for the two runs with waypoints
-    assert all(moved > 1e-3 * total for moved, total in aims[:2])  # the plan moved the aim
-    assert all(moved == 0.0 for moved, _ in aims[2:])
-    on, off, still = runs["on"], runs["off"], runs["still"]
-    assert np.isnan(off[TO_TARGET]).all() and np.isnan(on[TO_TARGET][0])
-    assert np.isfinite(on[TO_TARGET][1:]).all()
-    # the physics loss is the waypoint's; the mass loss, like the recorded to-target loss, the target's
+    out = d / "waypoints_on.h5"
+    run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, base, name=out.stem)
+    on = read_metrics(out)
+    assert len(aims) == 2 and min(aims) > 1e-3  # the plan moved each frame's aim
+    assert np.isnan(on[TO_TARGET][0]) and np.isfinite(on[TO_TARGET][1:]).all()
+    # the physics loss is the waypoint's, the recorded to-target loss the target's
     assert not np.allclose(on["physics_loss"][1:], on[TO_TARGET][1:], rtol=1e-6)
-    np.testing.assert_array_equal(still[TO_TARGET][1:], still["physics_loss"][1:])
-    for key in ("alpha_mse", "physics_loss", "mass_loss", "volume_iou"):
-        np.testing.assert_array_equal(still[key], off[key])
 
 
 def test_the_push_carries_far_particles_their_step_over_the_frame():
