@@ -58,8 +58,7 @@ from physmorph.records.runfile import RunWriter, summarize_run
 from physmorph.records.runkey import RunKey
 from physmorph.morph.steering import ControlDecay, StrayPull
 from physmorph.morph.surface_mask import update_surface_mask
-from physmorph.morph.waypoints import Waypoints, plan_distance, plan_push
-from physmorph.plasticity.transport import destinations_in_grid_mass
+from physmorph.morph.waypoints import FramePlan
 
 
 def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Path, cfg: MorphConfig,
@@ -88,13 +87,12 @@ class MorphRun:
         self.cfg, self.name, self.log, self.run = cfg, name, log, run
         self.inputs = MorphInputs(particles_h5, target_h5, cfg, name, log, target_size)
         self.solver = self.inputs.solver
-        self.destination = None  # correspondence="transport": computed at first use (a function of the inputs alone)
         self.pool = None  # the plasticity's neighbour pool, chosen at the first update from the positions at rest
         self.nearest_d = self.nearest_i = None  # the state's nearest target surface points, kept from the last frame's end
         self.monitor = StabilityMonitor(cfg.plasticity, log=lambda msg: log(f"[{name}] warning: {msg}"))
         self.judge = FrameJudge(cfg, self.solver, self.inputs, run, log=lambda msg: log(f"[{name}] {msg}"))
         self.decay, self.stray = ControlDecay(cfg), StrayPull(cfg)
-        self.waypoints = Waypoints(cfg, self.inputs.target_mass, self.inputs.target.grid)
+        self.plan = FramePlan(cfg, self.inputs)  # the transport plan's destinations, push and waypoints
 
     # ---------------------------------------------------------------------------- start or resume
     def begin(self) -> int:
@@ -136,31 +134,20 @@ class MorphRun:
         return fs
 
     # ---------------------------------------------------------------------------- the phases
-    def transport_destinations(self) -> np.ndarray:  # [N, 3]
-        if self.destination is None:
-            self.destination = destinations_in_grid_mass(self.inputs.parts.x, self.inputs.parts.mass, self.inputs.target.grid_mass,
-                                                         self.inputs.target.grid, self.cfg.plasticity.transport_blur,
-                                                         device=self.inputs.device)
-        return self.destination
-
     def physics(self, k: int) -> tuple[dict, ParticleState, float] | None:
         """A. J optimiser iterations on dFc with the last render gradient injected; returns
         (the optimiser's stats, the state at the frame's end, the frame's step), None where a
         position_inject run diverged (recorded: instability is its finding)."""
         cfg, solver, fs = self.cfg, self.solver, self.fs
-        if cfg.plan_push > 0 and self.waypoints.plan:
-            fs.state = dataclasses.replace(fs.state, v=fs.state.v + plan_push(
-                fs.state.x, self.transport_destinations(), cfg.plan_push, cfg.destination_pull_onset,
-                self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt))
+        fs.state = self.plan.pushed(fs.state)
         solver.load_state(fs.state)
         if self.stray.on:
             if self.nearest_d is None:
                 self.nearest_d, self.nearest_i = self.inputs.nearest_target(fs.state.x)
             self.stray.anchor(solver, fs.state, self.nearest_d, self.nearest_i, self.inputs.target,
-                              self.transport_destinations() if self.stray.to_destination else None)
+                              self.plan.destinations() if self.stray.to_destination else None)
         self.decay.apply(solver)
-        if self.waypoints.on:
-            self.waypoints.aim(solver, fs.state.x, fs.state.mass, self.transport_destinations())
+        self.plan.aim(solver, fs.state)
         try:
             calibration = frame_calibration(cfg, fs, solver, self.inputs.inject_F, self.inputs.inject_x, k,
                                             lambda msg: self.log(f"[{self.name}] {msg}"))
@@ -234,7 +221,7 @@ class MorphRun:
         control_mean = solver.control_mean()  # [N, 3, 3]
         absorbing = cfg.plasticity.absorbs_at(k, cfg.frames)
         Fp_from = absorbed_rest(st.F, control_mean, st.Fp, cfg.plasticity) if absorbing else st.Fp
-        destination = self.transport_destinations() if cfg.plasticity.correspondence == "transport" else self.destination
+        destination = self.plan.destinations() if cfg.plasticity.correspondence == "transport" else None
         if self.pool is None:
             pool = neighbour_pool(self.inputs.parts.x, self.inputs.target.grid.lo, self.inputs.target.grid.dx, cfg.plasticity.neighbour_ppc)
             self.pool = np.arange(N) if pool is None else pool
@@ -263,8 +250,7 @@ class MorphRun:
             return False
         stats, new, frame_step = physics
         strain = self.advance(new)
-        # the frames' aims differ: what the restart compares, and the mass loss, against the target itself
-        to_target = self.waypoints.loss_to_target(solver) if self.waypoints.on else np.nan
+        to_target = self.plan.loss_to_target(solver)  # what the frames compare, and the mass loss
         t1 = time.time()
         self.mask()
         t2 = time.time()
@@ -278,9 +264,7 @@ class MorphRun:
         t3 = time.time()
         self.plasticity(k)
         scal["reabsorbed"] = reabsorb_frame(self.fs, self.nearest_d, self.nearest_i, self.inputs, self.cfg)
-        if self.waypoints.plan:
-            scal["plan_distance"] = plan_distance(fs.state.x, fs.state.mass, self.transport_destinations(),
-                                                  self.inputs.target.grid.dx)
+        scal["plan_distance"] = self.plan.distance(fs.state)
         t4 = time.time()
         every_view = res is not None and len(self.inputs.views) == self.inputs.V
         m, per_view, dm = self.inputs.measure(fs.state, fs.mask, alpha=res.alpha if res is not None and self.inputs.loss_render_is_metric else None,

@@ -29,9 +29,13 @@ particle, and carries nothing; the push does (docs/study/log.md, findings 264-26
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from physmorph.base.grid import Grid, splat_mass
+from physmorph.mpm.state import ParticleState
+from physmorph.plasticity.transport import destinations_in_grid_mass
 from physmorph.settings.morph import MorphConfig
 
 # the frame's scalar the restart reads where the waypoints are on (physmorph.records.runfile.SCALARS)
@@ -93,23 +97,52 @@ def physics_objective(cfg: MorphConfig) -> str:
     return TO_TARGET if waypoints_on(cfg) else "physics_loss"
 
 
-class Waypoints:
-    """The waypoint target over a run: set on the solver before each frame's physics, and the end
-    state's physics loss against the target itself after it (MorphConfig.waypoint_cells)."""
+class FramePlan:
+    """The transport plan over a run (method full, correspondence transport): each particle's
+    destination, computed at first use (a function of the inputs alone, so a resumed run computes
+    the same), and what the frames do with it: the push (MorphConfig.plan_push), the waypoint
+    target (MorphConfig.waypoint_cells) and the distance the run file records."""
 
-    def __init__(self, cfg: MorphConfig, target_mass: np.ndarray, grid: Grid):  # target_mass: [R, R, R]
-        self.on = waypoints_on(cfg)
-        self.plan = cfg.method == "full" and cfg.plasticity.correspondence == "transport"  # the plan exists
-        self.step, self.onset = cfg.waypoint_cells, cfg.destination_pull_onset
-        self.target_mass, self.grid = target_mass, grid
+    def __init__(self, cfg: MorphConfig, inputs):  # inputs: physmorph.morph.inputs.MorphInputs
+        self.cfg, self.inputs = cfg, inputs
+        self.exists = cfg.method == "full" and cfg.plasticity.correspondence == "transport"
+        self.on = waypoints_on(cfg)  # the waypoint target
+        self._destination = None
 
-    def aim(self, solver, x: np.ndarray, mass: np.ndarray,  # x: [N, 3], mass: [N]
-            destination: np.ndarray) -> None:  # [N, 3]
-        """The frame's waypoint target on the solver (before its physics)."""
-        solver.set_target_grid_mass(waypoint_grid_mass(x, mass, destination, self.target_mass, self.grid,
-                                                       self.step, self.onset))
+    def destinations(self) -> np.ndarray:  # [N, 3]
+        if self._destination is None:
+            inputs = self.inputs
+            self._destination = destinations_in_grid_mass(inputs.parts.x, inputs.parts.mass, inputs.target.grid_mass,
+                                                          inputs.target.grid, self.cfg.plasticity.transport_blur,
+                                                          device=inputs.device)
+        return self._destination
+
+    def pushed(self, st: ParticleState) -> ParticleState:
+        """The frame's start state with the plan's push added to its velocity (where plan_push is on)."""
+        cfg = self.cfg
+        if not (self.exists and cfg.plan_push > 0):
+            return st
+        dv = plan_push(st.x, self.destinations(), cfg.plan_push, cfg.destination_pull_onset,
+                       self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt)
+        return dataclasses.replace(st, v=st.v + dv)
+
+    def aim(self, solver, st: ParticleState) -> None:
+        """The frame's waypoint target on the solver, before its physics (where the waypoints are on)."""
+        if self.on:
+            solver.set_target_grid_mass(waypoint_grid_mass(st.x, st.mass, self.destinations(), self.inputs.target_mass,
+                                                           self.inputs.target.grid, self.cfg.waypoint_cells,
+                                                           self.cfg.destination_pull_onset))
 
     def loss_to_target(self, solver) -> float:
-        """The target set back on the solver and the end state's physics loss against it."""
-        solver.set_target_grid_mass(self.target_mass)
+        """After the physics: the target set back on the solver and the end state's physics loss
+        against it, what the frames compare (NaN where the waypoints are off)."""
+        if not self.on:
+            return float("nan")
+        solver.set_target_grid_mass(self.inputs.target_mass)
         return solver.end_loss()
+
+    def distance(self, st: ParticleState) -> float:
+        """plan_distance of the state (NaN where the run has no plan)."""
+        if not self.exists:
+            return float("nan")
+        return plan_distance(st.x, st.mass, self.destinations(), self.inputs.target.grid.dx)

@@ -127,14 +127,16 @@ def test_absolute_injection_gain_is_used_as_given(tiny):
 
 def test_the_transport_blur_setting_reaches_the_plan(tiny, monkeypatch):
     """plasticity.transport_blur is the blur, in grid cells, of the plan the run's plasticity uses."""
+    import physmorph.morph.waypoints as plan
+
     seen = []
-    real = morph.destinations_in_grid_mass
+    real = plan.destinations_in_grid_mass
 
     def recorded(x, mass, grid_mass, grid, blur_cells=1.0, **kw):
         seen.append(blur_cells)
         return real(x, mass, grid_mass, grid, blur_cells, **kw)
 
-    monkeypatch.setattr(morph, "destinations_in_grid_mass", recorded)
+    monkeypatch.setattr(plan, "destinations_in_grid_mass", recorded)
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
     pl = dataclasses.replace(base.plasticity, transport_blur=2.5)

@@ -107,13 +107,12 @@ def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
     loaded, real_load = [], MPMSolver.load_state
     monkeypatch.setattr(MPMSolver, "load_state", lambda self, st: (loaded.append(st.v.copy()), real_load(self, st))[1])
     pushes, real_push = [], waypoints.plan_push
-    import physmorph.morph.loop as loop
 
     def recorded(*a, **k):
         pushes.append(real_push(*a, **k))
         return pushes[-1]
 
-    monkeypatch.setattr(loop, "plan_push", recorded)
+    monkeypatch.setattr(waypoints, "plan_push", recorded)
     out = d / "push_on.h5"
     run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, base, name=out.stem)
     assert len(pushes) == 2 and np.abs(pushes[0]).max() > 0
