@@ -87,9 +87,14 @@ def plan_distance(x: np.ndarray,  # [N, 3]
     return float(np.average(np.linalg.norm(x - destination, axis=1), weights=mass) / dx)
 
 
+def plan_exists(cfg: MorphConfig) -> bool:
+    """Whether a run has a transport plan (the full method with transport correspondences)."""
+    return cfg.method == "full" and cfg.plasticity.correspondence == "transport"
+
+
 def waypoints_on(cfg: MorphConfig) -> bool:
-    """Whether a run aims its frames at waypoints (the full method's transport plan, a step > 0)."""
-    return cfg.waypoint_cells > 0 and cfg.method == "full" and cfg.plasticity.correspondence == "transport"
+    """Whether a run aims its frames at waypoints (a plan and a step > 0)."""
+    return cfg.waypoint_cells > 0 and plan_exists(cfg)
 
 
 def physics_objective(cfg: MorphConfig) -> str:
@@ -105,7 +110,7 @@ class FramePlan:
 
     def __init__(self, cfg: MorphConfig, inputs):  # inputs: physmorph.morph.inputs.MorphInputs
         self.cfg, self.inputs = cfg, inputs
-        self.exists = cfg.method == "full" and cfg.plasticity.correspondence == "transport"
+        self.exists = plan_exists(cfg)
         self.on = waypoints_on(cfg)  # the waypoint target
         self._destination = None
 
