@@ -139,7 +139,7 @@ class MorphRun:
         (the optimiser's stats, the state at the frame's end, the frame's step), None where a
         position_inject run diverged (recorded: instability is its finding)."""
         cfg, solver, fs = self.cfg, self.solver, self.fs
-        fs.state = self.plan.pushed(fs.state)
+        fs.state = self.plan.pushed(fs.state, share=self.judge.schedule.step / cfg.mpm.step_size)
         solver.load_state(fs.state)
         if self.stray.on:
             if self.nearest_d is None:

@@ -122,12 +122,15 @@ class FramePlan:
                                                           device=inputs.device)
         return self._destination
 
-    def pushed(self, st: ParticleState) -> ParticleState:
-        """The frame's start state with the plan's push added to its velocity (where plan_push is on)."""
+    def pushed(self, st: ParticleState, share: float = 1.0) -> ParticleState:
+        """The frame's start state with the plan's push added to its velocity (where plan_push is on),
+        ``share`` of it: the settle phase's back-off (the step's share of mpm.step_size). A frame the
+        settle gate undid starts again at rest from the same state; with the same push it would end
+        where it did and be undone again however small the step, so the push backs off with it."""
         cfg = self.cfg
-        if not (self.exists and cfg.plan_push > 0):
+        if not (self.exists and cfg.plan_push > 0 and share > 0):
             return st
-        dv = plan_push(st.x, self.destinations(), cfg.plan_push, cfg.destination_pull_onset,
+        dv = plan_push(st.x, self.destinations(), share * cfg.plan_push, cfg.destination_pull_onset,
                        self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt)
         return dataclasses.replace(st, v=st.v + dv)
 

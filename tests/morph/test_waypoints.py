@@ -96,6 +96,27 @@ def test_the_push_carries_far_particles_their_step_over_the_frame():
     np.testing.assert_array_equal(v[2], 0.0)  # within the onset's cell
 
 
+def test_the_push_backs_off_with_the_settle_phase_step(tiny):
+    """FramePlan.pushed(st, share): share of the push (the settle phase's back-off), none at 0."""
+    from types import SimpleNamespace
+
+    from physmorph.mpm.state import ParticleState
+
+    cfg, _ = tiny
+    full = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), plan_push=2.0, destination_pull_onset=1.0)
+    grid = SimpleNamespace(dx=0.5)
+    plan = waypoints.FramePlan(full, SimpleNamespace(target=SimpleNamespace(grid=grid)))
+    plan._destination = np.array([[8.0, 0.0, 0.0], [0.0, 0.0, 0.2]])  # one far, one within the onset
+    eye = np.tile(np.eye(3), (2, 1, 1))
+    st = ParticleState(x=np.zeros((2, 3)), v=np.ones((2, 3)), F=eye, C=0 * eye, Fp=eye, mass=np.ones(2), volume=np.ones(2))
+    frame_time = full.mpm.substeps * full.mpm.dt
+    whole, half, none = plan.pushed(st).v, plan.pushed(st, share=0.5).v, plan.pushed(st, share=0.0).v
+    np.testing.assert_allclose(whole[0] - 1.0, [2.0 * 0.5 / frame_time, 0.0, 0.0])  # 2 cells of 0.5 over the frame
+    np.testing.assert_allclose(half[0] - 1.0, 0.5 * (whole[0] - 1.0))
+    np.testing.assert_array_equal(none, st.v)
+    np.testing.assert_array_equal(whole[1], st.v[1])  # within the onset: no push
+
+
 def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
     """The physics of each frame is loaded with the frame's start state plus the plan's push (the
     state committed at the frame's end is the solver's). Slow (~3 s): a tiny full morph of 2 frames."""
