@@ -83,6 +83,8 @@ class FrameJudge:
                 fs.state = absorb_at_rest(fs.state, solver, cfg)  # the last update's absorption, on the accepted body
         if gate.gates(k):
             scal["settling"] = 2.0 if rejected else 1.0
+            if cfg.settle_regrow and not rejected:
+                self.schedule.regrow(gate.backoff, cfg.mpm.step_size)
         objective_rose, restart = self.restart.observe(scal[self.restart.rise_on])
         if self.restart.on:
             # the objective rose over this frame: the state is moving away from the target, so

@@ -3,7 +3,8 @@
 MomentumRestart: a frame whose objective rose hands the next frame its state at rest (restart_keep
 of v and C) and, optionally, a scaled control (MorphConfig.momentum_restart, restart_reference,
 restart_keep, restart_control_keep). StepSchedule: the optimiser's step per frame, mpm's step
-backed off after each frame the settle phase undid (settle_backoff).
+backed off after each frame the settle phase undid (settle_backoff) and, with settle_regrow, grown
+back after each it accepted.
 ControlDecay: dFc <- decay dFc at each frame's start (control_decay).
 OverfillOnset: the packing term waits for the objective's first rise (overfill_onset).
 StrayPull: anchors for particles that stray off the target (stray_pull, the full method's), and
@@ -57,6 +58,10 @@ class StepSchedule:
 
     def back_off(self, factor: float) -> None:
         self.step *= factor
+
+    def regrow(self, factor: float, most: float) -> None:
+        """The step after an accepted frame (MorphConfig.settle_regrow): divided by ``factor``, at most ``most``."""
+        self.step = min(most, self.step / factor)
 
 
 class ControlDecay:

@@ -89,6 +89,12 @@ class MorphConfig:
         "rises is undone (the body holds still); off: the restart alone")] = "after_first_rise"  # history: docs/study/CHANGELOG.md
     settle_backoff: Annotated[Float, setting("step multiplier after a frame the settle phase undid",
                                              gt=0, le=1)] = 0.5
+    # a trust region over frames grows again where its step is accepted: with plan_push the push
+    # backs off with the step (physmorph.morph.waypoints.FramePlan.pushed), and without regrowth a
+    # body still on its way is frozen by its first undone frame (docs/study/log.md)
+    settle_regrow: Annotated[Bool, setting(
+        "after a frame the settle phase accepted, the step grows back by 1 / settle_backoff, up to mpm's "
+        "step_size (false: it stays backed off)")] = False
     settle_objective: Annotated[Literal["render", "alpha_mse", "physics"], setting(
         "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, or its physics "
         "loss; physics_only is gated on the physics loss only")] = "alpha_mse"

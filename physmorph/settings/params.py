@@ -103,7 +103,7 @@ def morph_params(cfg) -> str:
         for k in ("gamma", "gamma_x", "injection_calibration"):
             d.pop(k, None)
         if cfg.settle_objective != "physics":  # the settle phase judges the images, which it never reads
-            for k in ("settle", "settle_objective", "settle_backoff"):
+            for k in ("settle", "settle_objective", "settle_backoff", "settle_regrow"):
                 d.pop(k, None)
         if cfg.metric_all_particles:
             d.pop("surface", None)

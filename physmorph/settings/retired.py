@@ -56,4 +56,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "reabsorb_strays": False,  # spray left where it tore off
     "waypoint_cells": 0.0,  # each frame's physics aims at the target itself
     "plan_push": 0.0,  # no velocity along the transport plan
+    "settle_regrow": False,  # the settle phase's step stays backed off
 }

@@ -236,3 +236,47 @@ def test_a_spilled_accepted_frame_reads_back_exactly(tmp_path):
     # a later accepted frame replaces the files, one without g_F leaves none behind
     AcceptedFrame(st, mask, None, None, 0.7, {}, np.ones(4), 0.1).spill(tmp_path / "settle")
     assert not (tmp_path / "settle" / "g_F.npy").exists()
+
+
+class _StubSolver:
+    """What FrameJudge.steer asks of the solver, recorded."""
+
+    overfill_weight = 0.0
+
+    def __init__(self):
+        self.calls = []
+
+    def __getattr__(self, name):
+        return lambda *a, **k: self.calls.append(name)
+
+
+@pytest.mark.parametrize("regrow", [False, True])
+def test_the_settle_step_backs_off_on_an_undone_frame_and_regrows_on_an_accepted_one(regrow):
+    """settle_backoff after each undone frame; with settle_regrow the step grows back by its
+    inverse after each accepted one, never above mpm's step_size."""
+    from types import SimpleNamespace
+
+    from physmorph.morph.frame_state import FrameState
+    from physmorph.morph.steering import StepSchedule
+
+    cfg = dataclasses.replace(MorphConfig(), settle_regrow=regrow, momentum_restart="off")
+    base = cfg.mpm.step_size
+    inputs = SimpleNamespace(want_grad=True, device="cuda")  # not the CPU: the accepted frame stays in memory
+    judge = FrameJudge(cfg, _StubSolver(), inputs, run=None, log=lambda line: None)
+    n = 2
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    st = ParticleState(x=np.zeros((n, 3)), v=np.zeros((n, 3)), F=eye, C=0 * eye, Fp=eye, mass=np.ones(n), volume=np.ones(n))
+    fs = FrameState.at_start(st, np.zeros(n, bool), base, 0.0)
+    judge.restart = SimpleNamespace(on=None, rise_on="alpha_mse", observe=lambda now: (False, False))
+    judge.schedule = StepSchedule(base)
+    judge.gate.start = 3
+    judge.gate.accepted = AcceptedFrame(st, fs.mask, fs.g_F, fs.g_x, 0.0, {"alpha_mse": 1.0}, np.zeros(1), objective=1.0)
+    steps = []
+    # frames 3 and 4 rise (undone), 5 and 6 fall (accepted), 7 rises, 8-10 fall
+    for k, alpha in zip(range(3, 11), [2.0, 2.0, 0.9, 0.8, 5.0, 0.7, 0.6, 0.5]):
+        judge.steer(k, fs, {"alpha_mse": alpha, "step_size": judge.schedule.step}, np.zeros(1), {}, judge.schedule.step)
+        steps.append(fs.next_step / base)
+    if regrow:
+        assert steps == [0.5, 0.25, 0.5, 1.0, 0.5, 1.0, 1.0, 1.0]
+    else:
+        assert steps == [0.5, 0.25, 0.25, 0.25, 0.125, 0.125, 0.125, 0.125]
