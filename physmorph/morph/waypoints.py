@@ -20,8 +20,9 @@ momentum restart, the packing term's onset and the settle phase, which compare t
 between frames, read it against the target itself: the end state's loss is evaluated again with
 the target set back (``physics_loss_to_target``).
 
-``plan_push`` moves the material along the same steps directly: at each frame's start every far
-particle is given the velocity that would carry it that far over the frame (MorphConfig.plan_push),
+The push moves the material along the plan directly: at each frame's start every particle farther
+than ``plan_push_onset`` from its destination is given the velocity that would carry it
+``plan_push_speed`` toward it over the frame (lengths in domain units),
 outside the optimisation (no gradient passes through it). The waypoint target reaches the material
 only through the control's one-frame rollout, which moves a particle's neighbours rather than the
 particle, and carries nothing; the push does (docs/study/log.md, findings 264-265).
@@ -71,11 +72,11 @@ def waypoint_grid_mass(x: np.ndarray,  # [N, 3]
 
 def plan_push(x: np.ndarray,  # [N, 3] the particles at the frame's start
               destination: np.ndarray,  # [N, 3] their transport destinations
-              cells: float, onset_cells: float, dx: float, frame_time: float) -> np.ndarray:  # [N, 3]
-    """MorphConfig.plan_push: the velocity added to each particle more than ``onset_cells`` from its
-    destination that would carry it ``cells`` toward it over the frame (at most onto it), zero for
-    every other particle: (y_p - x_p) / frame_time with y_p its waypoint."""
-    return (waypoint_positions(x, destination, cells * dx, onset_cells * dx) - x) / frame_time
+              length: float, onset: float, frame_time: float) -> np.ndarray:  # [N, 3]
+    """MorphConfig.plan_push_speed: the velocity added to each particle more than ``onset`` from its
+    destination that would carry it ``length`` toward it over the frame (at most onto it), zero for
+    every other particle: (y_p - x_p) / frame_time with y_p its waypoint (lengths in domain units)."""
+    return (waypoint_positions(x, destination, length, onset) - x) / frame_time
 
 
 def plan_distance(x: np.ndarray,  # [N, 3]
@@ -105,7 +106,7 @@ def physics_objective(cfg: MorphConfig) -> str:
 class FramePlan:
     """The transport plan over a run (method full, correspondence transport): each particle's
     destination, computed at first use (a function of the inputs alone, so a resumed run computes
-    the same), and what the frames do with it: the push (MorphConfig.plan_push), the waypoint
+    the same), and what the frames do with it: the push (MorphConfig.plan_push_speed), the waypoint
     target (MorphConfig.waypoint_cells) and the distance the run file records."""
 
     def __init__(self, cfg: MorphConfig, inputs):  # inputs: physmorph.morph.inputs.MorphInputs
@@ -123,15 +124,15 @@ class FramePlan:
         return self._destination
 
     def pushed(self, st: ParticleState, share: float = 1.0) -> ParticleState:
-        """The frame's start state with the plan's push added to its velocity (where plan_push is on),
+        """The frame's start state with the plan's push added to its velocity (where plan_push_speed > 0),
         ``share`` of it: the settle phase's back-off (the step's share of mpm.step_size). A frame the
         settle gate undid starts again at rest from the same state; with the same push it would end
         where it did and be undone again however small the step, so the push backs off with it."""
         cfg = self.cfg
-        if not (self.exists and cfg.plan_push > 0 and share > 0):
+        if not (self.exists and cfg.plan_push_speed > 0 and share > 0):
             return st
-        dv = plan_push(st.x, self.destinations(), share * cfg.plan_push, cfg.destination_pull_onset,
-                       self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt)
+        dv = plan_push(st.x, self.destinations(), share * cfg.plan_push_speed, cfg.plan_push_onset,
+                       cfg.mpm.substeps * cfg.mpm.dt)
         return dataclasses.replace(st, v=st.v + dv)
 
     def aim(self, solver, st: ParticleState) -> None:

@@ -121,7 +121,7 @@ class MorphConfig:
         "method full with correspondence transport: weight of a pull on each particle toward its transport "
         "destination (a cell of material one cell from it costs this; 0: off)", ge=0)] = 0.0
     destination_pull_onset: Annotated[Float, setting(
-        "the destination pull, the waypoint target and the plan's push act on particles more than this far from their destination",
+        "the destination pull and the waypoint target act on particles more than this far from their destination",
         "cells", ge=0)] = 2.0
     # Each frame's physics aimed at the target plus the plan's next step (physmorph.morph.waypoints):
     # the mass loss's residual does not pull material through a region already at the target's
@@ -133,11 +133,16 @@ class MorphConfig:
     # The same steps given to the material as velocity at each frame's start, outside the
     # optimisation: the control moves a particle's neighbours, not the particle, so neither the
     # waypoint target nor the destination pull carries a region through the body; the push does
-    # (docs/study/log.md part 64). Not in the paper (its future work: particle redistribution).
-    plan_push: Annotated[Float, setting(
+    # (docs/study/log.md part 64). In domain units, as the shapes are sized: the same push moves a
+    # body by the same share of itself at every grid (docs/study/log.md part 65). Not in the paper
+    # (its future work: particle redistribution).
+    plan_push_speed: Annotated[Float, setting(
         "method full with correspondence transport: at each frame's start every particle more than "
-        "destination_pull_onset cells from its transport destination is given the velocity that would carry it this "
-        "far toward it over the frame (at most onto it; 0: off)", "cells", ge=0)] = 0.0
+        "plan_push_onset from its transport destination is given the velocity that would carry it this far "
+        "toward it over the frame (at most onto it; 0: off)", "domain units a frame", ge=0)] = 0.0
+    plan_push_onset: Annotated[Float, setting(
+        "the plan's push acts on particles more than this far from their transport destination", "domain units",
+        ge=0)] = 1.0
     # Spray the control cannot move (a lone particle's stress moves it not at all) moved back into the
     # body between frames (physmorph.morph.reabsorb). Not in the paper: its adaptive particle
     # redistribution, the reabsorbing part.

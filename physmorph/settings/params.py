@@ -97,7 +97,7 @@ def morph_params(cfg) -> str:
     if cfg.method != "full":
         d.pop("plasticity", None)
         for k in ("stray_pull", "stray_pull_onset", "stray_pull_density", "destination_pull", "destination_pull_onset",
-                  "reabsorb_strays", "waypoint_cells", "plan_push"):
+                  "reabsorb_strays", "waypoint_cells", "plan_push_speed", "plan_push_onset"):
             d.pop(k, None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration"):

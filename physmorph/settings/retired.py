@@ -55,6 +55,7 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "destination_pull_onset": 2.0,
     "reabsorb_strays": False,  # spray left where it tore off
     "waypoint_cells": 0.0,  # each frame's physics aims at the target itself
-    "plan_push": 0.0,  # no velocity along the transport plan
+    "plan_push_speed": 0.0,  # no velocity along the transport plan
+    "plan_push_onset": 1.0,
     "settle_regrow": False,  # the settle phase's step stays backed off
 }

@@ -90,10 +90,10 @@ def test_a_run_aims_each_frame_at_its_waypoints_and_judges_against_the_target(ti
 def test_the_push_carries_far_particles_their_step_over_the_frame():
     x = np.zeros((3, 3))
     d = np.array([[8.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.5]])
-    v = plan_push(x, d, cells=2.0, onset_cells=1.0, dx=0.5, frame_time=0.25)
-    np.testing.assert_allclose(v[0], [4.0, 0.0, 0.0])  # 2 cells of 0.5 in 0.25 s
+    v = plan_push(x, d, length=1.0, onset=0.5, frame_time=0.25)
+    np.testing.assert_allclose(v[0], [4.0, 0.0, 0.0])  # 1 unit in 0.25 s
     np.testing.assert_allclose(v[1], [0.0, 4.0, 0.0])  # 1.0 away: onto it, no farther
-    np.testing.assert_array_equal(v[2], 0.0)  # within the onset's cell
+    np.testing.assert_array_equal(v[2], 0.0)  # within the onset
 
 
 def test_the_push_backs_off_with_the_settle_phase_step(tiny):
@@ -103,7 +103,7 @@ def test_the_push_backs_off_with_the_settle_phase_step(tiny):
     from physmorph.mpm.state import ParticleState
 
     cfg, _ = tiny
-    full = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), plan_push=2.0, destination_pull_onset=1.0)
+    full = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), plan_push_speed=1.0, plan_push_onset=0.5)
     grid = SimpleNamespace(dx=0.5)
     plan = waypoints.FramePlan(full, SimpleNamespace(target=SimpleNamespace(grid=grid)))
     plan._destination = np.array([[8.0, 0.0, 0.0], [0.0, 0.0, 0.2]])  # one far, one within the onset
@@ -111,7 +111,7 @@ def test_the_push_backs_off_with_the_settle_phase_step(tiny):
     st = ParticleState(x=np.zeros((2, 3)), v=np.ones((2, 3)), F=eye, C=0 * eye, Fp=eye, mass=np.ones(2), volume=np.ones(2))
     frame_time = full.mpm.substeps * full.mpm.dt
     whole, half, none = plan.pushed(st).v, plan.pushed(st, share=0.5).v, plan.pushed(st, share=0.0).v
-    np.testing.assert_allclose(whole[0] - 1.0, [2.0 * 0.5 / frame_time, 0.0, 0.0])  # 2 cells of 0.5 over the frame
+    np.testing.assert_allclose(whole[0] - 1.0, [1.0 / frame_time, 0.0, 0.0])  # 1 unit over the frame
     np.testing.assert_allclose(half[0] - 1.0, 0.5 * (whole[0] - 1.0))
     np.testing.assert_array_equal(none, st.v)
     np.testing.assert_array_equal(whole[1], st.v[1])  # within the onset: no push
@@ -122,7 +122,7 @@ def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
     state committed at the frame's end is the solver's). Slow (~3 s): a tiny full morph of 2 frames."""
     cfg, d = tiny
     base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2,
-                               plan_push=1.0)
+                               plan_push_speed=0.5)
     from physmorph.mpm.solver import MPMSolver
 
     loaded, real_load = [], MPMSolver.load_state
