@@ -8,7 +8,10 @@ append its reachable-gap numbers to docs/study/runs.csv (the study's raw record)
 Needs the prepared particles and targets of the profile under results/{profile}/ (e.g.
 `snakemake --cores 2 results/default/particles/iso_32x2x1.h5 results/default/targets/bunny_32x2x1.h5`).
 Each row: alpha MSE at frame 0 / best / final, the ceiling (the target's own particles at rest),
-the share of the reachable gap closed at the best and last frame, silhouette IoU, Chamfer, wall.
+the share of the reachable gap closed at the best and last frame, silhouette IoU, Chamfer, wall,
+and the body in 3D at the last saved frame as the export measures it (stray share, mass outside
+the largest body, components, genus against the target's, 95th-percentile surface distance,
+roughness) where the target's prepared mesh results/{profile}/meshes/{target}.h5 is there.
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ from physmorph.records.runfile import read_metrics
 from physmorph.reports.page_meta import run_wall_time_s
 from physmorph.morph.quality import gap_closed
 from physmorph.records.runfile import partial_dir
+from physmorph.reports.export.measures import frame_measures
+from physmorph.reports.export.runs import frame_state, saved_frames
+from physmorph.reports.export.surface import particle_surface
 
 REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "study" / "runs.csv"
@@ -39,6 +45,11 @@ COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_fra
            "closed_best", "closed_final", "iou0", "iou_best", "iou_final", "ceiling_iou", "chamfer0",
            "chamfer_final", "fp_det_min", "status", "wall_s", "volume_iou0", "volume_iou_final", "overfilled_final",
            "swing_percent", "sign_changes", "drop_points", "volume_change_percent"]
+# the body in 3D at the last saved frame (physmorph.reports.export.measures.frame_measures; empty
+# where the target's mesh is not prepared, and in rows older than these columns)
+BODY_COLUMNS = ["stray_percent", "outside_body_percent", "components", "genus", "target_genus",
+                "surface_p95_dx", "rough_percent"]
+COLUMNS += BODY_COLUMNS
 
 
 def parse_set(items: list[str]) -> dict:
@@ -58,8 +69,25 @@ def config_files(profile: str | None) -> list[Path]:
     return [REPO / "config" / "config.yaml"] + [Path(p) for p in (profile or "").split(",") if p]
 
 
-def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float) -> dict:
-    """One row of runs.csv from a finished run file (its reachable-gap numbers), printed as well."""
+def body_columns(run_h5: Path, particles_h5: Path, mesh_h5: Path, export) -> dict:
+    """BODY_COLUMNS of the run's last saved frame: its surface made as the export makes it
+    (``export``: the ExportConfig) and measured against the target's prepared mesh; empty values
+    where that mesh is not there."""
+    if not Path(mesh_h5).exists():
+        return {}
+    k = saved_frames(run_h5)[-1]
+    s = frame_state(run_h5, k, particles_h5=particles_h5)
+    mesh = particle_surface(s["x"], s["volume"], s["det_F"], s["dx"], refine=export.refine,
+                            smooth_iterations=export.smooth_iterations)
+    m = frame_measures(k, s, mesh, mesh_h5)
+    return {"stray_percent": 100.0 * m["stray_share"], "outside_body_percent": 100.0 * m["outside_largest_body"],
+            "components": m["components"], "genus": m["genus"], "target_genus": m["target_genus"],
+            "surface_p95_dx": m["surface_p95_dx"], "rough_percent": m["roughness_percent"]}
+
+
+def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float, body: dict | None = None) -> dict:
+    """One row of runs.csv from a finished run file (its reachable-gap numbers, and ``body``: its
+    body_columns), printed as well."""
     m = read_metrics(run_h5)
     # The ceiling stored by the target stage (the target's own particles at rest, its sigma0);
     # rows before 2026-11-22 used the source's sigma0 here (a ~3 % lower gap, see the doc).
@@ -80,7 +108,8 @@ def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float) ->
            "swing_percent": swing_percent(a), "sign_changes": sign_changes(a),
            "drop_points": 100.0 * (gap_closed(a[0], a[k], ceil["alpha_mse"]) - gap_closed(a[0], a[-1], ceil["alpha_mse"])),
            # the body's volume at the last frame against its first (sum V0 det F)
-           "volume_change_percent": 100.0 * (m["total_volume"][-1] / m["total_volume"][0] - 1.0)}
+           "volume_change_percent": 100.0 * (m["total_volume"][-1] / m["total_volume"][0] - 1.0),
+           **{c: (body or {}).get(c, "") for c in BODY_COLUMNS}}
     row = {k_: (f"{v:.4g}" if isinstance(v, (float, np.floating)) else v) for k_, v in row.items()}
     print(" ".join(f"{k_}={row[k_]}" for k_ in COLUMNS if k_ != "overrides"), flush=True)
     curve = " ".join(f"{v:.4f}" for v in a[:: max(1, len(a) // 20)])
@@ -104,10 +133,13 @@ def append_rows(csv_path: Path, rows: list[dict]) -> None:
         w.writerows(rows)
 
 
-def record_runs(runs_dir: Path, names: list[str], tag: str, recorded: dict, csv_path: Path | None) -> list[dict]:
+def record_runs(runs_dir: Path, names: list[str], tag: str, recorded: dict, csv_path: Path | None,
+                body) -> list[dict]:
     """Rows for finished runs a workflow made (``runs_dir/{name}.h5``), without running them again:
-    the wall time is each run's own over all its sittings (its ``wall_time_s``)."""
-    rows = [study_row(tag, name, recorded, runs_dir / f"{name}.h5", run_wall_time_s(runs_dir / f"{name}.h5"))
+    the wall time is each run's own over all its sittings (its ``wall_time_s``); ``body(name, run)``
+    their body_columns."""
+    rows = [study_row(tag, name, recorded, runs_dir / f"{name}.h5", run_wall_time_s(runs_dir / f"{name}.h5"),
+                      body(name, runs_dir / f"{name}.h5"))
             for name in names]
     if csv_path is not None:
         append_rows(csv_path, rows)
@@ -140,12 +172,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
         overrides.setdefault("morph", {})["frames"] = args.frames
     # the row names the profile file too, so it says how to rerun it
     recorded = {**({"--profile": args.profile} if args.profile else {}), **overrides}
-    if args.record:
-        return record_runs(Path(args.record), args.experiments, args.tag, recorded,
-                           None if args.no_csv else csv_path)
     files = config_files(args.profile)
     cfg = load_settings(*files, overrides=overrides)
     res = cfg.sampling.tag
+    prepared = Path(args.results) / cfg.profile
+
+    def body(name: str, run: Path) -> dict:
+        exp = cfg.experiment(name)
+        return body_columns(run, prepared / "particles" / f"{exp.source}_{res}.h5",
+                            prepared / "meshes" / f"{exp.target}.h5", cfg.export)
+
+    if args.record:
+        return record_runs(Path(args.record), args.experiments, args.tag, recorded,
+                           None if args.no_csv else csv_path, body)
     rows = []
     for name in args.experiments:
         exp = cfg.experiment(name)
@@ -162,7 +201,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         run_morph(parts, tpath, out, mc, name=name, log=lambda m: print(m, file=sys.stderr, flush=True),
                   target_size=cfg.shape(exp.target).size)
         wall = time.time() - t0
-        row = study_row(args.tag, name, recorded, out, wall)
+        row = study_row(args.tag, name, recorded, out, wall, body(name, out))
         rows.append(row)
         if not args.no_csv:
             append_rows(csv_path, [row])

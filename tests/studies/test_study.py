@@ -43,7 +43,8 @@ def test_profile_results(tmp_path_factory, tiny):
     root = tmp_path_factory.mktemp("results")
     tag = cfg.sampling.tag
     for folder, name, path in (("particles", f"iso_{tag}.h5", made / "p_iso.h5"),
-                               ("targets", f"bunny_{tag}.h5", made / "t_bunny.h5")):
+                               ("targets", f"bunny_{tag}.h5", made / "t_bunny.h5"),
+                               ("meshes", "bunny.h5", made / "bunny.h5")):
         (root / cfg.profile / folder).mkdir(parents=True)
         (root / cfg.profile / folder / name).symlink_to(path)
     return root
@@ -82,9 +83,13 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     assert int(written[1]["frames"]) == 3 and written[1]["experiment"] == "iso_bunny_physics_only"
     assert float(row["volume_iou_final"]) == pytest.approx(m["volume_iou"][-1], rel=1e-3)
     assert float(row["overfilled_final"]) == pytest.approx(m["overfilled_mass"][-1], rel=1e-3, abs=1e-4)
+    # the body in 3D at the last saved frame, against the prepared bunny (genus 0)
+    assert row["target_genus"] == "0" and int(row["components"]) >= 1 and int(row["genus"]) >= 0
+    assert 0.0 <= float(row["stray_percent"]) <= 100.0 and 0.0 <= float(row["outside_body_percent"]) <= 100.0
+    assert float(row["surface_p95_dx"]) > 0.0
     # --record: the same numbers from the finished run file, not run again; its wall time is the run's own
     recorded = study.main(["iso_bunny_full", "--tag", "r1", "--record", str(run.parent), "--csv", str(record),
-                           "--profile", "config/test.yaml"])
+                           "--profile", "config/test.yaml", "--results", str(test_profile_results)])
     with record.open() as fh:
         assert [r["tag"] for r in csv.DictReader(fh)] == ["t1", "t2", "r1"]
     same = {k: v for k, v in row.items() if k not in ("tag", "overrides", "wall_s")}
