@@ -21,8 +21,8 @@ between frames, read it against the target itself: the end state's loss is evalu
 the target set back (``physics_loss_to_target``).
 
 The push moves the material along the plan directly: at each frame's start every particle farther
-than ``plan_push_onset`` from its destination is given the velocity that would carry it
-``plan_push_speed`` toward it over the frame (lengths in domain units),
+than ``plan_push_onset`` cells from its destination is given the velocity that would carry it
+``plan_push_speed`` (domain units) toward it over the frame,
 outside the optimisation (no gradient passes through it). The waypoint target reaches the material
 only through the control's one-frame rollout, which moves a particle's neighbours rather than the
 particle, and carries nothing; the push does (docs/study/log.md, findings 264-265).
@@ -131,8 +131,8 @@ class FramePlan:
         cfg = self.cfg
         if not (self.exists and cfg.plan_push_speed > 0 and share > 0):
             return st
-        dv = plan_push(st.x, self.destinations(), share * cfg.plan_push_speed, cfg.plan_push_onset,
-                       cfg.mpm.substeps * cfg.mpm.dt)
+        dv = plan_push(st.x, self.destinations(), share * cfg.plan_push_speed,
+                       cfg.plan_push_onset * self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt)
         return dataclasses.replace(st, v=st.v + dv)
 
     def aim(self, solver, st: ParticleState) -> None:

@@ -133,15 +133,16 @@ class MorphConfig:
     # The same steps given to the material as velocity at each frame's start, outside the
     # optimisation: the control moves a particle's neighbours, not the particle, so neither the
     # waypoint target nor the destination pull carries a region through the body; the push does
-    # (docs/study/log.md part 64). In domain units, as the shapes are sized: the same push moves a
-    # body by the same share of itself at every grid (docs/study/log.md part 65). Not in the paper
-    # (its future work: particle redistribution).
+    # (docs/study/log.md part 64). The speed in domain units, as the shapes are sized: the same push
+    # moves a body by the same share of itself at every grid; the onset in cells of the grid the
+    # plan is made on, whose destinations are about a cell precise (docs/study/log.md part 65).
+    # Not in the paper (its future work: particle redistribution).
     plan_push_speed: Annotated[Float, setting(
         "method full with correspondence transport: at each frame's start every particle more than "
         "plan_push_onset from its transport destination is given the velocity that would carry it this far "
         "toward it over the frame (at most onto it; 0: off)", "domain units a frame", ge=0)] = 0.0
     plan_push_onset: Annotated[Float, setting(
-        "the plan's push acts on particles more than this far from their transport destination", "domain units",
+        "the plan's push acts on particles more than this far from their transport destination", "cells",
         ge=0)] = 1.0
     # Spray the control cannot move (a lone particle's stress moves it not at all) moved back into the
     # body between frames (physmorph.morph.reabsorb). Not in the paper: its adaptive particle

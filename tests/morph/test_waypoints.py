@@ -103,18 +103,20 @@ def test_the_push_backs_off_with_the_settle_phase_step(tiny):
     from physmorph.mpm.state import ParticleState
 
     cfg, _ = tiny
-    full = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), plan_push_speed=1.0, plan_push_onset=0.5)
+    full = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), plan_push_speed=1.0, plan_push_onset=1.0)
     grid = SimpleNamespace(dx=0.5)
     plan = waypoints.FramePlan(full, SimpleNamespace(target=SimpleNamespace(grid=grid)))
-    plan._destination = np.array([[8.0, 0.0, 0.0], [0.0, 0.0, 0.2]])  # one far, one within the onset
-    eye = np.tile(np.eye(3), (2, 1, 1))
-    st = ParticleState(x=np.zeros((2, 3)), v=np.ones((2, 3)), F=eye, C=0 * eye, Fp=eye, mass=np.ones(2), volume=np.ones(2))
+    # one far, one within the onset (1 cell: 0.5), one just beyond it
+    plan._destination = np.array([[8.0, 0.0, 0.0], [0.0, 0.0, 0.4], [0.0, 0.6, 0.0]])
+    eye = np.tile(np.eye(3), (3, 1, 1))
+    st = ParticleState(x=np.zeros((3, 3)), v=np.ones((3, 3)), F=eye, C=0 * eye, Fp=eye, mass=np.ones(3), volume=np.ones(3))
     frame_time = full.mpm.substeps * full.mpm.dt
     whole, half, none = plan.pushed(st).v, plan.pushed(st, share=0.5).v, plan.pushed(st, share=0.0).v
     np.testing.assert_allclose(whole[0] - 1.0, [1.0 / frame_time, 0.0, 0.0])  # 1 unit over the frame
     np.testing.assert_allclose(half[0] - 1.0, 0.5 * (whole[0] - 1.0))
     np.testing.assert_array_equal(none, st.v)
     np.testing.assert_array_equal(whole[1], st.v[1])  # within the onset: no push
+    np.testing.assert_allclose(whole[2] - 1.0, [0.0, 0.6 / frame_time, 0.0])  # beyond it: onto its destination
 
 
 def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
