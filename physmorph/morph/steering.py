@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from physmorph.settings.morph import MorphConfig
-from physmorph.morph.waypoints import physics_objective
+from physmorph.morph.waypoints import physics_objective, plan_exists
 from physmorph.mpm.state import ParticleState
 
 
@@ -106,8 +106,7 @@ class StrayPull:
 
     def __init__(self, cfg: MorphConfig):
         self.cfg = cfg
-        self.to_destination = (cfg.destination_pull > 0 and cfg.method == "full"
-                               and cfg.plasticity.correspondence == "transport")
+        self.to_destination = cfg.destination_pull > 0 and plan_exists(cfg)
         self.on = (cfg.stray_pull > 0 and cfg.method == "full") or self.to_destination
 
     def anchor(self, solver, st: ParticleState, nearest_d, nearest_i, target,
