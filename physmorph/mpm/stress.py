@@ -26,6 +26,9 @@ from physmorph.base.taichi_runtime import init_taichi
 _ROT_DENOM_FLOOR = 1e-6
 # polar_from falls back to the SVD below this smallest pair sum, relative to |S|
 _WARM_GAP_MIN = 0.05
+# Rodrigues' coefficients by their series to th^6 below this angle (rad): the next terms,
+# th^8 / 9! and th^8 / 10!, are below 1.1e-16 there
+_SERIES_ANGLE = 0.05
 
 
 @ti.func
@@ -98,9 +101,12 @@ def make_newton_funcs(dtype):
         om = skew_solve(S, gap, axial(S0))
         th2 = om.dot(om)
         th = ti.sqrt(th2)
-        a = 1.0 - th2 / 6.0
-        b = 0.5 - th2 / 24.0
-        if th > 1e-4:
+        # sin(th) / th and (1 - cos th) / th^2 by their series to th^6 below _SERIES_ANGLE (the
+        # first term left out is below float64's round-off there), so the usual small step of a
+        # warm start costs no sine and cosine
+        a = 1.0 - th2 / 6.0 * (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0))
+        b = 0.5 - th2 / 24.0 * (1.0 - th2 / 30.0 * (1.0 - th2 / 56.0))
+        if th > _SERIES_ANGLE:
             a = ti.sin(th) / th
             b = (1.0 - ti.cos(th)) / th2
         K = hat(om)
@@ -135,31 +141,20 @@ def make_rotation_funcs(dtype):
         return R, 0.5 * (S + S.transpose()), gap
 
     @ti.func
-    def largest_eigenvalue(S):
-        """Largest eigenvalue of the symmetric 3x3 S: q + 2 p cos(acos(det((S - q I) / p) / 2) / 3),
-        q = tr(S) / 3, p = sqrt(|S - q I|^2 / 6)."""
-        q = S.trace() / 3.0
-        C = S - q * ti.Matrix.identity(dtype, 3)
-        p = ti.sqrt((C * C).sum() / 6.0)
-        lam = q
-        if p > dtype(1e-30):
-            r = ti.math.clamp((C / p).determinant() / 2.0, -1.0, 1.0)
-            lam = q + 2.0 * p * ti.cos(ti.acos(r) / 3.0)
-        return lam
-
-    @ti.func
     def polar_from(Fe, R0):
         """polar(Fe) by Newton steps on the symmetry of R^T Fe started from the rotation R0 (the
         particle's rotation one substep earlier): each step R <- R exp(omega^) with
         (tr S - S) omega = axial(S0 - S0^T), S0 = R^T Fe, S = sym(S0), converging quadratically, so
-        one or two steps reach float32 precision where the rotation moved little. The smallest pair
-        sum of the signed singular values is gap = tr S - lambda_max(S). Falls back to polar(Fe)
-        (its SVD) where R0 is not a rotation (no earlier substep), where the steps have not
-        converged after a few, or where gap is small or negative: near an inversion, or a step
-        that found another stationary rotation (R flipped by pi about an axis of S, which
-        negates two eigenvalues of S and makes gap negative). Within the steps the pair sums are
-        only tested against that bound (pair_sums_exceed), which also keeps the step's solve clear
-        of its floor; the converged rotation's gap is computed once."""
+        one or two steps reach float32 precision where the rotation moved little. Falls back to
+        polar(Fe) (its SVD) where R0 is not a rotation (no earlier substep), where the steps have
+        not converged after a few, or where the smallest pair sum of the signed singular values
+        (tr S - lambda_max(S)) is below _WARM_GAP_MIN |S| or negative: near an inversion, or a
+        step that found another stationary rotation (R flipped by pi about an axis of S, which
+        negates two eigenvalues of S and makes it negative). The pair sums are only tested against
+        that bound (pair_sums_exceed, no eigenvalue), and a warm rotation's gap is the bound
+        itself: a lower bound of the smallest pair sum, all the rotation's derivative needs
+        (skew_solve floors the pair sums at 1e-6 |S|, far below it, so the bound and the exact
+        value give the same solve). The SVD's gap is the exact smallest pair sum."""
         R = R0
         converged = False
         gap = dtype(0.0)
@@ -178,8 +173,8 @@ def make_rotation_funcs(dtype):
         S = R.transpose() @ Fe
         S = 0.5 * (S + S.transpose())
         if converged:
-            gap = S.trace() - largest_eigenvalue(S)
-            converged = gap >= dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum())
+            gap = dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum())
+            converged = pair_sums_exceed(S, gap)
         if not converged:
             R, S, gap = polar(Fe)
         return R, S, gap
