@@ -120,7 +120,8 @@ class FramePlan:
             inputs = self.inputs
             self._destination = destinations_in_grid_mass(inputs.parts.x, inputs.parts.mass, inputs.target.grid_mass,
                                                           inputs.target.grid, self.cfg.plasticity.transport_blur,
-                                                          device=inputs.device)
+                                                          device=inputs.device,
+                                                          projection=self.cfg.plasticity.transport_projection)
         return self._destination
 
     def pushed(self, st: ParticleState, share: float = 1.0) -> ParticleState:

@@ -161,26 +161,16 @@ def _multiscale_potentials(x: np.ndarray,  # [N, 3]
     return f, g
 
 
-def transport_destinations(x: np.ndarray,  # [N, 3] source particles
-                           a: np.ndarray,  # [N] their masses (> 0)
-                           y: np.ndarray,  # [M, 3] target samples (e.g. grid nodes)
-                           b: np.ndarray,  # [M] their masses (>= 0; zero entries are dropped)
-                           blur: float,
-                           iters: int = 40,
-                           extra_iters: int = 10,
-                           dtype: torch.dtype = torch.float32,
-                           coarse_switch: float = COARSE_SWITCH,
-                           min_points: int = COARSE_MIN_POINTS,
-                           device: str = "cpu") -> np.ndarray:  # [N, 3]
-    """T_i = sum_j P_ij y_j / a_i for the entropic plan of the module docstring, eps going from the
-    squared diameter of the two clouds to blur^2 over ``iters`` Sinkhorn steps, then ``extra_iters``
-    more at blur^2. The iterations and the projection run on the torch ``device`` ("cpu" or
-    "cuda") in ``dtype`` (float32: the log-domain potentials need ~1e-4 of relative precision;
-    on CUDA in IEEE float32, torch's default, not TF32); the kernel is handled by blocks of rows
-    (BLOCK_ENTRIES). The same operations run on either device, so the two differ only by float32
-    rounding (tests/plasticity/test_plasticity_device.py). Iterations whose blur is at least
-    ``coarse_switch`` cells run on cell centroids (coarse_switch = 0: every iteration on the clouds
-    themselves, the single-scale reference)."""
+def _plan_rows(x: np.ndarray,  # [N, 3] source points
+               a: np.ndarray,  # [N] their masses (> 0)
+               y: np.ndarray,  # [M, 3] target points
+               b: np.ndarray,  # [M] their masses (>= 0; zero entries are dropped)
+               blur: float, iters: int, extra_iters: int, dtype: torch.dtype, coarse_switch: float,
+               min_points: int, device: str):
+    """The entropic plan of the module docstring as what its rows need: (X [N, 3], Y [M', 3] the
+    targets with mass, both centred, h [M'], Y^T / eps, centre [3]), row i of the plan being
+    P_i. / a_i = softmax_j(h_j + x_i . y_j / eps) (the factors of i alone cancel: h_j = log b_j +
+    (g_j - |y_j|^2 / 2) / eps)."""
     x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
     y = np.asarray(y, dtype=np.float64).reshape(-1, 3)
     a = np.asarray(a, dtype=np.float64).reshape(-1)
@@ -203,16 +193,67 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
     x, y = x - centre, y - centre
     _, g = _multiscale_potentials(x, a, y, b, schedule, blur, dtype, coarse_switch, min_points, device)
     X, Y = torch.from_numpy(x).to(device, dtype), torch.from_numpy(y).to(device, dtype)
-    # T_i = sum_j P_ij y_j / sum_j P_ij with P_ij = a_i b_j exp((f_i + g_j - C_ij) / eps): the factors
-    # of i alone cancel, leaving a softmax over j of log b_j + (g_j - |y_j|^2 / 2 + x_i.y_j) / eps
     h = torch.log(torch.from_numpy(b)).to(device, dtype) + (g - 0.5 * (Y * Y).sum(1)) / eps1
-    Yt = Y.T / eps1
+    return X, Y, h, Y.T / eps1, centre
+
+
+def transport_destinations(x: np.ndarray,  # [N, 3] source particles
+                           a: np.ndarray,  # [N] their masses (> 0)
+                           y: np.ndarray,  # [M, 3] target samples (e.g. grid nodes)
+                           b: np.ndarray,  # [M] their masses (>= 0; zero entries are dropped)
+                           blur: float,
+                           iters: int = 40,
+                           extra_iters: int = 10,
+                           dtype: torch.dtype = torch.float32,
+                           coarse_switch: float = COARSE_SWITCH,
+                           min_points: int = COARSE_MIN_POINTS,
+                           device: str = "cpu") -> np.ndarray:  # [N, 3]
+    """T_i = sum_j P_ij y_j / a_i for the entropic plan of the module docstring, eps going from the
+    squared diameter of the two clouds to blur^2 over ``iters`` Sinkhorn steps, then ``extra_iters``
+    more at blur^2. The iterations and the projection run on the torch ``device`` ("cpu" or
+    "cuda") in ``dtype`` (float32: the log-domain potentials need ~1e-4 of relative precision;
+    on CUDA in IEEE float32, torch's default, not TF32); the kernel is handled by blocks of rows
+    (BLOCK_ENTRIES). The same operations run on either device, so the two differ only by float32
+    rounding (tests/plasticity/test_plasticity_device.py). Iterations whose blur is at least
+    ``coarse_switch`` cells run on cell centroids (coarse_switch = 0: every iteration on the clouds
+    themselves, the single-scale reference)."""
+    X, Y, h, Yt, centre = _plan_rows(x, a, y, b, blur, iters, extra_iters, dtype, coarse_switch, min_points, device)
     rows = max(1, BLOCK_ENTRIES // len(Y))
     T = torch.empty_like(X)
     for k in range(0, len(X), rows):
         weights, _ = _exp_shifted(torch.addmm(h[None, :], X[k:k + rows], Yt))
         T[k:k + rows] = weights.div_(weights.sum(1, keepdim=True)) @ Y  # the softmax, then its mean of Y
     return T.cpu().numpy().astype(np.float64) + centre
+
+
+def transport_draws(x: np.ndarray,  # [N, 3] source points
+                    a: np.ndarray,  # [N] their masses (> 0)
+                    y: np.ndarray,  # [M, 3] target points
+                    b: np.ndarray,  # [M] their masses (>= 0; zero entries are dropped)
+                    blur: float,
+                    draws: np.ndarray,  # [N] how many targets to draw from each source point's row
+                    seed: int = 0,
+                    device: str = "cpu") -> np.ndarray:  # [sum(draws), 3]
+    """Target points drawn from the rows of the plan of transport_destinations (its defaults): for
+    each source point i in turn, draws_i points y_j drawn with probabilities P_ij / a_i, with
+    replacement. The draws are made on the CPU from a generator seeded with ``seed`` (the same on
+    every call and device); the plan runs on ``device``."""
+    draws = np.asarray(draws, dtype=np.int64).reshape(-1)
+    if len(draws) != len(np.asarray(x).reshape(-1, 3)) or (draws < 0).any():
+        raise ValueError(f"transport_draws: {len(draws)} non-negative draw counts needed, one per source point")
+    X, Y, h, Yt, centre = _plan_rows(x, a, y, b, blur, 40, 10, torch.float32, COARSE_SWITCH, COARSE_MIN_POINTS, device)
+    generator = torch.Generator().manual_seed(seed)
+    targets = Y.cpu().numpy().astype(np.float64) + centre
+    rows = max(1, BLOCK_ENTRIES // len(Y))
+    out = []
+    for k in range(0, len(X), rows):
+        n = draws[k:k + rows]
+        if n.max(initial=0) == 0:
+            continue
+        weights, _ = _exp_shifted(torch.addmm(h[None, :], X[k:k + rows], Yt))
+        picked = torch.multinomial(weights.cpu(), int(n.max()), replacement=True, generator=generator).numpy()
+        out.append(targets[picked[np.arange(picked.shape[1])[None, :] < n[:, None]]])  # row i's first n_i
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 # The node plan is a function of the two grid masses alone: runs of the same inputs in one process
@@ -226,14 +267,19 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
                               grid_mass: np.ndarray,  # [R, R, R] the target's grid mass
                               grid: Grid,
                               blur_cells: float = 1.0,
-                              device: str = "cpu") -> np.ndarray:  # [N, 3]
+                              device: str = "cpu",
+                              projection: str = "barycentric") -> np.ndarray:  # [N, 3]
     """Each particle's destination in the target's grid mass, from the plan between the two grid
-    masses (the source's splatted: m_I = sum_p w_Ip m_p): transport_destinations from the source's
-    non-empty nodes y_I to the target's, blur = blur_cells grid cells, gives node displacements
-    D_I = T_I - y_I, and a particle moves by their B-spline interpolation,
-    T_p = x_p + sum_I w_Ip D_I m_I / sum_I w_Ip m_I (its stencil's nodes all hold mass).
+    masses (the source's splatted: m_I = sum_p w_Ip m_p) from the source's non-empty nodes y_I to
+    the target's, blur = blur_cells grid cells. projection "barycentric": transport_destinations
+    gives node displacements D_I = T_I - y_I, and a particle moves by their B-spline
+    interpolation, T_p = x_p + sum_I w_Ip D_I m_I / sum_I w_Ip m_I (its stencil's nodes all hold
+    mass). "sampled" (PlasticityConfig.transport_projection): each particle is sent to a target
+    node drawn from the plan's row of its nearest source node (transport_draws, seed 0), keeping
+    its offset from that node, so every target node receives about the mass the plan gives it
+    rather than the mean of its row (which draws mass off thin parts and rounds corners).
     Node to node, the plan is ~(N / nodes)^2 times cheaper than particle to node. The plan runs on
-    the torch ``device`` (transport_destinations); the splat and the interpolation on the CPU."""
+    the torch ``device``; the splat, the draws and the interpolation on the CPU."""
     R = grid.res
     if grid_mass.shape != (R, R, R):
         raise ValueError(f"target grid mass has shape {grid_mass.shape}, expected {(R, R, R)}")
@@ -245,6 +291,10 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
     key = hashlib.sha1(b"".join((np.ascontiguousarray(src).tobytes(), np.ascontiguousarray(grid_mass, np.float64).tobytes(),
                                  np.array([R, grid.lo, grid.dx, blur_cells], np.float64).tobytes(),
                                  device.encode()))).hexdigest()
+    if projection == "sampled":
+        return _drawn_destinations(x, src, grid_mass, grid, blur_cells, device, key)
+    if projection != "barycentric":
+        raise ValueError(f"projection must be barycentric or sampled, got {projection!r}")
     T = _PLANS.get(key)
     if T is None:
         T = transport_destinations(y, src[src > 0], grid.lo + grid.dx * tgt_idx, grid_mass[grid_mass > 0],
@@ -265,3 +315,34 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
                 num += wt[:, None] * D[idx[:, 0], idx[:, 1], idx[:, 2]]
                 den += wt * src[idx[:, 0], idx[:, 1], idx[:, 2]]
     return x + num / den[:, None]
+
+
+def _drawn_destinations(x: np.ndarray,  # [N, 3]
+                        src: np.ndarray,  # [R, R, R] the particles' grid mass
+                        grid_mass: np.ndarray,  # [R, R, R] the target's
+                        grid: Grid, blur_cells: float, device: str, plan_key: str) -> np.ndarray:  # [N, 3]
+    """destinations_in_grid_mass's projection "sampled": particle p, whose nearest node I holds
+    mass (a particle's own weight there is at least 1/8), goes to y_J + (x_p - y_I), J drawn from
+    the plan's row of I; the draws of a node's particles in their order."""
+    R = grid.res
+    src_idx = np.argwhere(src > 0)
+    row_of = np.full((R, R, R), -1, dtype=np.int64)
+    row_of[tuple(src_idx.T)] = np.arange(len(src_idx))
+    near = np.clip(np.rint((x - grid.lo) / grid.dx).astype(np.int64), 0, R - 1)
+    rows = row_of[near[:, 0], near[:, 1], near[:, 2]]
+    if (rows < 0).any():  # cannot happen for particles with mass (see above)
+        raise ValueError("a particle's nearest grid node holds no mass: are its masses positive?")
+    counts = np.bincount(rows, minlength=len(src_idx))
+    key = hashlib.sha1((plan_key + "sampled").encode() + counts.tobytes()).hexdigest()
+    drawn = _PLANS.get(key)
+    if drawn is None:
+        tgt_idx = np.argwhere(grid_mass > 0)
+        drawn = transport_draws(grid.lo + grid.dx * src_idx, src[src > 0], grid.lo + grid.dx * tgt_idx,
+                                grid_mass[grid_mass > 0], blur_cells * grid.dx, counts, device=device)
+        if len(_PLANS) >= _PLANS_KEPT:
+            _PLANS.pop(next(iter(_PLANS)))
+        _PLANS[key] = drawn
+    order = np.argsort(rows, kind="stable")  # the draws come row by row
+    out = np.empty_like(x)
+    out[order] = drawn + (x[order] - (grid.lo + grid.dx * near[order]))
+    return out

@@ -48,6 +48,12 @@ class PlasticityConfig:
     transport_blur: Annotated[Float, setting(
         "blur of the transport plan (correspondence: transport), the entropic scale of its last iterations",
         "grid cells", gt=0)] = 1.0
+    # how a particle's destination is read off the plan (physmorph.plasticity.transport,
+    # destinations_in_grid_mass): its row's mean rounds a thin target's parts off on a coarse grid
+    # (docs/study/log.md part 66)
+    transport_projection: Annotated[Literal["barycentric", "sampled"], setting(
+        "how a particle's destination is read off the transport plan: barycentric, the mean of its source "
+        "node's row; sampled, a target node drawn from that row (seed 0), keeping its offset from the node")] = "barycentric"
     # the default, the shape at the last update only, commits the final shape to the rest state
     # without changing the run, so it persists with the control off (docs/study/log.md finding 49)
     absorb_control: Annotated[Bool, setting(

@@ -58,4 +58,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "plan_push_speed": 0.0,  # no velocity along the transport plan
     "plan_push_onset": 1.0,
     "settle_regrow": False,  # the settle phase's step stays backed off
+    "plasticity.transport_projection": "barycentric",  # each destination the mean of its plan row
 }

@@ -126,22 +126,23 @@ def test_absolute_injection_gain_is_used_as_given(tiny):
 
 
 def test_the_transport_blur_setting_reaches_the_plan(tiny, monkeypatch):
-    """plasticity.transport_blur is the blur, in grid cells, of the plan the run's plasticity uses."""
+    """plasticity.transport_blur is the blur, in grid cells, of the plan the run's plasticity uses,
+    and plasticity.transport_projection how its destinations are read off it."""
     import physmorph.morph.waypoints as plan
 
     seen = []
     real = plan.destinations_in_grid_mass
 
     def recorded(x, mass, grid_mass, grid, blur_cells=1.0, **kw):
-        seen.append(blur_cells)
+        seen.append((blur_cells, kw.get("projection")))
         return real(x, mass, grid_mass, grid, blur_cells, **kw)
 
     monkeypatch.setattr(plan, "destinations_in_grid_mass", recorded)
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_full")
-    pl = dataclasses.replace(base.plasticity, transport_blur=2.5)
+    pl = dataclasses.replace(base.plasticity, transport_blur=2.5, transport_projection="sampled")
     _run(tiny, "iso_bunny_full", "blur.h5", frames=base.plasticity.start_frame, plasticity=pl)
-    assert seen == [2.5]
+    assert seen == [(2.5, "sampled")]
 
 
 def test_camera_subset_for_the_loss_but_every_view_for_the_metric(tiny):

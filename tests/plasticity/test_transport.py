@@ -197,3 +197,61 @@ def test_the_plans_blur_is_counted_in_grid_cells(monkeypatch):
     assert wide[:, 0].std() < 0.8 * sharp[:, 0].std()
     with pytest.raises(ValueError, match="transport_blur must be > 0"):
         PlasticityConfig(transport_blur=0.0)
+
+
+def test_sampled_destinations_give_each_target_node_its_share(monkeypatch):
+    """projection "sampled" (PlasticityConfig.transport_projection): each particle goes to a target
+    node with mass drawn from its nearest source node's plan row, plus its offset from that node;
+    the same on every call; and the mass the target's nodes receive is the target's, where the
+    barycentric projection sends the rows that split between two thin slabs to the gap between them."""
+    from physmorph.plasticity import transport
+
+    grid = Grid(16)  # dx = 2
+    rng = np.random.default_rng(11)
+    n = 4000
+    src = rng.uniform(-4, 4, size=(n, 3)) + [-6.0, 0.0, 0.0]
+    mass = np.ones(n)
+    slabs = rng.uniform(-1, 1, size=(n, 3)) * [0.6, 6.0, 6.0]
+    slabs[: n // 2, 0] += 9.0  # two thin slabs, 6 units apart, side by side
+    slabs[n // 2:, 0] += 3.0
+    gm = splat_mass(slabs, mass, grid)
+    monkeypatch.setattr(transport, "_PLANS", {})
+    drawn = destinations_in_grid_mass(src, mass, gm, grid, projection="sampled")
+    monkeypatch.setattr(transport, "_PLANS", {})
+    np.testing.assert_array_equal(destinations_in_grid_mass(src, mass, gm, grid, projection="sampled"), drawn)
+    nearest = np.rint((src - grid.lo) / grid.dx)
+    node = (drawn - (src - (grid.lo + grid.dx * nearest)) - grid.lo) / grid.dx
+    np.testing.assert_allclose(node, np.rint(node), atol=1e-9)  # a node, plus the particle's offset
+    node = np.rint(node).astype(int)
+    assert (gm[node[:, 0], node[:, 1], node[:, 2]] > 0).all()  # a target node with mass
+
+    def received(d):  # each target node's share of the mass sent to it (by nearest node)
+        idx = np.rint((d - grid.lo) / grid.dx).astype(int)
+        got = np.zeros_like(gm)
+        np.add.at(got, tuple(idx.T), mass)
+        return got / got.sum()
+
+    bary = destinations_in_grid_mass(src, mass, gm, grid)
+    want = gm / gm.sum()
+    err_drawn = 0.5 * np.abs(received(drawn) - want).sum()
+    err_bary = 0.5 * np.abs(received(bary) - want).sum()
+    print(f"total variation from the target's mass: sampled {err_drawn:.3f}, barycentric {err_bary:.3f}")
+    assert err_drawn < 0.15 and err_bary > 2 * err_drawn
+    with pytest.raises(ValueError, match="projection must be"):
+        destinations_in_grid_mass(src, mass, gm, grid, projection="nearest")
+
+
+def test_transport_draws_take_each_rows_count():
+    """transport_draws: draws_i target points for source point i, in order, rows with none skipped;
+    a source point next to one of two targets draws (almost) only that one at a small blur."""
+    from physmorph.plasticity.transport import transport_draws
+
+    x = np.array([[-5.0, 0, 0], [5.0, 0, 0], [0.0, 0, 0]])
+    y = np.array([[-5.0, 0, 0], [5.0, 0, 0]])
+    out = transport_draws(x, np.array([1.0, 1.0, 1e-9]), y, np.array([1.0, 1.0]), blur=0.5,
+                          draws=np.array([7, 3, 0]))
+    assert out.shape == (10, 3)
+    np.testing.assert_array_equal(out[:7], np.repeat(y[:1], 7, axis=0))
+    np.testing.assert_array_equal(out[7:], np.repeat(y[1:], 3, axis=0))
+    with pytest.raises(ValueError, match="draw counts"):
+        transport_draws(x, np.ones(3), y, np.ones(2), blur=0.5, draws=np.array([1, 2]))
