@@ -40,6 +40,8 @@ BLOCK_ENTRIES = 1 << 22
 # COARSE_SWITCH cells; no level with fewer than COARSE_MIN_POINTS cells in either cloud.
 COARSE_SWITCH = 2.0
 COARSE_MIN_POINTS = 64
+# Sinkhorn steps of the eps schedule down to blur^2, then steps at blur^2
+PLAN_ITERS, PLAN_EXTRA_ITERS = 40, 10
 # Exponents below this are raised to it before exp: exp(-80) = 1.8e-35 is still a normal float32,
 # and a sum holding exp(0) = 1 cannot see it (n terms add at most n * 1.8e-35, far under float32's
 # ulp of 1), while CPU exp takes a slow path on inputs whose result underflows or is subnormal: at
@@ -202,8 +204,8 @@ def transport_destinations(x: np.ndarray,  # [N, 3] source particles
                            y: np.ndarray,  # [M, 3] target samples (e.g. grid nodes)
                            b: np.ndarray,  # [M] their masses (>= 0; zero entries are dropped)
                            blur: float,
-                           iters: int = 40,
-                           extra_iters: int = 10,
+                           iters: int = PLAN_ITERS,
+                           extra_iters: int = PLAN_EXTRA_ITERS,
                            dtype: torch.dtype = torch.float32,
                            coarse_switch: float = COARSE_SWITCH,
                            min_points: int = COARSE_MIN_POINTS,
@@ -241,7 +243,8 @@ def transport_draws(x: np.ndarray,  # [N, 3] source points
     draws = np.asarray(draws, dtype=np.int64).reshape(-1)
     if len(draws) != len(np.asarray(x).reshape(-1, 3)) or (draws < 0).any():
         raise ValueError(f"transport_draws: {len(draws)} non-negative draw counts needed, one per source point")
-    X, Y, h, Yt, centre = _plan_rows(x, a, y, b, blur, 40, 10, torch.float32, COARSE_SWITCH, COARSE_MIN_POINTS, device)
+    X, Y, h, Yt, centre = _plan_rows(x, a, y, b, blur, PLAN_ITERS, PLAN_EXTRA_ITERS, torch.float32, COARSE_SWITCH,
+                                     COARSE_MIN_POINTS, device)
     generator = torch.Generator().manual_seed(seed)
     targets = Y.cpu().numpy().astype(np.float64) + centre
     rows = max(1, BLOCK_ENTRIES // len(Y))
