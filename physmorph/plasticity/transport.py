@@ -295,7 +295,7 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
                                  np.array([R, grid.lo, grid.dx, blur_cells], np.float64).tobytes(),
                                  device.encode()))).hexdigest()
     if projection == "sampled":
-        return _drawn_destinations(x, src, grid_mass, grid, blur_cells, device, key)
+        return _drawn_destinations(x, src, src_idx, tgt_idx, grid_mass, grid, blur_cells, device, key)
     if projection != "barycentric":
         raise ValueError(f"projection must be barycentric or sampled, got {projection!r}")
     T = _PLANS.get(key)
@@ -322,13 +322,14 @@ def destinations_in_grid_mass(x: np.ndarray,  # [N, 3] source particles at rest
 
 def _drawn_destinations(x: np.ndarray,  # [N, 3]
                         src: np.ndarray,  # [R, R, R] the particles' grid mass
+                        src_idx: np.ndarray,  # [S, 3] its non-empty nodes (np.argwhere order: the plan's rows)
+                        tgt_idx: np.ndarray,  # [M, 3] the target's non-empty nodes
                         grid_mass: np.ndarray,  # [R, R, R] the target's
                         grid: Grid, blur_cells: float, device: str, plan_key: str) -> np.ndarray:  # [N, 3]
     """destinations_in_grid_mass's projection "sampled": particle p, whose nearest node I holds
     mass (a particle's own weight there is at least 1/8), goes to y_J + (x_p - y_I), J drawn from
     the plan's row of I; the draws of a node's particles in their order."""
     R = grid.res
-    src_idx = np.argwhere(src > 0)
     row_of = np.full((R, R, R), -1, dtype=np.int64)
     row_of[tuple(src_idx.T)] = np.arange(len(src_idx))
     near = np.clip(np.rint((x - grid.lo) / grid.dx).astype(np.int64), 0, R - 1)
@@ -339,7 +340,6 @@ def _drawn_destinations(x: np.ndarray,  # [N, 3]
     key = hashlib.sha1((plan_key + "sampled").encode() + counts.tobytes()).hexdigest()
     drawn = _PLANS.get(key)
     if drawn is None:
-        tgt_idx = np.argwhere(grid_mass > 0)
         drawn = transport_draws(grid.lo + grid.dx * src_idx, src[src > 0], grid.lo + grid.dx * tgt_idx,
                                 grid_mass[grid_mass > 0], blur_cells * grid.dx, counts, device=device)
         if len(_PLANS) >= _PLANS_KEPT:
