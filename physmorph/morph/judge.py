@@ -30,7 +30,7 @@ class FrameJudge:
         self.cfg, self.solver, self.inputs, self.run, self.log = cfg, solver, inputs, run, log
         # MorphConfig.settle: the last phase's gate over frames (physmorph.morph.settle)
         self.gate = settle_gate(cfg.settle, cfg.settle_objective, inputs.want_grad, cfg.settle_backoff,
-                                physics_key=physics_objective(cfg))
+                                physics_key=physics_objective(cfg), handover=cfg.settle_handover)
         self.onset = OverfillOnset(cfg)
 
     def begin(self, start: int, fs: FrameState, checkpoint) -> None:
@@ -97,6 +97,9 @@ class FrameJudge:
                 if restart and self.restart.control_keep < 1.0:  # a restart's, not the settle phase's rest
                     solver.scale_control(self.restart.control_keep)
             scal["momentum_restart"] = float(restart)
+        if not rejected and gate.after_accepted(k, scal.get(gate.objective_key, np.nan)):
+            self.log(f"frame {k}: the physics loss fell by less than {cfg.settle_handover:g} of the frame "
+                     f"before; from frame {k + 1} a frame whose {gate.objective_key} rises is undone")
         if gate.at_rest_after(k) and not rejected:
             gate.accepted = self.keep_accepted(AcceptedFrame(fs.state, fs.mask, fs.g_F, fs.g_x, fs.injection_scale,
                                                              dict(scal), per_view, float(scal.get(gate.objective_key, np.nan))))

@@ -28,8 +28,10 @@ import numpy as np
 from physmorph.mpm.state import ParticleState
 from physmorph.settings.render import LOSS_SCALARS
 
-# MorphConfig.settle_objective -> the frame's scalar the gate compares
-OBJECTIVES = {"render": LOSS_SCALARS["total"], "alpha_mse": "alpha_mse", "physics": "physics_loss"}
+# MorphConfig.settle_objective -> the frame's scalar the gate compares (physics_then_alpha: the
+# physics loss, then the alpha MSE from the hand-over: SettleGate.after_accepted)
+OBJECTIVES = {"render": LOSS_SCALARS["total"], "alpha_mse": "alpha_mse", "physics": "physics_loss",
+              "physics_then_alpha": "physics_loss"}
 
 
 # the accepted frame's per-particle arrays written by AcceptedFrame.spill (mass and volume stay:
@@ -92,6 +94,11 @@ class SettleGate:
     start: int | None = None  # the first gated frame (None: not yet)
     last_restart: int = -1
     accepted: AcceptedFrame | None = field(default=None, repr=False)
+    # MorphConfig.settle_objective physics_then_alpha: the gate judges the physics loss until an
+    # accepted frame lowers it by less than this share, then the alpha MSE (handover_key)
+    handover: float = 0.0
+    handover_key: str | None = None
+    handed_over: int | None = None  # the first frame judged by handover_key (None: not yet)
 
     def note_restart(self, frame: int, restart: bool) -> bool:
         """Record whether the restart fired at ``frame``; True when this starts the phase (at frame + 1)."""
@@ -114,21 +121,40 @@ class SettleGate:
         """Whether ``frame`` ends above the last accepted frame's objective (and so is undone)."""
         return bool(self.gates(frame) and np.isfinite(objective) and objective > self.accepted.objective)
 
+    def after_accepted(self, frame: int, objective: float) -> bool:
+        """An accepted ``frame`` whose objective (the physics loss) fell by less than ``handover`` of
+        the last accepted frame's hands the gate over to ``handover_key`` from the next frame: the
+        body goes on taking shape in 3D while its physics loss still falls, and is then held still
+        by its images. True when this frame hands over (call before the frame is kept as accepted)."""
+        if self.handover_key is None or self.handed_over is not None or not self.gates(frame):
+            return False
+        before = self.accepted.objective
+        if not (np.isfinite(objective) and np.isfinite(before)) or before - objective >= self.handover * abs(before):
+            return False
+        self.handed_over, self.objective_key = frame + 1, self.handover_key
+        return True
+
     def checkpoint(self) -> dict:
-        return {"settle_start": -1 if self.start is None else self.start, "last_restart": self.last_restart}
+        return {"settle_start": -1 if self.start is None else self.start, "last_restart": self.last_restart,
+                "settle_handed_over": -1 if self.handed_over is None else self.handed_over}
 
     def restore(self, ck: dict) -> None:
         start = int(ck.get("settle_start", -1))
         self.start = None if start < 0 else start
         self.last_restart = int(ck.get("last_restart", -1))
+        handed = int(ck.get("settle_handed_over", -1))
+        if handed >= 0 and self.handover_key is not None:
+            self.handed_over, self.objective_key = handed, self.handover_key
 
 
 def settle_gate(onset: str, objective: str, renders: bool, backoff: float,
-                physics_key: str = "physics_loss") -> SettleGate:
-    """The gate of a run (MorphConfig.settle, settle_objective, settle_backoff); a method that does
-    not render (physics_only) is gated only on the physics objective, so it never reads the images.
-    ``physics_key``: the frame's scalar the physics objective reads (against the target itself
-    where the frames aim at waypoints)."""
+                physics_key: str = "physics_loss", handover: float = 0.0) -> SettleGate:
+    """The gate of a run (MorphConfig.settle, settle_objective, settle_backoff, settle_handover); a
+    method that does not render (physics_only) is gated only on the physics objective, so it never
+    reads the images. ``physics_key``: the frame's scalar the physics objective reads (against the
+    target itself where the frames aim at waypoints)."""
     if objective != "physics" and not renders:
         onset = "off"
+    if objective == "physics_then_alpha":
+        return SettleGate(onset, physics_key, backoff, handover=handover, handover_key=OBJECTIVES["alpha_mse"])
     return SettleGate(onset, physics_key if objective == "physics" else OBJECTIVES[objective], backoff)

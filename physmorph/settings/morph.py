@@ -95,9 +95,15 @@ class MorphConfig:
     settle_regrow: Annotated[Bool, setting(
         "after a frame the settle phase accepted, the step grows back by 1 / settle_backoff, up to mpm's "
         "step_size (false: it stays backed off)")] = False
-    settle_objective: Annotated[Literal["render", "alpha_mse", "physics"], setting(
-        "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, or its physics "
-        "loss; physics_only is gated on the physics loss only")] = "alpha_mse"
+    settle_objective: Annotated[Literal["render", "alpha_mse", "physics", "physics_then_alpha"], setting(
+        "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, its physics "
+        "loss, or its physics loss until it falls by less than settle_handover a frame and its alpha MSE "
+        "from then on; physics_only is gated on the physics loss only")] = "alpha_mse"
+    # the images' gate holds a body still once its silhouettes match, which a push along the plan
+    # reaches long before the body's thin parts are filled (docs/study/log.md)
+    settle_handover: Annotated[Float, setting(
+        "settle_objective physics_then_alpha: the share by which an accepted frame must lower the physics "
+        "loss for the physics loss to go on judging", ge=0, lt=1)] = 0.02
     # The stray pull belongs to the Chamfer guidance, with the plasticity: stray_pull x (m_p /
     # (density dx^3)) |x_T,p - s_p|^2 / dx^2 in the physics loss, the anchor s_p taken at the frame's
     # start. The grid's mass loss has no direction for a region several cells outside the target,

@@ -87,13 +87,16 @@ def morph_params(cfg) -> str:
     Settings at their defaults are left out (see ``without_defaults``: a new option reruns
     nothing), and so are settings the run's method never reads, so changing them reruns nothing:
     plasticity and the stray and destination pulls outside ``full``, the injection gains and their calibration (and the
-    settle phase, unless it judges the physics loss) for ``physics_only``,
+    settle phase, unless it judges the physics loss) for ``physics_only``, the settle hand-over where
+    the settle phase does not hand over,
     ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
     it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
     string (what is left out takes its default)."""
     d = without_defaults(cfg)
     d.pop("progress", None)
     d.get("mpm", {}).pop("threads", None)
+    if cfg.settle_objective != "physics_then_alpha":
+        d.pop("settle_handover", None)
     if cfg.method != "full":
         d.pop("plasticity", None)
         for k in ("stray_pull", "stray_pull_onset", "stray_pull_density", "destination_pull", "destination_pull_onset",
@@ -103,7 +106,7 @@ def morph_params(cfg) -> str:
         for k in ("gamma", "gamma_x", "injection_calibration"):
             d.pop(k, None)
         if cfg.settle_objective != "physics":  # the settle phase judges the images, which it never reads
-            for k in ("settle", "settle_objective", "settle_backoff", "settle_regrow"):
+            for k in ("settle", "settle_objective", "settle_backoff", "settle_regrow", "settle_handover"):
                 d.pop(k, None)
         if cfg.metric_all_particles:
             d.pop("surface", None)

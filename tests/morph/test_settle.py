@@ -165,6 +165,34 @@ def test_gate_starts_at_the_first_rise_or_the_cycle_and_judges_against_the_accep
     assert settle_gate("after_first_rise", "physics", False, 0.5).objective_key == "physics_loss"
 
 
+
+def test_physics_then_alpha_hands_the_gate_over_when_the_physics_loss_stops_falling():
+    """settle_objective physics_then_alpha: the gate judges the physics loss while each accepted frame
+    lowers it by at least settle_handover, then the alpha MSE; the hand-over survives a resume."""
+    gate = settle_gate("after_first_rise", "physics_then_alpha", True, 0.5, handover=0.02)
+    assert gate.objective_key == "physics_loss" and gate.handover_key == "alpha_mse"
+    assert gate.note_restart(4, True) and gate.start == 5
+    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=100.0)
+    assert not gate.after_accepted(4, 99.9)  # before the phase: no hand-over
+    assert not gate.after_accepted(5, 97.0)  # fell by 3 %: the physics loss goes on judging
+    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=97.0)
+    assert gate.rejects(6, 97.5) and not gate.rejects(6, 96.0)
+    assert gate.after_accepted(6, 96.0) and gate.handed_over == 7  # fell by 1 %: hand over
+    assert gate.objective_key == "alpha_mse"
+    assert not gate.after_accepted(7, 10.0)  # once
+    restored = settle_gate("after_first_rise", "physics_then_alpha", True, 0.5, handover=0.02)
+    restored.restore(gate.checkpoint())
+    assert (restored.handed_over, restored.objective_key) == (7, "alpha_mse")
+    fresh = settle_gate("after_first_rise", "physics_then_alpha", True, 0.5, handover=0.02)
+    fresh.restore(settle_gate("after_first_rise", "physics_then_alpha", True, 0.5).checkpoint())
+    assert fresh.handed_over is None and fresh.objective_key == "physics_loss"
+    # the other objectives never hand over
+    plain = settle_gate("after_first_rise", "physics", True, 0.5, handover=0.02)
+    plain.note_restart(4, True)
+    plain.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=100.0)
+    assert not plain.after_accepted(5, 100.0) and plain.objective_key == "physics_loss"
+
+
 class _Killed(Exception):
     pass
 
