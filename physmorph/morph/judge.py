@@ -70,7 +70,7 @@ class FrameJudge:
         frame, and the step backs off), the momentum restart and the packing term's onset act on
         what the next frame starts from. Returns (scal, per_view, m, undone) to commit."""
         cfg, solver, gate = self.cfg, self.solver, self.gate
-        rejected = gate.rejects(k, scal.get(gate.objective_key, np.nan))
+        rejected = gate.rejects(k, scal)
         if rejected:  # the frame is undone: the body holds still at the last accepted frame
             back = gate.accepted
             fs.state, fs.mask, fs.g_F, fs.g_x = back.arrays()

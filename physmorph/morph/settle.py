@@ -117,15 +117,24 @@ class SettleGate:
     def gates(self, frame: int) -> bool:
         return self.start is not None and frame >= self.start and self.accepted is not None
 
-    def rejects(self, frame: int, objective: float) -> bool:
-        """Whether ``frame`` ends above the last accepted frame's objective (and so is undone)."""
-        return bool(self.gates(frame) and np.isfinite(objective) and objective > self.accepted.objective)
+    def rejects(self, frame: int, scalars: dict) -> bool:
+        """Whether ``frame`` (its committed ``scalars``) ends above the last accepted frame's objective
+        (and so is undone). Before a hand-over (physics_then_alpha) it is undone only where its alpha
+        MSE rose as well: a body thrown toward its target ends the first frame it starts at rest
+        above that frame's physics loss however small its step, and would be held there."""
+        objective = scalars.get(self.objective_key, np.nan)
+        if not (self.gates(frame) and np.isfinite(objective) and objective > self.accepted.objective):
+            return False
+        if self.handover_key is None or self.handed_over is not None:
+            return True
+        return bool(scalars.get(self.handover_key, np.nan) > self.accepted.scalars.get(self.handover_key, np.nan))
 
     def after_accepted(self, frame: int, objective: float) -> bool:
         """An accepted ``frame`` whose objective (the physics loss) fell by less than ``handover`` of
-        the last accepted frame's hands the gate over to ``handover_key`` from the next frame: the
-        body goes on taking shape in 3D while its physics loss still falls, and is then held still
-        by its images. True when this frame hands over (call before the frame is kept as accepted)."""
+        the last accepted frame's (or rose) hands the gate over to ``handover_key`` from the next
+        frame: the body goes on taking shape in 3D while its physics loss still falls, and is then
+        held still by its images. True when this frame hands over (call before the frame is kept as
+        accepted)."""
         if self.handover_key is None or self.handed_over is not None or not self.gates(frame):
             return False
         before = self.accepted.objective

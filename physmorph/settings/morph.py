@@ -97,8 +97,9 @@ class MorphConfig:
         "step_size (false: it stays backed off)")] = False
     settle_objective: Annotated[Literal["render", "alpha_mse", "physics", "physics_then_alpha"], setting(
         "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, its physics "
-        "loss, or its physics loss until it falls by less than settle_handover a frame and its alpha MSE "
-        "from then on; physics_only is gated on the physics loss only")] = "alpha_mse"
+        "loss, or (physics_then_alpha) its physics loss and its alpha MSE together (undone where both rose) "
+        "until an accepted frame lowers the physics loss by less than settle_handover, its alpha MSE from then "
+        "on; physics_only is gated on the physics loss only")] = "alpha_mse"
     # the images' gate holds a body still once its silhouettes match, which a push along the plan
     # reaches long before the body's thin parts are filled (docs/study/log.md)
     settle_handover: Annotated[Float, setting(

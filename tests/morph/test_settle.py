@@ -155,8 +155,9 @@ def test_gate_starts_at_the_first_rise_or_the_cycle_and_judges_against_the_accep
     off = SettleGate("off", "alpha_mse", 0.5)
     assert not off.note_restart(7, True) and not off.note_restart(9, True) and off.start is None
     gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=1.0)
-    assert not gate.rejects(7, 2.0)  # before the phase
-    assert gate.rejects(8, 1.5) and not gate.rejects(8, 1.0) and not gate.rejects(9, 0.5)
+    assert not gate.rejects(7, {"alpha_mse": 2.0})  # before the phase
+    assert gate.rejects(8, {"alpha_mse": 1.5}) and not gate.rejects(8, {"alpha_mse": 1.0})
+    assert not gate.rejects(9, {"alpha_mse": 0.5})
     restored = SettleGate("after_first_rise", "alpha_mse", 0.5)
     restored.restore(gate.checkpoint())
     assert (restored.start, restored.last_restart) == (8, 7)
@@ -172,13 +173,22 @@ def test_physics_then_alpha_hands_the_gate_over_when_the_physics_loss_stops_fall
     gate = settle_gate("after_first_rise", "physics_then_alpha", True, 0.5, handover=0.02)
     assert gate.objective_key == "physics_loss" and gate.handover_key == "alpha_mse"
     assert gate.note_restart(4, True) and gate.start == 5
-    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=100.0)
+    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {"alpha_mse": 0.1}, None, objective=100.0)
     assert not gate.after_accepted(4, 99.9)  # before the phase: no hand-over
     assert not gate.after_accepted(5, 97.0)  # fell by 3 %: the physics loss goes on judging
-    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=97.0)
-    assert gate.rejects(6, 97.5) and not gate.rejects(6, 96.0)
-    assert gate.after_accepted(6, 96.0) and gate.handed_over == 7  # fell by 1 %: hand over
+    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {"alpha_mse": 0.1}, None, objective=97.0)
+    # before the hand-over a frame is undone where its physics loss and its alpha MSE both rose
+    assert gate.rejects(6, {"physics_loss": 97.5, "alpha_mse": 0.11})
+    assert not gate.rejects(6, {"physics_loss": 97.5, "alpha_mse": 0.09})
+    assert not gate.rejects(6, {"physics_loss": 96.0, "alpha_mse": 0.11})
+    assert gate.after_accepted(6, 97.5) and gate.handed_over == 7  # rose: hand over
     assert gate.objective_key == "alpha_mse"
+    gate.accepted = AcceptedFrame(None, None, None, None, 0.0, {"alpha_mse": 0.09}, None, objective=0.09)
+    assert gate.rejects(7, {"physics_loss": 90.0, "alpha_mse": 0.095})  # then the alpha MSE alone
+    other = settle_gate("after_first_rise", "physics_then_alpha", True, 0.5, handover=0.02)
+    other.note_restart(4, True)
+    other.accepted = AcceptedFrame(None, None, None, None, 0.0, {}, None, objective=97.0)
+    assert other.after_accepted(5, 96.0) and other.handed_over == 6  # fell by 1 %: hand over
     assert not gate.after_accepted(7, 10.0)  # once
     restored = settle_gate("after_first_rise", "physics_then_alpha", True, 0.5, handover=0.02)
     restored.restore(gate.checkpoint())
