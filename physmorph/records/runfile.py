@@ -59,7 +59,8 @@ from physmorph.records.runfile_cli import CHECKPOINT_NAME, LOCK_NAME, METRICS_CH
 # Per-frame scalar metrics, in the order they appear in the run file's /metrics group: the one
 # declaration of their names (RunWriter.commit refuses any other; the render loss's from its terms).
 # physics_loss: the loss the frame's control minimised, at its end (the mass loss with the packing
-# term, for the full method plus the stray pull's term); mass_loss: the same without the pull's term;
+# term, plus mpm.volume_weight's volume term, for the full method plus the stray pull's term);
+# mass_loss: the same without the pull's and the volume term;
 # physics_loss_to_target: with morph.waypoint_cells, the end state's physics loss against the target
 # itself (the frames' aims differ), and mass_loss then against the target too; plan_distance: the
 # full method's mass-weighted mean distance to the transport destinations, in cells.

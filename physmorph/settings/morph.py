@@ -25,7 +25,8 @@ class MorphConfig:
     # always in a run's params (physmorph.settings.params.without_defaults), so its record names the method
     # (and, for control_decay, because its default changed since runs were first made)
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
-                                                              "stray_pull", "settle"})
+                                                              "stray_pull", "settle",
+                                                              "plan_push_speed", "reabsorb_strays", "settle_objective"})
     # the paper's method (sections 3-4)
     method: Annotated[Literal["physics_only", "f_inject", "full", "position_inject"], setting(
         "physics_only: mass loss alone; f_inject: + render gradient on F; full: + plasticity; position_inject: "
@@ -99,7 +100,7 @@ class MorphConfig:
         "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, its physics "
         "loss, or (physics_then_alpha) its physics loss and its alpha MSE together (undone where both rose) "
         "until an accepted frame lowers the physics loss by less than settle_handover, its alpha MSE from then "
-        "on; physics_only is gated on the physics loss only")] = "alpha_mse"
+        "on; physics_only is gated on the physics loss only")] = "physics_then_alpha"  # history: docs/study/CHANGELOG.md
     # the images' gate holds a body still once its silhouettes match, which a push along the plan
     # reaches long before the body's thin parts are filled (docs/study/log.md)
     settle_handover: Annotated[Float, setting(
@@ -147,7 +148,7 @@ class MorphConfig:
     plan_push_speed: Annotated[Float, setting(
         "method full with correspondence transport: at each frame's start every particle more than "
         "plan_push_onset from its transport destination is given the velocity that would carry it this far "
-        "toward it over the frame (at most onto it; 0: off)", "domain units a frame", ge=0)] = 0.0
+        "toward it over the frame (at most onto it; 0: off)", "domain units a frame", ge=0)] = 0.5  # history: docs/study/CHANGELOG.md
     plan_push_onset: Annotated[Float, setting(
         "the plan's push acts on particles more than this far from their transport destination", "cells",
         ge=0)] = 1.0
@@ -156,7 +157,7 @@ class MorphConfig:
     # redistribution, the reabsorbing part.
     reabsorb_strays: Annotated[Bool, setting(
         "method full: after each frame, particles torn off the body and outside the target (the stray pull's test) "
-        "join the body particle nearest their nearest target surface point, with its state")] = False
+        "join the body particle nearest their nearest target surface point, with its state")] = True  # history: docs/study/CHANGELOG.md
 
     # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)

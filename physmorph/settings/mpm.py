@@ -145,7 +145,8 @@ class MPMConfig:
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"learning_rate", "smoothing_mode", "min_volume_ratio",
                                                              "step_scales_with_dx", "step_per_volume",
                                                              "step_volume", "step_volume_share",
-                                                             "overfill_weight", "overfill_ratio", "mass_loss_blur"})
+                                                             "overfill_weight", "overfill_ratio", "mass_loss_blur",
+                                                             "volume_weight"})
 
     # the run: its size and hardware (a profile or the workflow sets them)
     grid_res: Annotated[Int, setting("MPM grid cells per axis (set by sampling.grid_res)", "cells",
@@ -225,7 +226,7 @@ class MPMConfig:
         "density ratio of the packing term's cap (0.001: the target's own node mass)", gt=0)] = 0.001
     volume_weight: Annotated[Float, setting(
         "weight of a volume term on the body's volume against its rest volume, per node the target fills; "
-        "0 = off (the paper)", ge=0)] = 0.0
+        "0 = off (the paper)", ge=0)] = 30.0  # history: docs/study/CHANGELOG.md
 
     def __post_init__(self) -> None:
         """The checks across fields (each field's own range is its declaration's)."""

@@ -15,7 +15,8 @@ class PlasticityConfig:
     # defaults changed since runs were first made (physmorph.settings.params.without_defaults): always in a
     # run's params, so runs made with the old default rerun
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"absorb_control", "absorb_target", "absorb_start_frame",
-                                                             "eta", "correspondence", "start_frame", "volume"})
+                                                             "eta", "correspondence", "start_frame", "volume",
+                                                             "transport_projection"})
     # the paper's plasticity (section 3.4; eta and start_frame at values of their own, docs/method.md)
     # base rate per frame (the paper: 0.2; config/paper_method.yaml uses it; 0.02 until 2026-11-24,
     # with the nearest-point correspondence, then 0.1; see config/config.yaml)
@@ -53,7 +54,7 @@ class PlasticityConfig:
     # (docs/study/log.md part 66)
     transport_projection: Annotated[Literal["barycentric", "sampled"], setting(
         "how a particle's destination is read off the transport plan: barycentric, the mean of its source "
-        "node's row; sampled, a target node drawn from that row (seed 0), keeping its offset from the node")] = "barycentric"
+        "node's row; sampled, a target node drawn from that row (seed 0), keeping its offset from the node")] = "sampled"  # history: docs/study/CHANGELOG.md
     # the default, the shape at the last update only, commits the final shape to the rest state
     # without changing the run, so it persists with the control off (docs/study/log.md finding 49)
     absorb_control: Annotated[Bool, setting(

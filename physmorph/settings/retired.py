@@ -59,4 +59,7 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "plan_push_onset": 1.0,
     "settle_regrow": False,  # the settle phase's step stays backed off
     "plasticity.transport_projection": "barycentric",  # each destination the mean of its plan row
+    # read only by settle_objective physics_then_alpha, which did not exist before it: any value ran
+    # as the shipped one does
+    "settle_handover": 0.02,
 }

@@ -87,6 +87,18 @@ def test_shipped_morph_comes_to_rest_as_good_as_its_best(shipped_run):
     for k in range(1, len(settling) - 1):  # frame k + 1's step follows frame k
         expect.append(expect[-1] * mc.settle_backoff if settling[k] == 2.0 else expect[-1])
     np.testing.assert_array_equal(m["step_size"][1:], expect)
+    # the shipped gate judges the physics loss with the alpha MSE until the physics loss stalls, then
+    # the alpha MSE alone: before the hand-over no committed frame raised both, after it none raised alpha
+    assert mc.settle_objective == "physics_then_alpha"
+    handed = [line for line in lines if "the physics loss fell by less than" in line]
+    assert len(handed) == 1, lines
+    h = int(handed[0].split("from frame ")[1].split()[0])
+    gated = np.flatnonzero(~np.isnan(settling))
+    phys = np.asarray(m["physics_loss"], dtype=float)
+    before, after = gated[gated < h], gated[gated >= h]
+    assert before.size and after.size, (gated, h)
+    assert not np.any((phys[before] > phys[before - 1]) & (a[before] > a[before - 1]))
+    assert np.all(a[after] <= a[after - 1])
 
 
 @pytest.fixture(scope="module")
@@ -297,7 +309,7 @@ def test_the_settle_step_backs_off_on_an_undone_frame_and_regrows_on_an_accepted
     from physmorph.morph.frame_state import FrameState
     from physmorph.morph.steering import StepSchedule
 
-    cfg = dataclasses.replace(MorphConfig(), settle_regrow=regrow, momentum_restart="off")
+    cfg = dataclasses.replace(MorphConfig(), settle_regrow=regrow, momentum_restart="off", settle_objective="alpha_mse")
     base = cfg.mpm.step_size
     inputs = SimpleNamespace(want_grad=True, device="cuda")  # not the CPU: the accepted frame stays in memory
     judge = FrameJudge(cfg, _StubSolver(), inputs, run=None, log=lambda line: None)

@@ -75,13 +75,13 @@ def module_solver(name: str, cfg: MPMConfig, st: ParticleState) -> MPMSolver:
 
 def cfg64(**kw) -> MPMConfig:
     # The solver tests are written for the squared mass loss and Adam, without the step clip, the
-    # authors' full step (no volume projection), the paper's F smoothing, no packing term and no
-    # blurred level (the workflow's defaults are the log loss with overfill weighed twice and a
-    # blurred level, clipped volume-projected normalised GD and isochoric smoothing, tested where
-    # a test names them).
+    # authors' full step (no volume projection), the paper's F smoothing, no packing term, no
+    # blurred level and no volume term (the workflow's defaults are the log loss with overfill
+    # weighed twice, a blurred level and a volume term, clipped volume-projected normalised GD and
+    # isochoric smoothing, tested where a test names them).
     base = dict(grid_res=RES, precision="float64", substeps=3, mass_loss="squared", log_mass_eps=1e-3,
                 optimizer="adam", learning_rate=0.01, step_clip=0.0, smoothing_mode="full", step_volume="full",
-                overfill_weight=0.0, mass_loss_blur=0.0)
+                overfill_weight=0.0, mass_loss_blur=0.0, volume_weight=0.0)
     base.update(kw)
     return MPMConfig(**base)
 

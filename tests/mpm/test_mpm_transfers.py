@@ -201,14 +201,14 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     substep, free after), and the test asserts no particle's det F_new lies within 1e-4 of the
     kink (2e-4 at the nearest here), so a central difference of step 1e-5 stays on one branch:
     the check is where the clamp is smooth. The overfill term max(0, r)^2 is C^1 (its nodes on
-    both sides of the cap here). Then the same with the volume term (mpm.volume_weight, off in the
-    shipped config) weighed to about the rest of the loss."""
+    both sides of the cap here); the volume term at its shipped weight (mpm.volume_weight) is in
+    it. Then the same with the volume term weighed to about the rest of the loss."""
     cfg = dataclasses.replace(MPMConfig(), precision="float64", grid_res=RES, substeps=3)
     default = MPMConfig()
     changed = {f.name for f in dataclasses.fields(MPMConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
     assert changed == {"precision", "grid_res", "substeps"}
     assert cfg.mass_loss == "log" and cfg.mass_loss_blur > 0 and cfg.overfill_weight > 0
-    assert cfg.smoothing_mode == "isochoric" and cfg.min_volume_ratio > 0
+    assert cfg.smoothing_mode == "isochoric" and cfg.min_volume_ratio > 0 and cfg.volume_weight > 0
     st = state.copy()
     squeezed = np.arange(st.n) % 4 == 0
     st.F[squeezed] *= 0.55  # det F ~ 0.55^3 = 0.17 < J_min: these particles sit on the floor
@@ -231,8 +231,8 @@ def test_gradients_at_the_shipped_defaults_match_fd(state):
     fd_check(s, st, n_checks=8, seed=22, h=1e-5)
     fd_check(s, st, gF=50.0 * rng.normal(size=(st.n, 3, 3)), gx=5.0 * rng.normal(size=(st.n, 3)), n_checks=6,
               seed=23, h=1e-5)
-    # the volume term (mpm.volume_weight, off in the shipped config) on the same solver, weighed so it
-    # is about the rest of the loss
+    # the volume term on the same solver, weighed so it is about the rest of the loss
+    s.configure(dataclasses.replace(cfg, volume_weight=0.0))
     plain, ratio, unit = volume_term_parts(s, st)
     s.configure(dataclasses.replace(cfg, volume_weight=plain / (unit * (ratio - 1.0) ** 2)))
     fd_check(s, st, n_checks=6, seed=24, h=1e-5)
