@@ -29,9 +29,8 @@ from physmorph.mpm.state import ParticleState
 from physmorph.settings.render import LOSS_SCALARS
 
 # MorphConfig.settle_objective -> the frame's scalar the gate compares (physics_then_alpha: the
-# physics loss, then the alpha MSE from the hand-over: SettleGate.after_accepted)
-OBJECTIVES = {"render": LOSS_SCALARS["total"], "alpha_mse": "alpha_mse", "physics": "physics_loss",
-              "physics_then_alpha": "physics_loss"}
+# physics loss, then the alpha MSE from the hand-over: settle_gate, SettleGate.after_accepted)
+OBJECTIVES = {"render": LOSS_SCALARS["total"], "alpha_mse": "alpha_mse", "physics": "physics_loss"}
 
 
 # the accepted frame's per-particle arrays written by AcceptedFrame.spill (mass and volume stay:
