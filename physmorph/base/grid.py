@@ -104,16 +104,23 @@ def blur_weights(sigma: float) -> np.ndarray:  # [2 r + 1]
     return w / w.sum()
 
 
+# How occupied cells link into pieces: through a shared face only, or a face, an edge or a corner
+CELL_LINKS = {"faces": 1, "corners": 3}  # scipy.ndimage.generate_binary_structure's connectivity
+
+
 def occupied_pieces(x: np.ndarray,  # [N, 3] positions
-                    dx: float) -> tuple[np.ndarray, int]:  # [N] piece of each point (1..count), count
-    """The connected pieces of the cells of side dx the points occupy (26-connected: cells sharing a
-    face, an edge or a corner), scipy.ndimage.label on a grid with a free layer around them; each
-    point's piece label and the number of pieces."""
+                    dx: float, links: str = "corners") -> tuple[np.ndarray, int]:  # [N] piece of each point (1..count), count
+    """The connected pieces of the cells of side dx the points occupy (links "corners": 26-connected,
+    cells sharing a face, an edge or a corner; "faces": 6-connected, a shared face only),
+    scipy.ndimage.label on a grid with a free layer around them; each point's piece label and the
+    number of pieces."""
     from scipy import ndimage
 
+    if links not in CELL_LINKS:
+        raise ValueError(f"links must be one of {sorted(CELL_LINKS)}, got {links!r}")
     x = np.asarray(x, np.float64)
     cell = np.floor((x - x.min(axis=0)) / dx).astype(np.int64) + 1
     occupied = np.zeros(tuple(cell.max(axis=0) + 2), dtype=bool)
     occupied[tuple(cell.T)] = True
-    labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, count = ndimage.label(occupied, structure=ndimage.generate_binary_structure(3, CELL_LINKS[links]))
     return labels[tuple(cell.T)], int(count)

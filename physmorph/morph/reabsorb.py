@@ -8,7 +8,8 @@ simplest part, reabsorbing what separated.
 
 After a frame's plasticity update a particle is spray when it is
 
-- detached: in a connected piece of the occupied grid cells (side dx, 26-connected) other than the
+- detached: in a connected piece of the occupied grid cells (side dx; linked through a shared face,
+  edge or corner, or with MorphConfig.spray_links "faces" through a shared face only) other than the
   largest, holding less than SPRAY_PIECE_SHARE of the mass (a body torn in two keeps both halves),
 - and stray: outside the target by the stray pull's test (its nearest grid node holds no target
   mass) and more than stray_pull_onset cells from the target's surface.
@@ -35,10 +36,11 @@ SPRAY_PIECE_SHARE = 0.01
 
 def detached_pieces(x: np.ndarray,  # [N, 3]
                     mass: np.ndarray,  # [N]
-                    dx: float) -> np.ndarray:  # [N] bool
-    """Particles in a connected piece of occupied cells (side dx, 26-connected) other than the one
-    of most mass, the piece holding less than SPRAY_PIECE_SHARE of the mass."""
-    piece, count = occupied_pieces(x, dx)
+                    dx: float, links: str = "corners") -> np.ndarray:  # [N] bool
+    """Particles in a connected piece of occupied cells (side dx, linked as ``links`` says:
+    physmorph.base.grid.occupied_pieces) other than the one of most mass, the piece holding less
+    than SPRAY_PIECE_SHARE of the mass."""
+    piece, count = occupied_pieces(x, dx, links)
     piece_mass = np.bincount(piece, weights=mass, minlength=count + 1)
     small = piece_mass < SPRAY_PIECE_SHARE * mass.sum()
     small[int(np.argmax(piece_mass))] = False
@@ -64,12 +66,12 @@ class Reabsorbed:
 
 def reabsorb_spray(st: ParticleState, nearest_d: np.ndarray,  # [N]
                    nearest_i: np.ndarray,  # [N] index of each particle's nearest target surface point
-                   target, onset_cells: float) -> Reabsorbed:
+                   target, onset_cells: float, links: str = "corners") -> Reabsorbed:
     """The spray (module docstring) moved into the body; the state unchanged where there is none."""
     from scipy.spatial import cKDTree
 
     dx = float(target.grid.dx)
-    detached = detached_pieces(st.x, st.mass, dx)
+    detached = detached_pieces(st.x, st.mass, dx, links)
     spray = np.flatnonzero(detached & outside_target(st.x, nearest_d, target, onset_cells))
     if not len(spray):
         return Reabsorbed(st, spray, 0.0)
@@ -96,7 +98,7 @@ def reabsorb_frame(fs, nearest_d: np.ndarray,  # [N] kept with the frame's end s
     mass moved (NaN where off). ``reabsorb_spray`` is looked up at call time (tests wrap it)."""
     if not (cfg.reabsorb_strays and cfg.method == "full"):
         return np.nan
-    r = reabsorb_spray(fs.state, nearest_d, nearest_i, inputs.target, cfg.stray_pull_onset)
+    r = reabsorb_spray(fs.state, nearest_d, nearest_i, inputs.target, cfg.stray_pull_onset, cfg.spray_links)
     if len(r.moved):
         fs.state = r.state
         nearest_d[r.moved], nearest_i[r.moved] = inputs.nearest_target(r.state.x[r.moved])

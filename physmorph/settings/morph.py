@@ -158,6 +158,10 @@ class MorphConfig:
     reabsorb_strays: Annotated[Bool, setting(
         "method full: after each frame, particles torn off the body and outside the target (the stray pull's test) "
         "join the body particle nearest their nearest target surface point, with its state")] = True  # history: docs/study/CHANGELOG.md
+    spray_links: Annotated[Literal["corners", "faces"], setting(
+        "reabsorb_strays: how the occupied grid cells link into pieces when telling torn-off spray from the body: "
+        "through a shared face, edge or corner, or through a shared face only (a bead hanging on the body by an "
+        "edge or a corner is then torn off)")] = "corners"
 
     # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)

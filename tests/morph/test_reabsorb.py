@@ -58,6 +58,43 @@ def test_only_small_detached_pieces_count_as_spray():
     assert np.flatnonzero(detached).tolist() == sorted(parts["spray"].tolist() + parts["inside"].tolist())
 
 
+def test_a_bead_hanging_on_by_a_corner_is_spray_only_when_cells_link_through_faces():
+    """spray_links "faces": a bead whose cell touches the body's only at a corner (and one touching it
+    by an edge) is a piece of its own and, outside the target, is put back; "corners" (26-connected)
+    keeps both on the body."""
+    st, _, _, target, parts = _scene()
+    dx = target.grid.dx
+    top = st.x[parts["body"]].max(axis=0)  # 9.0: the body's last cells are [9, 9.5)
+    corner_bead = top + 1.5 * dx  # in the next cell along the diagonal
+    edge_bead = np.array([top[0] + 1.5 * dx, 7.0, top[2] + 1.5 * dx])  # across an edge
+    x = np.concatenate([st.x, [corner_bead, edge_bead]])
+    beads = [len(st.x), len(st.x) + 1]
+    cells = np.floor((x - x.min(axis=0)) / dx)
+    for c in cells[beads]:  # neither bead shares a cell or a face with the body; each touches it by a corner or an edge
+        off = np.abs(cells[parts["body"]] - c)
+        assert off.max(axis=1).min() == 1 and (off.sum(axis=1)[off.max(axis=1) == 1] >= 2).all()
+    n = len(x)
+    grown = ParticleState(x=x, v=np.zeros((n, 3)), F=np.tile(np.eye(3), (n, 1, 1)), C=np.zeros((n, 3, 3)),
+                          Fp=np.tile(np.eye(3), (n, 1, 1)), mass=np.concatenate([st.mass, [1.0, 1.0]]),
+                          volume=np.concatenate([st.volume, [1.0, 1.0]]))
+    assert not detached_pieces(x, grown.mass, dx)[beads].any()
+    assert detached_pieces(x, grown.mass, dx, links="faces")[beads].all()
+    # a target the body fills ([5, 9]^3), so the beads lie outside it
+    grid = target.grid
+    node = np.rint((_lattice((5.0, 5.0, 5.0), (9.0, 9.0, 9.0), dx) - grid.lo) / dx).astype(int)
+    grid_mass = np.zeros((grid.res,) * 3)
+    grid_mass[tuple(node.T)] = 1.0
+    box = st.x[parts["body"]]
+    faces = box[np.isclose(box, 5.0).any(axis=1) | np.isclose(box, 9.0).any(axis=1)]
+    tight = SimpleNamespace(grid=grid, grid_mass=grid_mass, surface_points=faces)
+    from scipy.spatial import cKDTree
+
+    d, i = cKDTree(faces).query(x)
+    spray = sorted(parts["spray"].tolist() + parts["inside"].tolist())  # the detached particles outside this target
+    assert reabsorb_spray(grown, d, i, tight, onset_cells=0.0).moved.tolist() == spray
+    assert reabsorb_spray(grown, d, i, tight, onset_cells=0.0, links="faces").moved.tolist() == spray + beads
+
+
 def test_the_spray_joins_the_body_with_its_state_and_keeps_its_mass():
     """Only the detached particles outside the target move: next to the body particle nearest their
     target surface point (half a cell from it, toward that point), taking its v, C, F, Fp; mass and
@@ -97,13 +134,13 @@ def test_a_run_puts_a_torn_off_particle_back_and_records_its_share(tiny, monkeyp
     dx = load_target(d / "t_bunny.h5").grid.dx
     corner = {}
 
-    def throw_then_reabsorb(st, nearest_d, nearest_i, target, onset_cells):
+    def throw_then_reabsorb(st, nearest_d, nearest_i, target, onset_cells, links):
         x = st.x.copy()
         x[0] = np.asarray(target.grid.lo) + 2.5 * target.grid.dx  # near the domain's corner: far off the target
         corner["x"] = x[0].copy()
         nd, ni = nearest_d.copy(), nearest_i.copy()
         nd[0], ni[0] = (v[0] for v in cKDTree(target.surface_points).query(x[:1]))
-        return real(dataclasses.replace(st, x=x), nd, ni, target, onset_cells)
+        return real(dataclasses.replace(st, x=x), nd, ni, target, onset_cells, links)
 
     monkeypatch.setattr(reabsorb, "reabsorb_spray", throw_then_reabsorb)
     base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2,
