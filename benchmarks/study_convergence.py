@@ -77,8 +77,7 @@ def body_columns(run_h5: Path, particles_h5: Path, mesh_h5: Path, export) -> dic
         return {}
     k = saved_frames(run_h5)[-1]
     s = frame_state(run_h5, k, particles_h5=particles_h5)
-    mesh = particle_surface(s["x"], s["volume"], s["det_F"], s["dx"], refine=export.refine,
-                            smooth_iterations=export.smooth_iterations)
+    mesh = particle_surface(s["x"], s["volume"], s["det_F"], s["dx"], **export.surface())
     m = frame_measures(k, s, mesh, mesh_h5)
     return {"stray_percent": 100.0 * m["stray_share"], "outside_body_percent": 100.0 * m["outside_largest_body"],
             "components": m["components"], "genus": m["genus"], "target_genus": m["target_genus"],

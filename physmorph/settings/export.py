@@ -37,6 +37,10 @@ class ExportConfig:
                                      "video's surface too)", gt=0, job="mesh")] = 2.0
     smooth_iterations: Annotated[Int, setting("Taubin smoothing passes of the exported surface (0: none)",
                                               ge=0, job="mesh")] = 10
+    pore_closing: Annotated[Int, setting(
+        "the surface's volume fraction grey-closed over this many surface cells a side before its level is found: "
+        "pores and tunnels narrower than that, finer than the particles' spacing, are filled (0: none)",
+        "surface cells", ge=0, job="mesh")] = 3  # docs/study/log.md finding 306
     frame: Annotated[Literal["domain", "target"], setting(
         "coordinates of the exported meshes and splats: domain (the simulation's) or target (the target's input "
         "mesh frame and units, to overlay it)", job="mesh")] = "domain"
@@ -54,6 +58,11 @@ class ExportConfig:
     def mesh(self) -> dict:
         """What the mesh jobs read (the fields declared with job="mesh")."""
         return {k: getattr(self, k) for k in fields_of_job(type(self), "mesh")}
+
+    def surface(self) -> dict:
+        """particle_surface's keywords (physmorph.reports.export.surface): the surface's resolution,
+        smoothing and pore closing."""
+        return {"refine": self.refine, "smooth_iterations": self.smooth_iterations, "pore_closing": self.pore_closing}
 
     def video_surface(self) -> dict:
         """The mesh keys the video jobs read too: those that make the surface, when they draw it."""

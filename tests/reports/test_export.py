@@ -12,6 +12,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from physmorph.reports.export.splats import SH_C0, covariances_from_F, quaternion_to_rotation, read_splat_covariances, rotation_to_quaternion, write_splats
+from physmorph.reports.export.body import components_and_genus
 from physmorph.reports.export.surface import domain_to_input, particle_surface, taubin_smooth, write_glb, write_ply
 from physmorph.reports.export.runs import frame_state, saved_frames
 from physmorph.records.h5io import stored_checksum, stored_identity
@@ -167,6 +168,22 @@ def test_domain_to_input_maps_the_prepared_mesh_onto_the_raw_one(tmp_path):
     assert cKDTree(back.vertices).query(raw_back.vertices)[0].max() < tol
     with h5py.File(tmp_path / "cone.h5", "r") as f:  # the attributes as a mapping: the same matrix
         np.testing.assert_array_equal(domain_to_input(f.attrs), domain_to_input(tmp_path / "cone.h5"))
+
+
+def test_pore_closing_fills_a_tunnel_a_cell_across_and_keeps_a_wide_hole():
+    """A slab of particles (spacing 0.25, MPM cell 0.5) pierced by a hole about one MPM cell across
+    exports as a torus without the pore closing and as a slab with it; a hole five cells across
+    stays a hole either way; the closing keeps the enclosed volume at the particles' own."""
+    h = 0.25
+    ax, az = np.arange(0.125, 4.0, h), np.arange(0.125, 2.0, h)
+    x = np.stack(np.meshgrid(ax, ax, az, indexing="ij"), -1).reshape(-1, 3)
+    for radius, genus_open, genus_closed in ((0.5, 1, 0), (1.2, 1, 1)):
+        body = x[np.hypot(x[:, 0] - 2.0, x[:, 1] - 2.0) > radius]
+        volume = np.full(len(body), h ** 3)
+        for width, genus in ((0, genus_open), (3, genus_closed)):
+            mesh = particle_surface(body, volume, np.ones(len(body)), 0.5, pore_closing=width)
+            assert components_and_genus(mesh) == (1, genus), (radius, width)
+            np.testing.assert_allclose(mesh.volume, volume.sum(), rtol=1e-9)
 
 
 def test_taubin_smoothing_damps_noise_without_shrinking():

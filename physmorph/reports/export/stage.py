@@ -86,8 +86,7 @@ def _meshes_stage(run_h5: str, particles_h5: str, source_mesh_h5: str, target_me
         frames, rows = saved_frames(run_h5), []
         for k in frames:
             s = frame_state(run_h5, k, particles_h5=particles_h5)
-            mesh = particle_surface(s["x"], s["volume"], s["det_F"], s["dx"], refine=cfg.refine,
-                                    smooth_iterations=cfg.smooth_iterations)
+            mesh = particle_surface(s["x"], s["volume"], s["det_F"], s["dx"], **cfg.surface())
             rows.append(frame_measures(k, s, mesh, target_mesh_h5))
             if apply is not None:
                 mesh.apply_transform(apply)

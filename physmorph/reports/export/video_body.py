@@ -53,7 +53,7 @@ class BodyDrawing:
         from physmorph.reports.export.surface import particle_surface
 
         mesh = particle_surface(np.asarray(x, np.float64), self.rest["volume"], np.linalg.det(np.asarray(F, np.float64)),
-                                self.rest["dx"], refine=s.refine, smooth_iterations=s.smooth_iterations)
+                                self.rest["dx"], **s.surface())
         return surface_gaussians(mesh)
 
 
