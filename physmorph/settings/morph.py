@@ -26,7 +26,8 @@ class MorphConfig:
     # (and, for control_decay, because its default changed since runs were first made)
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
                                                               "stray_pull", "settle",
-                                                              "plan_push_speed", "reabsorb_strays", "settle_objective"})
+                                                              "plan_push_speed", "reabsorb_strays", "settle_objective",
+                                                              "spray_links"})
     # the paper's method (sections 3-4)
     method: Annotated[Literal["physics_only", "f_inject", "full", "position_inject"], setting(
         "physics_only: mass loss alone; f_inject: + render gradient on F; full: + plasticity; position_inject: "
@@ -161,7 +162,7 @@ class MorphConfig:
     spray_links: Annotated[Literal["corners", "faces"], setting(
         "reabsorb_strays: how the occupied grid cells link into pieces when telling torn-off spray from the body: "
         "through a shared face, edge or corner, or through a shared face only (a bead hanging on the body by an "
-        "edge or a corner is then torn off)")] = "corners"
+        "edge or a corner is then torn off)")] = "faces"  # history: docs/study/CHANGELOG.md
 
     # the sections
     mpm: Annotated[MPMConfig, setting("the solver (the mpm section)")] = field(default_factory=MPMConfig)

@@ -218,11 +218,11 @@ def test_experiment_resolution_and_its_params():
     for name in ("iso_bunny_physics_only", "iso_bunny_f_inject", "iso_bunny_position_inject"):
         assert morph_params(s4.experiment_config(name)) == morph_params(s.experiment_config(name)), name
     # the spray's links, only where spray is put back (the full method with reabsorb_strays)
-    faces = {"spray_links": "faces"}
-    s5 = load_settings(BASE, overrides={"morph": faces})
+    corners = {"spray_links": "corners"}
+    s5 = load_settings(BASE, overrides={"morph": corners})
     assert morph_params(s5.experiment_config("iso_bunny_full")) != morph_params(full)
     assert morph_params(s5.experiment_config("iso_bunny_f_inject")) == morph_params(s.experiment_config("iso_bunny_f_inject"))
-    s6, s7 = (load_settings(BASE, overrides={"morph": {"reabsorb_strays": False, **extra}}) for extra in ({}, faces))
+    s6, s7 = (load_settings(BASE, overrides={"morph": {"reabsorb_strays": False, **extra}}) for extra in ({}, corners))
     assert morph_params(s7.experiment_config("iso_bunny_full")) == morph_params(s6.experiment_config("iso_bunny_full"))
     # threads change no params
     s3 = load_settings(BASE, overrides={"threads": 1})
