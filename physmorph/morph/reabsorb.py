@@ -36,7 +36,7 @@ SPRAY_PIECE_SHARE = 0.01
 
 def detached_pieces(x: np.ndarray,  # [N, 3]
                     mass: np.ndarray,  # [N]
-                    dx: float, links: str = "corners") -> np.ndarray:  # [N] bool
+                    dx: float, links: str) -> np.ndarray:  # [N] bool
     """Particles in a connected piece of occupied cells (side dx, linked as ``links`` says:
     physmorph.base.grid.occupied_pieces) other than the one of most mass, the piece holding less
     than SPRAY_PIECE_SHARE of the mass."""
@@ -66,7 +66,7 @@ class Reabsorbed:
 
 def reabsorb_spray(st: ParticleState, nearest_d: np.ndarray,  # [N]
                    nearest_i: np.ndarray,  # [N] index of each particle's nearest target surface point
-                   target, onset_cells: float, links: str = "corners") -> Reabsorbed:
+                   target, onset_cells: float, links: str) -> Reabsorbed:
     """The spray (module docstring) moved into the body; the state unchanged where there is none."""
     from scipy.spatial import cKDTree
 

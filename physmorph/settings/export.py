@@ -27,8 +27,8 @@ class ExportConfig:
                                         "degrees", job="video")] = 120.0
     body: Annotated[Literal["surface", "particles"], setting(
         "what the video draws of the body: surface (the exported closed surface, smoothed without shrinking, as "
-        "the paper shows its results; export.refine and export.smooth_iterations make it) or particles (the run's "
-        "Gaussians, as the render loss sees them)", job="video")] = "surface"
+        "the paper shows its results; export.refine, export.smooth_iterations and export.pore_closing make it) or "
+        "particles (the run's Gaussians, as the render loss sees them)", job="video")] = "surface"
     max_particles: Annotated[Int, setting(
         "above this many particles the video shows the body by an even subsample, each Gaussian widened to keep "
         "it closed", ge=1000, job="video")] = 120_000
@@ -39,7 +39,8 @@ class ExportConfig:
                                               ge=0, job="mesh")] = 10
     pore_closing: Annotated[Int, setting(
         "the surface's volume fraction grey-closed over this many surface cells a side before its level is found: "
-        "pores and tunnels narrower than that, finer than the particles' spacing, are filled (0: none)",
+        "its dips narrower than that are filled (at 3: pores and tunnels in the particles up to about two MPM "
+        "cells across; 0: none)",
         "surface cells", ge=0, job="mesh")] = 3  # docs/study/log.md finding 306
     frame: Annotated[Literal["domain", "target"], setting(
         "coordinates of the exported meshes and splats: domain (the simulation's) or target (the target's input "

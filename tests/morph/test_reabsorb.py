@@ -54,8 +54,9 @@ def _scene():
 def test_only_small_detached_pieces_count_as_spray():
     st, _, _, target, parts = _scene()
     assert st.mass[parts["slab"]].sum() > SPRAY_PIECE_SHARE * st.mass.sum()
-    detached = detached_pieces(st.x, st.mass, target.grid.dx)
-    assert np.flatnonzero(detached).tolist() == sorted(parts["spray"].tolist() + parts["inside"].tolist())
+    for links in ("corners", "faces"):  # the scene's pieces are apart by more than a cell either way
+        detached = detached_pieces(st.x, st.mass, target.grid.dx, links)
+        assert np.flatnonzero(detached).tolist() == sorted(parts["spray"].tolist() + parts["inside"].tolist())
 
 
 def test_a_bead_hanging_on_by_a_corner_is_spray_only_when_cells_link_through_faces():
@@ -77,7 +78,7 @@ def test_a_bead_hanging_on_by_a_corner_is_spray_only_when_cells_link_through_fac
     grown = ParticleState(x=x, v=np.zeros((n, 3)), F=np.tile(np.eye(3), (n, 1, 1)), C=np.zeros((n, 3, 3)),
                           Fp=np.tile(np.eye(3), (n, 1, 1)), mass=np.concatenate([st.mass, [1.0, 1.0]]),
                           volume=np.concatenate([st.volume, [1.0, 1.0]]))
-    assert not detached_pieces(x, grown.mass, dx)[beads].any()
+    assert not detached_pieces(x, grown.mass, dx, "corners")[beads].any()
     assert detached_pieces(x, grown.mass, dx, links="faces")[beads].all()
     # a target the body fills ([5, 9]^3), so the beads lie outside it
     grid = target.grid
@@ -91,7 +92,7 @@ def test_a_bead_hanging_on_by_a_corner_is_spray_only_when_cells_link_through_fac
 
     d, i = cKDTree(faces).query(x)
     spray = sorted(parts["spray"].tolist() + parts["inside"].tolist())  # the detached particles outside this target
-    assert reabsorb_spray(grown, d, i, tight, onset_cells=0.0).moved.tolist() == spray
+    assert reabsorb_spray(grown, d, i, tight, onset_cells=0.0, links="corners").moved.tolist() == spray
     assert reabsorb_spray(grown, d, i, tight, onset_cells=0.0, links="faces").moved.tolist() == spray + beads
 
 
@@ -100,7 +101,7 @@ def test_the_spray_joins_the_body_with_its_state_and_keeps_its_mass():
     target surface point (half a cell from it, toward that point), taking its v, C, F, Fp; mass and
     volume unchanged; afterwards no detached piece is left outside the target."""
     st, d, i, target, parts = _scene()
-    r = reabsorb_spray(st, d, i, target, onset_cells=1.0)
+    r = reabsorb_spray(st, d, i, target, onset_cells=1.0, links="faces")
     assert r.moved.tolist() == parts["spray"].tolist()
     np.testing.assert_allclose(r.mass_share, st.mass[parts["spray"]].sum() / st.mass.sum(), rtol=1e-15)
     still = np.setdiff1d(np.arange(st.n), r.moved)
@@ -116,10 +117,10 @@ def test_the_spray_joins_the_body_with_its_state_and_keeps_its_mass():
         np.testing.assert_allclose(r.state.x[p], expected, atol=1e-12)
         for k in ("v", "F", "C", "Fp"):
             np.testing.assert_array_equal(getattr(r.state, k)[p], getattr(st, k)[b])
-    after = detached_pieces(r.state.x, r.state.mass, target.grid.dx)
+    after = detached_pieces(r.state.x, r.state.mass, target.grid.dx, "faces")
     assert not after[parts["spray"]].any()
     # the spray sat 3 cells outside: an onset past that leaves it where it is
-    none = reabsorb_spray(st, d, i, target, onset_cells=8.0)
+    none = reabsorb_spray(st, d, i, target, onset_cells=8.0, links="faces")
     assert len(none.moved) == 0 and none.mass_share == 0.0 and none.state is st
 
 
@@ -138,6 +139,7 @@ def test_a_run_puts_a_torn_off_particle_back_and_records_its_share(tiny, monkeyp
         x = st.x.copy()
         x[0] = np.asarray(target.grid.lo) + 2.5 * target.grid.dx  # near the domain's corner: far off the target
         corner["x"] = x[0].copy()
+        corner["links"] = links  # the run's own setting reaches the spray test
         nd, ni = nearest_d.copy(), nearest_i.copy()
         nd[0], ni[0] = (v[0] for v in cKDTree(target.surface_points).query(x[:1]))
         return real(dataclasses.replace(st, x=x), nd, ni, target, onset_cells, links)
@@ -146,7 +148,9 @@ def test_a_run_puts_a_torn_off_particle_back_and_records_its_share(tiny, monkeyp
     base = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, release_frames=0, frames=2,
                                save_every=1)
     out = d / "reabsorb_on.h5"
-    run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, dataclasses.replace(base, reabsorb_strays=True), name=out.stem)
+    run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, dataclasses.replace(base, reabsorb_strays=True, spray_links="corners"),
+              name=out.stem)
+    assert corner["links"] == "corners"
     m = read_metrics(out)
     with h5py.File(out, "r") as f:
         x_last = f["states"][sorted(f["states"])[-1]]["x"][()].astype(np.float64)

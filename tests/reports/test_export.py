@@ -170,14 +170,15 @@ def test_domain_to_input_maps_the_prepared_mesh_onto_the_raw_one(tmp_path):
         np.testing.assert_array_equal(domain_to_input(f.attrs), domain_to_input(tmp_path / "cone.h5"))
 
 
-def test_pore_closing_fills_a_tunnel_a_cell_across_and_keeps_a_wide_hole():
-    """A slab of particles (spacing 0.25, MPM cell 0.5) pierced by a hole about one MPM cell across
-    exports as a torus without the pore closing and as a slab with it; a hole five cells across
-    stays a hole either way; the closing keeps the enclosed volume at the particles' own."""
+def test_pore_closing_fills_a_tunnel_two_cells_across_and_keeps_a_wider_hole():
+    """A slab of particles (spacing 0.25, MPM cell 0.5) pierced by a hole whose particle-free gap is
+    two MPM cells across exports as a torus without the pore closing (width 3 surface cells) and as
+    a slab with it; holes three and five cells across stay holes either way; the closing keeps the
+    enclosed volume at the particles' own."""
     h = 0.25
     ax, az = np.arange(0.125, 4.0, h), np.arange(0.125, 2.0, h)
     x = np.stack(np.meshgrid(ax, ax, az, indexing="ij"), -1).reshape(-1, 3)
-    for radius, genus_open, genus_closed in ((0.5, 1, 0), (1.2, 1, 1)):
+    for radius, genus_open, genus_closed in ((0.5, 1, 0), (0.75, 1, 1), (1.2, 1, 1)):
         body = x[np.hypot(x[:, 0] - 2.0, x[:, 1] - 2.0) > radius]
         volume = np.full(len(body), h ** 3)
         for width, genus in ((0, genus_open), (3, genus_closed)):

@@ -21,11 +21,12 @@ Method of :func:`particle_surface` (all lengths in simulation domain units):
    phi >= 0.66 there and ~1 +- 5 % deeper inside. phi is ~0 outside; sum phi h^3 = sum v_p
    only approximately (steps 3 and 5 match the volume).
    Then, with ``pore_closing`` k > 1, phi is grey-closed over k^3 cells (a maximum filter, then a
-   minimum filter): a dip of phi narrower than k cells is filled up to its rims, a wider one and
-   every convex part are unchanged. After much shaping the particles are spread unevenly, and
+   minimum filter): a dip of phi narrower than k cells is filled up to its rims (at k = 3 a
+   particle-free gap about two MPM cells across, as phi's blur narrows it), and concave creases are
+   raised a little; convex parts and wider dips are unchanged. After much shaping the particles are spread unevenly, and
    where phi dips to the level just under the surface the level set opens pores and thin
    tunnels a cell or less across, finer than the blur that made phi (the mid profile's bodies:
-   genus 2-3 whose count changes with the level by +-10 %; docs/study/log.md finding 306). The
+   genus 2-3 whose count changes with the level by +-10 %; docs/study/log.md findings 305-306). The
    targets' own particles keep their holes with it (the torus, A, B, R, at the default and mid
    grids).
 3. Marching cubes (scikit-image, Lewiner) on phi at an iso level c. The grid is padded by the
@@ -256,11 +257,11 @@ def particle_surface(x: np.ndarray,  # [N, 3] positions, domain units
                      volume: np.ndarray,  # [N] rest volumes V_p
                      det_F: np.ndarray,  # [N] det F_p (current volume V_p det F_p)
                      dx: float, refine: float = 2.0, smooth_iterations: int = 10,
-                     transform: np.ndarray | None = None, pore_closing: int = 0) -> trimesh.Trimesh:
+                     transform: np.ndarray | None = None, pore_closing: int | None = None) -> trimesh.Trimesh:
     """The closed surface of the particle body whose enclosed volume is sum_p V_p det F_p.
 
     Volume splat on a grid of spacing dx / ``refine``, Gaussian blur, the grey closing over
-    ``pore_closing``^3 cells (0 or 1: none), marching cubes at the iso
+    ``pore_closing``^3 cells (0 or 1: none; None: ExportConfig's default, as exported), marching cubes at the iso
     level whose volume matches, Taubin smoothing, final rescale about the centroid to the exact
     volume (see the module docstring). ``transform``: a 4x4 matrix applied last (e.g.
     :func:`domain_to_input`; its volume is then that of the transformed body). ~0.05 s at 7K
@@ -278,6 +279,10 @@ def particle_surface(x: np.ndarray,  # [N, 3] positions, domain units
     target = float(current.sum())
     cell = float(dx) / float(refine)
     phi, origin = volume_fraction(x, current, cell)
+    if pore_closing is None:
+        from physmorph.settings.export import ExportConfig
+
+        pore_closing = ExportConfig().pore_closing
     if pore_closing > 1:
         phi = close_pores(phi, int(pore_closing))
     level = _level_for_volume(phi, target, origin, cell)
