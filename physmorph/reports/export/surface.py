@@ -23,12 +23,11 @@ Method of :func:`particle_surface` (all lengths in simulation domain units):
    Then, with ``pore_closing`` k > 1, phi is grey-closed over k^3 cells (a maximum filter, then a
    minimum filter): a dip of phi narrower than k cells is filled up to its rims (at k = 3 a
    particle-free gap about two MPM cells across, as phi's blur narrows it), and concave creases are
-   raised a little; convex parts and wider dips are unchanged. After much shaping the particles are spread unevenly, and
-   where phi dips to the level just under the surface the level set opens pores and thin
-   tunnels a cell or less across, finer than the blur that made phi (the mid profile's bodies:
-   genus 2-3 whose count changes with the level by +-10 %; docs/study/log.md findings 305-306). The
-   targets' own particles keep their holes with it (the torus, A, B, R, at the default and mid
-   grids).
+   raised a little; convex parts and wider dips are unchanged. After much shaping the particles
+   are spread unevenly, and where phi dips to the level just under the surface the level set opens
+   pores and thin tunnels, finer than the blur that made phi (the mid profile's bodies: genus 2-3
+   whose count changes with the level by +-10 %; docs/study/log.md findings 305-306). The targets'
+   own particles keep their holes with it (the torus, A, B, R, at the default and mid grids).
 3. Marching cubes (scikit-image, Lewiner) on phi at an iso level c. The grid is padded by the
    kernel's and the blur's reach plus a margin and its outer layer is zero, so every level set is
    closed (watertight). The level is chosen by bisection on c in [0.02, 0.98] max(phi) until the
@@ -261,9 +260,9 @@ def particle_surface(x: np.ndarray,  # [N, 3] positions, domain units
     """The closed surface of the particle body whose enclosed volume is sum_p V_p det F_p.
 
     Volume splat on a grid of spacing dx / ``refine``, Gaussian blur, the grey closing over
-    ``pore_closing``^3 cells (0 or 1: none; None: ExportConfig's default, as exported), marching cubes at the iso
-    level whose volume matches, Taubin smoothing, final rescale about the centroid to the exact
-    volume (see the module docstring). ``transform``: a 4x4 matrix applied last (e.g.
+    ``pore_closing``^3 cells (0 or 1: none; None: ExportConfig's default, as exported), marching
+    cubes at the iso level whose volume matches, Taubin smoothing, final rescale about the centroid
+    to the exact volume (see the module docstring). ``transform``: a 4x4 matrix applied last (e.g.
     :func:`domain_to_input`; its volume is then that of the transformed body). ~0.05 s at 7K
     particles, ~1 s and ~150 MB at 471K (2 cores). Raises ValueError on empty, mismatched or
     non-finite input, or on particles with V_p det F_p <= 0.
