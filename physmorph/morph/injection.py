@@ -42,14 +42,16 @@ def calibrate_injection(solver: MPMSolver, gamma: float, g_F: np.ndarray | None,
 
 def frame_calibration(cfg: MorphConfig, fs: FrameState, solver: MPMSolver, inject_F: bool, inject_x: bool,
                       k: int, log) -> InjectionCalibration | None:
-    """Frame k's injection scale into ``fs`` (MorphConfig.injection_calibration); the calibration
-    when one ran (its rollout and gradients are then the optimiser's first). ``log`` takes a line."""
+    """Frame k's injection scale into ``fs`` (MorphConfig.injection_calibration; with every_frame,
+    measured at the frames k that injection_calibration_every divides, and wherever none is
+    measured yet, the last one kept in between); the calibration when one ran (its rollout and gradients are then the optimiser's first). ``log`` takes a line."""
     if not (inject_F or inject_x):
         return None
     if cfg.injection_calibration == "absolute":
         fs.injection_scale = cfg.gamma if inject_F else cfg.gamma_x
         return None
-    recalibrate = np.isnan(fs.injection_scale) or cfg.injection_calibration == "every_frame"
+    due = cfg.injection_calibration == "every_frame" and k % cfg.injection_calibration_every == 0
+    recalibrate = np.isnan(fs.injection_scale) or due
     if not (recalibrate and (np.any(fs.g_F) or np.any(fs.g_x))):
         return None
     calibration = calibrate_injection(solver, cfg.gamma if inject_F else cfg.gamma_x,

@@ -61,6 +61,11 @@ class MorphConfig:
     injection_calibration: Annotated[Literal["first_frame", "every_frame", "absolute"], setting(
         "every_frame: gain re-measured each frame; first_frame: once; absolute: no calibration (eq. 3 as "
         "printed)")] = "every_frame"
+    # the gain drifts slowly once the morph is under way: measuring it every few frames saves the
+    # calibration's second adjoint (docs/study/log.md). Not in the paper (which has no calibration).
+    injection_calibration_every: Annotated[Int, setting(
+        "every_frame: frames between measurements of the injection gain, the last one kept in between "
+        "(1: each frame)", "frames", ge=1)] = 1
     # the function-value restart of momentum methods (O'Donoghue & Candes 2015): the physics
     # carries momentum across frames, but each frame's control only sees its own frame, so a shape
     # that reaches its target at speed rings (docs/study/log.md, finding 73). Not in the paper.

@@ -130,6 +130,23 @@ def test_absolute_injection_gain_is_used_as_given(tiny):
     assert runs[1e9]["physics_loss"][-1] > 1.01 * runs[1e-3]["physics_loss"][-1]
 
 
+def test_the_injection_gain_measured_every_few_frames_is_kept_in_between(tiny):
+    """morph.injection_calibration_every = 2: the gain is measured at the first frame with a render
+    gradient and at the even frames, and each odd frame after the first keeps the frame before's;
+    up to the first frame that keeps one the run is the every-frame run's."""
+    every = {n: read_metrics(_run(tiny, "iso_bunny_f_inject", f"every_{n}.h5", frames=5, injection_calibration_every=n))
+             for n in (1, 2)}
+    one, two = every[1]["injection_scale"], every[2]["injection_scale"]
+    first = int(np.flatnonzero(np.isfinite(two))[0])  # the first frame with a render gradient (2 here)
+    assert first <= 2 and np.all(two[first:] > 0)
+    np.testing.assert_allclose(two[:first + 1], one[:first + 1], rtol=1e-12, equal_nan=True)
+    for k in range(first + 1, 6):
+        if k % 2:
+            assert two[k] == two[k - 1], k  # kept
+        else:
+            assert two[k] != two[k - 1] and one[k] != one[k - 1], k  # measured anew, the gain moves
+
+
 def test_the_transport_blur_setting_reaches_the_plan(tiny, monkeypatch):
     """plasticity.transport_blur is the blur, in grid cells, of the plan the run's plasticity uses,
     and plasticity.transport_projection how its destinations are read off it."""
