@@ -5,6 +5,7 @@
     python benchmarks/bench_morph.py --profile paper --frames 4
     python benchmarks/bench_morph.py --workdir /tmp/bench_morph --experiment iso_bunny_full
     python benchmarks/bench_morph.py --profile paper --device cuda   # solver and renderer on a GPU
+    python benchmarks/bench_morph.py --profile paper --frames 7 --set morph.injection_calibration_every=5
 
 Prepares the source particles and the target in --workdir (reused on later calls), then runs the
 experiment for --frames frames with plasticity active from the first frame (so every stage is
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from physmorph.settings.build import dotted_overrides
 from physmorph.settings.workflow import load_settings
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.records.runfile import read_metrics
@@ -111,10 +113,16 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--device", default=None, choices=["cpu", "cuda"], help="the config's `device` (default: the profile's)")
     ap.add_argument("--workdir", default="/tmp/physmorph_bench_morph")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config value over the profile's, dotted.key=value (YAML value), e.g. "
+                         "morph.injection_calibration_every=5; repeatable")
     ap.add_argument("--mesh-dir", default=os.environ.get("PHYSMORPH_MESH_DIR", str(REPO.parent / "shared" / "meshes")))
     args = ap.parse_args()
     files = [REPO / "config/config.yaml"] + ([REPO / f"config/{args.profile}.yaml"] if args.profile != "default" else [])
-    cfg = load_settings(*files, overrides={"device": args.device} if args.device else None)
+    overrides = dotted_overrides(args.set)
+    if args.device:
+        overrides["device"] = args.device
+    cfg = load_settings(*files, overrides=overrides or None)
     s = cfg.sampling
     row = bench(cfg, args.experiment, Path(args.workdir) / f"{args.profile}_{s.tag}", args.frames, args.mesh_dir)
     print(f"\nprofile {args.profile} on {cfg.device} ({s.tag}, {cfg.target.width}x{cfg.target.height} x {cfg.target.cameras} views), "

@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
+from physmorph.settings.build import dotted_overrides
 from physmorph.settings.workflow import load_settings
 from physmorph.reports.metrics import sign_changes, swing_percent
 from physmorph.morph.loop import morph_config, run_morph
@@ -50,18 +50,6 @@ COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_fra
 BODY_COLUMNS = ["stray_percent", "outside_body_percent", "components", "genus", "target_genus",
                 "surface_p95_dx", "rough_percent"]
 COLUMNS += BODY_COLUMNS
-
-
-def parse_set(items: list[str]) -> dict:
-    out: dict = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        node = out
-        parts = key.split(".")
-        for p in parts[:-1]:
-            node = node.setdefault(p, {})
-        node[parts[-1]] = yaml.safe_load(value)
-    return out
 
 
 def config_files(profile: str | None) -> list[Path]:
@@ -166,7 +154,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     help="record the finished runs RUNS_DIR/{experiment}.h5 a workflow made, without running them")
     args = ap.parse_args(argv)
     csv_path = Path(args.csv)
-    overrides = parse_set(args.set)
+    overrides = dotted_overrides(args.set)
     if args.frames:
         overrides.setdefault("morph", {})["frames"] = args.frames
     # the row names the profile file too, so it says how to rerun it

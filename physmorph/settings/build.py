@@ -20,6 +20,20 @@ from physmorph.settings.errors import ConfigError
 from physmorph.settings.retired import RETIRED_METHOD_SETTINGS
 
 
+def dotted_overrides(items: list[str]) -> dict:
+    """``["morph.gamma=0.3", "mpm.dt=1e-3"]`` (dotted key = YAML value, as a script's ``--set``
+    takes them) as the nested mapping load_settings merges on the config files."""
+    out: dict = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        node = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = yaml.safe_load(value)
+    return out
+
+
 def deep_merge(base: dict, override: dict) -> dict:
     out = copy.deepcopy(base)
     for key, value in override.items():

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from physmorph.settings.build import dotted_overrides
 from physmorph.settings.workflow import load_settings
 from physmorph.morph.quality import gap_closed
 from physmorph.records.runfile import read_metrics
@@ -21,7 +22,8 @@ study = load_benchmark("study_convergence")
 
 
 def test_set_items_become_a_nested_override_with_yaml_values():
-    got = study.parse_set(["mpm.learning_rate=0.003", "plasticity.continuous_stress=true", "morph.frames=7",
+    """The scripts' --set items (study_convergence.py, bench_morph.py)."""
+    got = dotted_overrides(["mpm.learning_rate=0.003", "plasticity.continuous_stress=true", "morph.frames=7",
                            "experiments.x={source: iso, target: cow}"])
     assert got == {"mpm": {"learning_rate": 0.003}, "plasticity": {"continuous_stress": True}, "morph": {"frames": 7},
                    "experiments": {"x": {"source": "iso", "target": "cow"}}}
