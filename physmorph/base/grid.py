@@ -15,6 +15,7 @@ so a particle touches nodes base .. base + 2 on each axis. Particles are kept at
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -104,12 +105,14 @@ def blur_weights(sigma: float) -> np.ndarray:  # [2 r + 1]
     return w / w.sum()
 
 
-# How occupied cells link into pieces: through a shared face only, or a face, an edge or a corner
-CELL_LINKS = {"faces": 1, "corners": 3}  # scipy.ndimage.generate_binary_structure's connectivity
+# How occupied cells link into pieces: through a shared face, an edge or a corner, or a shared face only
+CellLinks = Literal["corners", "faces"]
+# each one's scipy.ndimage.generate_binary_structure connectivity
+CELL_LINKS = dict(zip(get_args(CellLinks), (3, 1)))
 
 
 def occupied_pieces(x: np.ndarray,  # [N, 3] positions
-                    dx: float, links: str = "corners") -> tuple[np.ndarray, int]:  # [N] piece of each point (1..count), count
+                    dx: float, links: CellLinks = "corners") -> tuple[np.ndarray, int]:  # [N] piece of each point (1..count), count
     """The connected pieces of the cells of side dx the points occupy (links "corners": 26-connected,
     cells sharing a face, an edge or a corner; "faces": 6-connected, a shared face only),
     scipy.ndimage.label on a grid with a free layer around them; each point's piece label and the

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, field
 from typing import Annotated, ClassVar, Literal
 
+from physmorph.base.grid import CellLinks
 from physmorph.settings.mpm import MPMConfig
 from physmorph.settings.plasticity import PlasticityConfig
 from physmorph.settings.render import RenderConfig
@@ -164,7 +165,7 @@ class MorphConfig:
     reabsorb_strays: Annotated[Bool, setting(
         "method full: after each frame, particles torn off the body and outside the target (the stray pull's test) "
         "join the body particle nearest their nearest target surface point, with its state")] = True  # history: docs/study/CHANGELOG.md
-    spray_links: Annotated[Literal["corners", "faces"], setting(
+    spray_links: Annotated[CellLinks, setting(
         "reabsorb_strays: how the occupied grid cells link into pieces when telling torn-off spray from the body: "
         "through a shared face, edge or corner, or through a shared face only (a bead hanging on the body by an "
         "edge or a corner is then torn off)")] = "faces"  # history: docs/study/CHANGELOG.md
