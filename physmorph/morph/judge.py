@@ -65,12 +65,20 @@ class FrameJudge:
         self.solver.keep_control(spill=scratch / "control.bin")
         return frame
 
-    def steer(self, k: int, fs: FrameState, scal: dict, per_view: np.ndarray, m: dict, frame_step: float):
+    def holds(self, k: int) -> bool:
+        """Whether frame k is held, not run (MorphConfig.settle_hold_below): the settle phase gates it
+        and its step has backed off under that share of mpm's."""
+        share = self.cfg.settle_hold_below
+        return share > 0 and self.gate.gates(k) and self.schedule.step < share * self.cfg.mpm.step_size
+
+    def steer(self, k: int, fs: FrameState, scal: dict, per_view: np.ndarray, m: dict, frame_step: float,
+              held: bool = False):
         """The frame judged: the settle gate may undo it (the body holds still at the last accepted
         frame, and the step backs off), the momentum restart and the packing term's onset act on
-        what the next frame starts from. Returns (scal, per_view, m, undone) to commit."""
+        what the next frame starts from; a ``held`` frame (``holds``) is undone as such. Returns
+        (scal, per_view, m, undone) to commit."""
         cfg, solver, gate = self.cfg, self.solver, self.gate
-        rejected = gate.rejects(k, scal)
+        rejected = held or gate.rejects(k, scal)
         if rejected:  # the frame is undone: the body holds still at the last accepted frame
             back = gate.accepted
             fs.state, fs.mask, fs.g_F, fs.g_x = back.arrays()

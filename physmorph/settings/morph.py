@@ -103,6 +103,11 @@ class MorphConfig:
     settle_regrow: Annotated[Bool, setting(
         "after a frame the settle phase accepted, the step grows back by 1 / settle_backoff, up to mpm's "
         "step_size (false: it stays backed off)")] = False
+    # once the gate has backed the step off this far, every frame it tried was undone in every run
+    # measured: those frames' work is skipped (docs/study/log.md part 69)
+    settle_hold_below: Annotated[Float, setting(
+        "the settle phase: a frame whose step is under this share of mpm's step_size is not run but held, "
+        "committed as an undone frame (the last accepted body, still); 0: every frame runs", ge=0, le=1)] = 0.0
     settle_objective: Annotated[Literal["render", "alpha_mse", "physics", "physics_then_alpha"], setting(
         "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, its physics "
         "loss, or (physics_then_alpha) its physics loss and its alpha MSE together (undone where both rose) "

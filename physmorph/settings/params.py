@@ -89,7 +89,8 @@ def morph_params(cfg) -> str:
     plasticity and the stray and destination pulls outside ``full``, the injection gains and their calibration (and the
     settle phase, unless it judges the physics loss) for ``physics_only``, the settle hand-over where
     the settle phase does not hand over, the spray's links where no spray is put back, the gain's
-    interval where the gain is not measured every frame, ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
+    interval where the gain is not measured every frame, the held frames' step without a settle
+    phase, ``gamma`` for ``position_inject`` and ``gamma_x`` elsewhere, the surface mask when nothing uses
     it; so are the thread count and the progress switch. The run rebuilds its MorphConfig from this
     string (what is left out takes its default)."""
     d = without_defaults(cfg)
@@ -99,6 +100,8 @@ def morph_params(cfg) -> str:
         d.pop("settle_handover", None)
     if not cfg.reabsorb_strays:
         d.pop("spray_links", None)
+    if cfg.settle == "off":
+        d.pop("settle_hold_below", None)
     if cfg.injection_calibration != "every_frame":
         d.pop("injection_calibration_every", None)
     if cfg.method != "full":
@@ -110,7 +113,8 @@ def morph_params(cfg) -> str:
         for k in ("gamma", "gamma_x", "injection_calibration", "injection_calibration_every"):
             d.pop(k, None)
         if cfg.settle_objective != "physics":  # the settle phase judges the images, which it never reads
-            for k in ("settle", "settle_objective", "settle_backoff", "settle_regrow", "settle_handover"):
+            for k in ("settle", "settle_objective", "settle_backoff", "settle_regrow", "settle_handover",
+                      "settle_hold_below"):
                 d.pop(k, None)
         if cfg.metric_all_particles:
             d.pop("surface", None)

@@ -55,6 +55,7 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "destination_pull_onset": 2.0,
     "reabsorb_strays": False,  # spray left where it tore off
     "injection_calibration_every": 1,  # the injection gain measured every frame
+    "settle_hold_below": 0.0,  # every settling frame run, however small its step
     "spray_links": "corners",  # spray's pieces: cells linked through a face, an edge or a corner
     "waypoint_cells": 0.0,  # each frame's physics aims at the target itself
     "plan_push_speed": 0.0,  # no velocity along the transport plan

@@ -4,6 +4,7 @@ named in the log and the run file, and still settles; a run killed while settlin
 
 import dataclasses
 
+import h5py
 import numpy as np
 import pytest
 
@@ -14,7 +15,7 @@ from physmorph.reports.metrics import REST_SWING_PERCENT, at_rest, sign_changes,
 from physmorph.settings.morph import MorphConfig
 from physmorph.morph.judge import FrameJudge
 from physmorph.morph.loop import morph_config, run_morph
-from physmorph.records.runfile import read_metrics
+from physmorph.records.runfile import frame_motion, read_metrics
 from physmorph.mpm.state import ParticleState
 from physmorph.morph.settle import AcceptedFrame, SettleGate, settle_gate
 from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
@@ -221,7 +222,7 @@ class _Killed(Exception):
 
 @pytest.mark.usefixtures("checkpoint_every_frame")  # conftest: it kills a run
 def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, shipped_run, monkeypatch):
-    """Killed in frame 38, after the gate has undone frames (from frame 35 in this run), the run
+    """Killed in frame 38, after the gate has undone frames (from frame 15 in this run), the run
     resumes from its checkpoint (the accepted state) to the uninterrupted run. Slow: a 39-frame
     tiny morph run to its kill in frame 38, then resumed from its checkpoint to the end."""
     _, d = tiny
@@ -244,6 +245,43 @@ def test_a_run_killed_while_settling_resumes_to_the_uninterrupted_run(tiny, ship
     resumed, _ = _run(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_resumed.h5", mc)
     for key in ("alpha_mse", "physics_loss", "settling"):
         np.testing.assert_allclose(resumed[key], full[key], rtol=1e-4, err_msg=key)
+
+
+def test_frames_held_under_the_step_share_are_the_undone_frames_without_their_work(tiny, shipped_run, monkeypatch):
+    """settle_hold_below: a settling frame whose step has backed off under that share of mpm's is
+    committed as the undone frame it would have been (shipped_run undoes every frame once its gate
+    starts, so at 0.3 each one from the second back-off on is held) without its phases: no
+    physics, NaN stage times; the record and the bodies are shipped_run's. Killed in the
+    frame before the first held one, the run resumes into the held frames. Slow: a 39-frame tiny full
+    morph to its kill, then resumed."""
+    _, d = tiny
+    mc = shipped(SHIPPED_FRAMES, settle_hold_below=0.3)
+    full = shipped_run[0]
+    settling, step = np.asarray(full["settling"]), np.asarray(full["step_size"])
+    expect = np.flatnonzero((settling == 2.0) & (step < 0.3 * mc.mpm.step_size))
+    assert len(expect) >= 3 and np.all(np.diff(expect) == 1) and expect[-1] == SHIPPED_FRAMES
+    killed_in = int(expect[0]) - 1
+    real, physics_at = morph.MorphRun.physics, []
+
+    def recorded(self, k):
+        physics_at.append(k)
+        if k == killed_in and physics_at.count(k) == 1:
+            raise _Killed()
+        return real(self, k)
+
+    monkeypatch.setattr(morph.MorphRun, "physics", recorded)
+    with pytest.raises(_Killed):
+        run_morph(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_held.h5", mc, name="held")
+    held, lines = _run(d / "p_iso.h5", d / "t_bunny.h5", d / "settle_held.h5", mc)
+    for key in ("alpha_mse", "physics_loss", "settling", "step_size", "volume_iou", "gap_closed"):
+        np.testing.assert_allclose(held[key], full[key], rtol=1e-9, err_msg=key)
+    np.testing.assert_array_equal(np.flatnonzero(np.isnan(held["t_frame"][1:])) + 1, expect)
+    assert killed_in in physics_at and not set(physics_at) & set(expect)  # the held frames' physics never ran
+    said = [line for line in lines if "from here on the frames are held" in line]
+    assert len(said) == 1 and f"frame {expect[0]}:" in said[0], said
+    with h5py.File(d / "settle_held.h5") as a, h5py.File(d / "settle_shipped.h5") as b:
+        for k in (killed_in, SHIPPED_FRAMES):
+            np.testing.assert_allclose(frame_motion(a, k)[0], frame_motion(b, k)[0], rtol=0, atol=1e-12)
 
 
 def test_the_accepted_frame_kept_in_files_is_the_one_kept_in_memory(tiny, shipped_run, monkeypatch):

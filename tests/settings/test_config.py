@@ -232,6 +232,12 @@ def test_experiment_resolution_and_its_params():
     s9, s10 = (load_settings(BASE, overrides={"morph": {"injection_calibration": "first_frame", **extra}})
                for extra in ({}, {"injection_calibration_every": 5}))
     assert morph_params(s10.experiment_config("iso_bunny_full")) == morph_params(s9.experiment_config("iso_bunny_full"))
+    # the held frames' step share, only where a settle phase backs the step off
+    s11 = load_settings(BASE, overrides={"morph": {"settle_hold_below": 0.1}})
+    assert morph_params(s11.experiment_config("iso_bunny_full")) != morph_params(full)
+    s12, s13 = (load_settings(BASE, overrides={"morph": {"settle": "off", **extra}})
+                for extra in ({}, {"settle_hold_below": 0.1}))
+    assert morph_params(s13.experiment_config("iso_bunny_full")) == morph_params(s12.experiment_config("iso_bunny_full"))
     # threads change no params
     s3 = load_settings(BASE, overrides={"threads": 1})
     assert morph_params(s3.experiment_config("iso_bunny_full")) == morph_params(full)
