@@ -8,10 +8,34 @@ kernels choose their float type explicitly (f32 or f64), so one runtime serves b
 from __future__ import annotations
 
 import os
+import time
+from pathlib import Path
 
 import taichi as ti
 
 _state: dict = {}
+
+# Taichi holds the lock files of its offline cache only for the moments it reads or writes the
+# cache's index; one left by a process killed meanwhile (a cancelled job, a test that kills a run)
+# stays, and every later process then skips the cache (each kernel compiled anew) and prints two
+# warnings at its start and exit. A lock this old is such a leftover.
+STALE_CACHE_LOCK_S = 600.0
+
+
+def clear_stale_cache_locks(now: float | None = None) -> list[Path]:
+    """Remove the lock files of Taichi's offline cache (TI_OFFLINE_CACHE_FILE_PATH, else Taichi's
+    default folder) older than STALE_CACHE_LOCK_S; returns the ones removed."""
+    folder = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or ti.lang.impl.default_cfg().offline_cache_file_path
+    now = time.time() if now is None else now
+    removed = []
+    for lock in Path(folder).glob("*.lock"):
+        try:
+            if now - lock.stat().st_mtime > STALE_CACHE_LOCK_S:
+                lock.unlink()
+                removed.append(lock)
+        except OSError:  # removed by another process meanwhile, or not ours to remove
+            pass
+    return removed
 
 
 def use_short_source_positions() -> bool:
@@ -134,6 +158,7 @@ def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = F
     if os.environ.get("PHYSMORPH_KERNEL_PROFILER") == "1":
         # each kernel's launches timed (benchmarks/bench_roofline.py); never in a run
         kwargs["kernel_profiler"] = True
+    clear_stale_cache_locks()
     ti.init(**kwargs)
     use_short_source_positions()
     use_cached_function_sources()

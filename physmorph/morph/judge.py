@@ -32,6 +32,7 @@ class FrameJudge:
         self.gate = settle_gate(cfg.settle, cfg.settle_objective, inputs.want_grad, cfg.settle_backoff,
                                 physics_key=physics_objective(cfg), handover=cfg.settle_handover)
         self.onset = OverfillOnset(cfg)
+        self.holding = False  # a frame has been held (MorphConfig.settle_hold_below): said once
 
     def begin(self, start: int, fs: FrameState, checkpoint) -> None:
         """The policies at the run's first frame to run: from the committed frames and the
@@ -70,6 +71,21 @@ class FrameJudge:
         and its step has backed off under that share of mpm's."""
         share = self.cfg.settle_hold_below
         return share > 0 and self.gate.gates(k) and self.schedule.step < share * self.cfg.mpm.step_size
+
+    def held(self, k: int, fs: FrameState, progress: bool) -> tuple[dict, np.ndarray]:
+        """Frame k held (``holds``): the undone frame's record (scalars, per-view α MSE) without running
+        it, its stage times NaN; the log says so at the first held frame (and at each with ``progress``)."""
+        back, frame_step = self.gate.accepted, self.schedule.step
+        scal, per_view, _, _ = self.steer(k, fs, dict(back.scalars), back.per_view, back.scalars, frame_step, held=True)
+        scal.update(dict.fromkeys(("t_physics", "t_mask", "t_render", "t_plasticity", "t_frame"), np.nan))
+        if not self.holding:
+            self.holding = True
+            self.log(f"frame {k}: the settle phase's step {frame_step:.3g} is under settle_hold_below of mpm's; "
+                     f"from here on the frames are held, the body still, without running")
+        if progress:
+            self.log(f"frame {k}/{self.cfg.frames}  alpha_mse {scal['alpha_mse']:.4f} "
+                     f"(gap closed {100 * scal['gap_closed']:.0f} %)  held")
+        return scal, per_view
 
     def steer(self, k: int, fs: FrameState, scal: dict, per_view: np.ndarray, m: dict, frame_step: float,
               held: bool = False):

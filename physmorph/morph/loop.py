@@ -93,7 +93,6 @@ class MorphRun:
         self.judge = FrameJudge(cfg, self.solver, self.inputs, run, log=lambda msg: log(f"[{name}] {msg}"))
         self.decay, self.stray = ControlDecay(cfg), StrayPull(cfg)
         self.plan = FramePlan(cfg, self.inputs)  # the transport plan's destinations, push and waypoints
-        self.holding = False  # a frame has been held (MorphConfig.settle_hold_below): said once
 
     # ---------------------------------------------------------------------------- start or resume
     def begin(self) -> int:
@@ -244,8 +243,8 @@ class MorphRun:
 
     def frame(self, k: int) -> bool:
         """Frame k's phases, committed; False where the run stops (a position_inject divergence)."""
-        if self.judge.holds(k):
-            self.hold(k)
+        if self.judge.holds(k):  # committed as the undone frame it would be, without running
+            self.commit(k, *self.judge.held(k, self.fs, self.cfg.progress), [])
             return True
         solver, fs = self.solver, self.fs
         t0 = time.time()
@@ -293,23 +292,6 @@ class MorphRun:
         self.commit(k, scal, per_view, new_warnings)
         self.progress(k, scal, stats, rejected)
         return True
-
-    def hold(self, k: int) -> None:
-        """Frame k held (MorphConfig.settle_hold_below): committed as an undone frame, the last
-        accepted body's state and metrics, without running its phases; its stage times are NaN."""
-        back, frame_step = self.judge.gate.accepted, self.judge.schedule.step
-        scal, per_view, _, _ = self.judge.steer(k, self.fs, dict(back.scalars), back.per_view, back.scalars,
-                                                frame_step, held=True)
-        self.nearest_d = self.nearest_i = None
-        scal.update({key: np.nan for key in ("t_physics", "t_mask", "t_render", "t_plasticity", "t_frame")})
-        self.commit(k, scal, per_view, [])
-        if not self.holding:
-            self.holding = True
-            self.log(f"[{self.name}] frame {k}: the settle phase's step {frame_step:.3g} is under settle_hold_below "
-                     f"of mpm's; from here on the frames are held, the body still, without running")
-        if self.cfg.progress:
-            self.log(f"[{self.name}] frame {k}/{self.cfg.frames}  alpha_mse {scal['alpha_mse']:.4f} "
-                     f"(gap closed {100 * scal['gap_closed']:.0f} %)  held")
 
     def commit(self, k: int, scal: dict, per_view: np.ndarray, new_warnings: list) -> None:
         """The frame's metrics and motion, its state where saved, and the checkpoint when due."""
