@@ -44,7 +44,8 @@ def frame_calibration(cfg: MorphConfig, fs: FrameState, solver: MPMSolver, injec
                       k: int, log) -> InjectionCalibration | None:
     """Frame k's injection scale into ``fs`` (MorphConfig.injection_calibration; with every_frame,
     measured at the frames k that injection_calibration_every divides, and wherever none is
-    measured yet, the last one kept in between); the calibration when one ran (its rollout and gradients are then the optimiser's first). ``log`` takes a line."""
+    measured yet, the last one kept in between); the calibration when one ran (its rollout and
+    gradients are then the optimiser's first). ``log`` takes a line."""
     if not (inject_F or inject_x):
         return None
     if cfg.injection_calibration == "absolute":

@@ -62,8 +62,8 @@ class MorphConfig:
     injection_calibration: Annotated[Literal["first_frame", "every_frame", "absolute"], setting(
         "every_frame: gain re-measured each frame; first_frame: once; absolute: no calibration (eq. 3 as "
         "printed)")] = "every_frame"
-    # the gain drifts slowly once the morph is under way: measuring it every few frames saves the
-    # calibration's second adjoint (docs/study/log.md). Not in the paper (which has no calibration).
+    # held for a few frames the gain moves the runs by under a point of their gap, and those frames
+    # skip the calibration's second adjoint (docs/study/log.md part 69). Not in the paper.
     injection_calibration_every: Annotated[Int, setting(
         "every_frame: frames between measurements of the injection gain, the last one kept in between "
         "(1: each frame)", "frames", ge=1)] = 1
