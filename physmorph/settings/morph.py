@@ -28,7 +28,8 @@ class MorphConfig:
     ALWAYS_IN_PARAMS: ClassVar[frozenset[str]] = frozenset({"method", "momentum_restart", "control_decay", "overfill_onset",
                                                               "stray_pull", "settle",
                                                               "plan_push_speed", "reabsorb_strays", "settle_objective",
-                                                              "spray_links"})
+                                                              "spray_links", "injection_calibration_every",
+                                                              "settle_hold_below"})
     # the paper's method (sections 3-4)
     method: Annotated[Literal["physics_only", "f_inject", "full", "position_inject"], setting(
         "physics_only: mass loss alone; f_inject: + render gradient on F; full: + plasticity; position_inject: "
@@ -66,7 +67,7 @@ class MorphConfig:
     # skip the calibration's second adjoint (docs/study/log.md part 69). Not in the paper.
     injection_calibration_every: Annotated[Int, setting(
         "every_frame: frames between measurements of the injection gain, the last one kept in between "
-        "(1: each frame)", "frames", ge=1)] = 1
+        "(1: each frame)", "frames", ge=1)] = 5  # history: docs/study/CHANGELOG.md
     # the function-value restart of momentum methods (O'Donoghue & Candes 2015): the physics
     # carries momentum across frames, but each frame's control only sees its own frame, so a shape
     # that reaches its target at speed rings (docs/study/log.md, finding 73). Not in the paper.
@@ -107,7 +108,7 @@ class MorphConfig:
     # measured: those frames' work is skipped (docs/study/log.md part 69)
     settle_hold_below: Annotated[Float, setting(
         "the settle phase: a frame whose step is under this share of mpm's step_size is not run but held, "
-        "committed as an undone frame (the last accepted body, still); 0: every frame runs", ge=0, le=1)] = 0.0
+        "committed as an undone frame (the last accepted body, still); 0: every frame runs", ge=0, le=1)] = 0.0625
     settle_objective: Annotated[Literal["render", "alpha_mse", "physics", "physics_then_alpha"], setting(
         "what the settle phase judges a frame by: its alpha MSE (every view), its render loss, its physics "
         "loss, or (physics_then_alpha) its physics loss and its alpha MSE together (undone where both rose) "

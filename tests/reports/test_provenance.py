@@ -162,12 +162,14 @@ def test_a_retired_setting_counts_as_shipped_only_at_the_value_the_method_ran_wi
     # a setting added since: a record without it ran as the added setting's value does, so it is
     # a difference exactly where the shipped default is another value (plasticity.volume: target;
     # the push along the plan, its drawn destinations, the volume term and the spray put back, the
-    # spray's pieces linked through faces alone)
+    # spray's pieces linked through faces alone, the injection gain kept between measurements, the
+    # settling frames held)
     assert set(ADDED_METHOD_SETTINGS) <= set(shipped)
     before = {k: v for k, v in shipped.items() if k not in ADDED_METHOD_SETTINGS}
     changed = sorted(k for k, v in ADDED_METHOD_SETTINGS.items() if shipped[k] != v)
-    assert changed == ["mpm.volume_weight", "plan_push_speed", "plasticity.transport_projection",
-                       "plasticity.volume", "reabsorb_strays", "spray_links"]
+    assert changed == ["injection_calibration_every", "mpm.volume_weight", "plan_push_speed",
+                       "plasticity.transport_projection", "plasticity.volume", "reabsorb_strays",
+                       "settle_hold_below", "spray_links"]
     assert differing_keys(before, shipped) == changed
     before = {**before, **{k: shipped[k] for k in changed}}
     assert differing_keys(before, shipped) == []

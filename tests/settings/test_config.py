@@ -225,18 +225,18 @@ def test_experiment_resolution_and_its_params():
     s6, s7 = (load_settings(BASE, overrides={"morph": {"reabsorb_strays": False, **extra}}) for extra in ({}, corners))
     assert morph_params(s7.experiment_config("iso_bunny_full")) == morph_params(s6.experiment_config("iso_bunny_full"))
     # the gain's interval, only where the gain is measured (not physics-only) and every frame
-    s8 = load_settings(BASE, overrides={"morph": {"injection_calibration_every": 5}})
+    s8 = load_settings(BASE, overrides={"morph": {"injection_calibration_every": 1}})
     for name in ("iso_bunny_full", "iso_bunny_f_inject"):
         assert morph_params(s8.experiment_config(name)) != morph_params(s.experiment_config(name)), name
     assert morph_params(s8.experiment_config("iso_bunny_physics_only")) == morph_params(po)
     s9, s10 = (load_settings(BASE, overrides={"morph": {"injection_calibration": "first_frame", **extra}})
-               for extra in ({}, {"injection_calibration_every": 5}))
+               for extra in ({}, {"injection_calibration_every": 1}))
     assert morph_params(s10.experiment_config("iso_bunny_full")) == morph_params(s9.experiment_config("iso_bunny_full"))
     # the held frames' step share, only where a settle phase backs the step off
-    s11 = load_settings(BASE, overrides={"morph": {"settle_hold_below": 0.1}})
+    s11 = load_settings(BASE, overrides={"morph": {"settle_hold_below": 0.0}})
     assert morph_params(s11.experiment_config("iso_bunny_full")) != morph_params(full)
     s12, s13 = (load_settings(BASE, overrides={"morph": {"settle": "off", **extra}})
-                for extra in ({}, {"settle_hold_below": 0.1}))
+                for extra in ({}, {"settle_hold_below": 0.0}))
     assert morph_params(s13.experiment_config("iso_bunny_full")) == morph_params(s12.experiment_config("iso_bunny_full"))
     # threads change no params
     s3 = load_settings(BASE, overrides={"threads": 1})
