@@ -19,7 +19,7 @@ from physmorph.morph.steering import MomentumRestart, OverfillOnset, StepSchedul
 from physmorph.mpm.solver import MPMSolver
 from physmorph.mpm.state import ParticleState
 from physmorph.plasticity.step import absorbed_rest, rebase_reference
-from physmorph.records.runfile import RunWriter
+from physmorph.records.runfile import STAGE_TIMES, RunWriter
 from physmorph.settings.morph import MorphConfig
 
 
@@ -77,7 +77,7 @@ class FrameJudge:
         it, its stage times NaN; the log says so at the first held frame (and at each with ``progress``)."""
         back, frame_step = self.gate.accepted, self.schedule.step
         scal, per_view, _, _ = self.steer(k, fs, dict(back.scalars), back.per_view, back.scalars, frame_step, held=True)
-        scal.update(dict.fromkeys(("t_physics", "t_mask", "t_render", "t_plasticity", "t_frame"), np.nan))
+        scal.update(dict.fromkeys(STAGE_TIMES, np.nan))
         if not self.holding:
             self.holding = True
             self.log(f"frame {k}: the settle phase's step {frame_step:.3g} is under settle_hold_below of mpm's; "

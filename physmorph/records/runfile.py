@@ -64,11 +64,13 @@ from physmorph.records.runfile_cli import CHECKPOINT_NAME, LOCK_NAME, METRICS_CH
 # physics_loss_to_target: with morph.waypoint_cells, the end state's physics loss against the target
 # itself (the frames' aims differ), and mass_loss then against the target too; plan_distance: the
 # full method's mass-weighted mean distance to the transport destinations, in cells.
+# each frame's seconds by stage (physmorph.morph.loop), and its whole wall time
+STAGE_TIMES = ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame")
 SCALARS = (
     "alpha_mse", "iou", "gap_closed", "physics_loss_initial", "physics_loss", "mass_loss", "delta_E_percent", *LOSS_SCALARS.values(),
     "injection_scale", "grad_F_norm", "grad_x_norm", "mpm_grad_norm", "fp_det_min",
     "fp_det_max", "fp_anisotropy_max", "elastic_energy", "total_volume", "rest_volume", "mask_size",
-    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "reabsorbed", "physics_loss_to_target", "plan_distance", "t_physics", "t_render", "t_plasticity", "t_mask", "t_frame",
+    "mask_fraction", "chamfer", "volume_iou", "overfilled_mass", "kinetic_energy", "momentum_restart", "settling", "step_size", "step_accepted", "frame_strain", "reabsorbed", "physics_loss_to_target", "plan_distance", *STAGE_TIMES,
 )
 SAVED_STATE = ("x", "F", "Fp")  # what a saved frame keeps (float32)
 MOTION = {"x": np.float32, "F": np.float16}  # what every other frame keeps (the module docstring)
