@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from physmorph.morph.frame_measures import deformation_measures, frame_strain, grid_mass, voxel_density
+from physmorph.morph.frame_measures import (deformation_measures, frame_strain, frame_strain_reference, grid_mass,
+                                           voxel_density)
 from physmorph.base.grid import Grid, splat_mass
 from physmorph.base.linalg3 import det3, singular_values, signed_singular_values
 from physmorph.settings.mpm import MPMConfig
@@ -102,3 +103,36 @@ def test_frame_strain_is_the_quantile_of_each_particles_frame_deformation():
     assert frame_strain(F0, F0) < 1e-12
     with pytest.raises(ValueError, match="must match"):
         frame_strain(F0, F1[:10])
+    # the Taichi pass against the NumPy form, and a singular F_start named as inverse3 names it
+    for q in (0.99, 0.5, 1.0):
+        assert frame_strain(F0, F1, quantile=q) == pytest.approx(frame_strain_reference(F0, F1, quantile=q), rel=1e-12)
+    F0[7] = 0.0
+    with pytest.raises(np.linalg.LinAlgError, match="matrix 7 of 200"):
+        frame_strain(F0, F1)
+
+
+@pytest.mark.parametrize("name, particle, value, message", [
+    ("x", 4, np.nan, "x became non-finite (particle 4)"),
+    ("F", 2, -np.inf, "F became non-finite (particle 2)"),
+    ("F", 5, -50.5, "|F| = 50.5 exceeds 50 (particle 5)"),
+    ("Fp", 1, 10.25, "|Fp| = 10.2 exceeds 10 (particle 1)"),
+])
+def test_check_state_names_the_quantity_and_particle(name, particle, value, message):
+    """A NaN, an infinity or an entry beyond its bound (either sign) stops the frame naming the
+    quantity and the first such particle; entries at the bound pass."""
+    from physmorph.morph.stability import MorphDivergenceError, check_state
+    from physmorph.mpm.state import ParticleState
+    from physmorph.settings.morph import MorphConfig
+
+    cfg = MorphConfig()
+    n = 8
+    st = ParticleState(x=np.zeros((n, 3)), v=np.zeros((n, 3)), F=np.tile(np.eye(3), (n, 1, 1)), C=np.zeros((n, 3, 3)),
+                       Fp=np.tile(np.eye(3), (n, 1, 1)), mass=np.ones(n), volume=np.ones(n))
+    st.F[3, 0, 1] = -cfg.max_F_norm
+    st.Fp[6, 2, 2] = cfg.max_Fp_norm
+    check_state(st, 9, cfg)  # at the bounds: passes
+    getattr(st, name)[particle].flat[1] = value
+    with pytest.raises(MorphDivergenceError) as stop:
+        check_state(st, 9, cfg)
+    assert str(stop.value) == f"frame 9: {message}"
+    assert (stop.value.quantity, stop.value.particle, stop.value.frame) == (name, particle, 9)
