@@ -43,7 +43,7 @@ from physmorph.records.h5io import stored_identity
 from physmorph.morph.injection import frame_calibration
 from physmorph.morph.judge import FrameJudge
 from physmorph.base.linalg3 import inverse3
-from physmorph.base.memory import release_free_memory
+from physmorph.base.memory import held_heap, release_free_memory
 from physmorph.settings.morph import MorphConfig
 from physmorph.settings.mpm import MPMError
 from physmorph.mpm.solver import MPMSolver
@@ -72,7 +72,8 @@ def run_morph(particles_h5: str | Path, target_h5: str | Path, out_h5: str | Pat
     record = json.dumps(config_record if config_record is not None else cfg.to_dict(), sort_keys=True, default=str)
     # A partial run resumes only with the same settings and the same input content.
     key = RunKey(record, (("particles", stored_identity(particles_h5)), ("target", stored_identity(target_h5))))
-    with RunWriter(out_h5, key, started) as run:  # one writer per run: a second one is refused
+    # one writer per run: a second one is refused; the frames reuse each other's freed heap
+    with RunWriter(out_h5, key, started) as run, held_heap():
         MorphRun(particles_h5, target_h5, cfg, name, log, run, target_size).run_frames(record)
     return summarize_run(out_h5)
 
