@@ -14,9 +14,8 @@ paper's 471K particles and 8 x 960x540 pixels), so every frame paid for them aga
   frame's temporaries reuse the pages the frames before them faulted in. The resident set is then
   the heap's high-water mark: the largest of the stages' transients on top of what the frame holds.
 - :func:`release_free_memory`: outside a held heap, return the heap's free pages (``malloc_trim``);
-  the morph loop and the render call it where their transients end (before the render, before
-  its rasterizer backward, before the commit), which keeps the resident set low where memory is
-  scarcer than time. Inside a held heap it does nothing.
+  the render calls it before its rasterizer backward, where its loss terms' pixel buffers end,
+  which keeps the resident set of a render outside a run low. Inside a held heap it does nothing.
 
 Other C libraries have neither call, and nothing is done there. What either costs and saves at
 the paper's scale: docs/study/performance_history.md.

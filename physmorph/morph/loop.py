@@ -43,7 +43,7 @@ from physmorph.records.h5io import stored_identity
 from physmorph.morph.injection import frame_calibration
 from physmorph.morph.judge import FrameJudge
 from physmorph.base.linalg3 import inverse3
-from physmorph.base.memory import held_heap, release_free_memory
+from physmorph.base.memory import held_heap
 from physmorph.settings.morph import MorphConfig
 from physmorph.settings.mpm import MPMError
 from physmorph.mpm.solver import MPMSolver
@@ -189,9 +189,6 @@ class MorphRun:
             fs.mask = update_surface_mask(fs.state.x, fs.state.volume, self.inputs.tree, cfg.surface, cfg.mpm.domain_lo,
                                           cfg.mpm.domain_hi, previous=fs.mask, target_distance=self.nearest_d,
                                           search_device=self.inputs.search_device)
-        # the physics' and the mask's temporaries go back to the system before the render, the
-        # frame's largest transient (physmorph.base.memory)
-        release_free_memory()
 
     def render(self, scal: dict):
         """B. The masked particles rendered against the target; their gradient kept for the next
@@ -283,12 +280,9 @@ class MorphRun:
         new_warnings = [] if rejected else self.monitor.update(
             k, fs.state.Fp, m["alpha_mse"], det=dm.det_plastic if rest == 1.0 else dm.det_plastic / rest,
             fp_anisotropy=dm.anisotropy_plastic)
-        # the render's images and gradient and the metrics' arrays are done with: the frame's freed
-        # heap goes back to the system, so the checkpoint's buffers do not sit on top of it. Not
-        # after every stage: memory returned is faulted in again by the next stage (on the 2-core
-        # VM up to ~2 ms per MB), and the stages reuse each other's freed blocks (physmorph.base.memory)
+        # the render's images and gradient and the metrics' arrays are done with; their blocks stay
+        # in the run's held heap for the next frame (physmorph.base.memory.held_heap)
         res = dm = None
-        release_free_memory()
         scal.update(t_physics=t1 - t0, t_mask=t2 - t1, t_render=t3 - t2, t_plasticity=t4 - t3, t_frame=time.time() - t0)
         self.commit(k, scal, per_view, new_warnings)
         self.progress(k, scal, stats, rejected)

@@ -131,9 +131,10 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
         del ga, gd
     loss_values = {k: float(v.detach()) for k, v in losses.items()}
     del losses  # frees the loss graph's pixel-sized buffers before the rasterizer backward
-    # ... and hands them back to the system: under glibc's mmap threshold they stay resident
+    # ... and hands them back to the system (outside a morph run's held heap, where the backward
+    # reuses them instead: physmorph.base.memory): under glibc's mmap threshold they stay resident
     # under the backward's [C, V*N, 6] gradients otherwise (the paper frame's peak: 0.92-1.03 GB
-    # above the render's start without this, 0.70-0.76 GB with it; physmorph.base.memory)
+    # above the render's start without this, 0.70-0.76 GB with it)
     release_free_memory()
     g_params = composite_backward(sp.params, sp.bins, t_final, last, g_alpha, g_depth, cfg)
     del g_alpha, g_depth, sp
