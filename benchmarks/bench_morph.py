@@ -14,7 +14,9 @@ that compile Taichi kernels, and the peak RSS: frame 1 compiles the solver's and
 kernels, and with an injection gain to measure (f_inject, full) frame 2 compiles the calibration's
 (MPMSolver.backward_pair), so those methods are timed from frame 3. The stages' sum (t_frame) leaves
 out each frame's commit (its frame file and the checkpoint, written, checksummed and fsynced), so
-the wall time from one frame's progress line to the next is printed as well.
+the wall time from one frame's progress line to the next is printed as well, and the minor page
+faults over that time (pages the process touched that the system had to supply: what a virtual
+machine's host took back costs several ms per MB; physmorph.base.memory).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import dataclasses
 import multiprocessing
 import os
 import re
+import resource
 import time
 from pathlib import Path
 
@@ -65,7 +68,7 @@ def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path
     frames of ``experiment`` (plasticity from the first frame, no release), and return the mean
     seconds per stage over the frames after those that compile kernels (timed_from: 2, or 3 where
     frame 2 runs the first injection calibration), the first frame, the particle count, the mask
-    fraction, the peak RSS (MiB) and the data preparation's seconds."""
+    fraction, the peak RSS (MiB), the minor page faults a frame and the data preparation's seconds."""
     exp = cfg.experiment(experiment)
     wd = Path(workdir)
     t_prep = time.time()
@@ -84,12 +87,14 @@ def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path
     out.unlink(missing_ok=True)
     shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
     done_at = {}  # frame -> when its progress line came: after its commit (frame file and checkpoint)
+    faults_at = {}  # frame -> the process's minor page faults then
 
     def log(msg: str) -> None:
         print(msg, flush=True)
         hit = re.search(r"\] frame (\d+)/", msg)
         if hit:
             done_at[int(hit.group(1))] = time.perf_counter()
+            faults_at[int(hit.group(1))] = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
     run_morph(wd / f"p_{exp.source}.h5", wd / f"t_{exp.target}.h5", out, mc, name=experiment, log=log)
     m = read_metrics(out)
@@ -98,8 +103,10 @@ def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path
     sel = slice(timed_from, None)
     row = {key[2:]: float(np.nanmean(m[key][sel])) for key in STAGES}
     # the wall time from one frame's progress line to the next: the frame and its commit
-    walls = [done_at[k] - done_at[k - 1] for k in range(max(timed_from, 2), frames + 1) if k - 1 in done_at and k in done_at]
-    row["wall"] = float(np.mean(walls)) if walls else float("nan")
+    pairs = [k for k in range(max(timed_from, 2), frames + 1) if k - 1 in done_at and k in done_at]
+    row["wall"] = float(np.mean([done_at[k] - done_at[k - 1] for k in pairs])) if pairs else float("nan")
+    # pages faulted in by a frame: memory the system had taken back (physmorph.base.memory)
+    row["faults"] = float(np.mean([faults_at[k] - faults_at[k - 1] for k in pairs])) if pairs else float("nan")
     row.update(first_frame=float(m["t_frame"][1]), particles=int(m["attrs"]["n_particles"]),
                mask_fraction=float(np.nanmean(m["mask_fraction"][sel])),
                peak_rss_mb=float(m["attrs"]["peak_rss_mb"]), preparation=prep, timed_from=timed_from)
@@ -133,7 +140,8 @@ def main() -> None:
         print(f"| {key[2:]} | {row[key[2:]]:.2f} |")
     print(f"| frame and its commit (wall, progress line to progress line) | {row['wall']:.2f} |")
     print(f"| first frame (incl. compilation) | {row['first_frame']:.2f} |")
-    print(f"mask fraction {row['mask_fraction']:.2f}, peak RSS {row['peak_rss_mb']:.0f} MiB")
+    print(f"mask fraction {row['mask_fraction']:.2f}, peak RSS {row['peak_rss_mb']:.0f} MiB, "
+          f"{row['faults']:,.0f} minor page faults a frame (with its commit)")
 
 
 if __name__ == "__main__":
