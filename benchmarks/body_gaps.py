@@ -11,7 +11,10 @@ and depth (the farthest voxel from the target's surface, in voxels: a piece deep
 or a missing part, a thin one a skin), and the voxels the body puts outside the target. Then, at the
 first, middle and last saved frames, the mass-weighted distance of the particles to their transport
 destinations (physmorph.plasticity.transport, the plasticity's plan from the source at rest), in
-cells, and the share of the mass farther than 2 and 4 cells from them.
+cells, and the share of the mass farther than 2 and 4 cells from them. Last, where the body's solid
+has a higher genus than the target's, which of those pieces carries it: the missing pieces whose
+filling, and the pieces outside the target whose removal, lowers the body's genus (a tear through a
+thin part, or a bridge across a gap of the target).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import h5py
 import numpy as np
 import trimesh
 from scipy import ndimage
+from skimage import measure
 
 from physmorph.base.grid import Grid
 from physmorph.base.linalg3 import det3
@@ -29,8 +33,41 @@ from physmorph.plasticity.transport import destinations_in_grid_mass
 from physmorph.reports.export.surface import particle_surface
 
 
+def solid_genus(solid: np.ndarray) -> int:  # [X, Y, Z] bool
+    """The summed genus of the closed surfaces of a voxel solid (marching cubes, each piece's Euler number)."""
+    verts, faces, _, _ = measure.marching_cubes(np.pad(solid.astype(np.float32), 1), 0.5)
+    pieces = trimesh.Trimesh(verts, faces).split(only_watertight=False)
+    return int(sum((2 - piece.euler_number) // 2 for piece in pieces))
+
+
+def genus_carriers(in_body: np.ndarray, in_target: np.ndarray,  # [X, Y, Z] bool each
+                   axes: list, tried: int = 25) -> None:  # axes: the voxel centres along x, y, z
+    """Print the pieces that carry the body's surplus genus: of the ``tried`` largest missing pieces
+    (in the target, not the body) those whose filling lowers it, and of the largest pieces in the body
+    outside the target (dilated by two voxels, so a skin's offset does not count) those whose
+    removal does."""
+    body_genus, target_genus = solid_genus(in_body), solid_genus(in_target)
+    print(f"genus of the solids: body {body_genus}, target {target_genus}")
+    if body_genus <= target_genus:
+        return
+    outside = in_body & ~ndimage.binary_dilation(in_target, iterations=2)
+    for what, pieces, change in (("missing", in_target & ~in_body, np.logical_or),
+                                 ("outside", outside, lambda solid, piece: solid & ~piece)):
+        labels, n = ndimage.label(pieces)
+        sizes = ndimage.sum(pieces, labels, range(1, n + 1))
+        for i in np.argsort(-sizes)[:tried]:
+            piece = labels == i + 1
+            lowered = solid_genus(change(in_body, piece))
+            if lowered < body_genus:
+                centre = [a[idx].mean() for a, idx in zip(axes, np.nonzero(piece))]
+                span = [np.ptp(a[idx]) for a, idx in zip(axes, np.nonzero(piece))]
+                print(f"  {what} piece of {sizes[i]:.0f} voxels at ({centre[0]:.1f}, {centre[1]:.1f}, {centre[2]:.1f}), "
+                      f"spanning {span[0]:.1f} x {span[1]:.1f} x {span[2]:.1f}: the body's genus {body_genus} -> {lowered}")
+
+
 def missing_pieces(body: trimesh.Trimesh, target: trimesh.Trimesh, voxel: float, shown: int = 6) -> None:
-    """Print the body against the target on voxels of side ``voxel``: IoU, missing pieces, outside."""
+    """Print the body against the target on voxels of side ``voxel``: IoU, missing pieces, outside,
+    and the pieces that carry a surplus genus (genus_carriers)."""
     lo = np.minimum(body.bounds[0], target.bounds[0]) - 2 * voxel
     hi = np.maximum(body.bounds[1], target.bounds[1]) + 2 * voxel
     axes = [np.arange(a, b, voxel) + voxel / 2 for a, b in zip(lo, hi)]  # voxel centres: none on a bound's face
@@ -49,6 +86,7 @@ def missing_pieces(body: trimesh.Trimesh, target: trimesh.Trimesh, voxel: float,
         centre = [a[idx].mean() for a, idx in zip(axes, np.nonzero(piece))]
         print(f"  missing piece of {sizes[i]:.0f} voxels at ({centre[0]:.1f}, {centre[1]:.1f}, {centre[2]:.1f}), "
               f"{depth[piece].max():.1f} voxels deep")
+    genus_carriers(in_body, in_target, axes)
 
 
 def main(argv: list[str] | None = None) -> None:
