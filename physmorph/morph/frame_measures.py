@@ -65,6 +65,15 @@ def _singular_values(M):
     return ti.Vector([s1, s2, s3])
 
 
+@ti.func
+def _matrix_at(a: ti.template(), p):
+    """Row p of an [N, 3, 3] f64 ndarray as a matrix."""
+    M = ti.Matrix.zero(ti.f64, 3, 3)
+    for i, j in ti.static(ti.ndrange(3, 3)):
+        M[i, j] = a[p, i, j]
+    return M
+
+
 @ti.kernel
 def _deformation_kernel(F: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
                         Fp: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
@@ -73,11 +82,7 @@ def _deformation_kernel(F: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
                         det_plastic: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N] out
                         anisotropy_plastic: ti.types.ndarray(dtype=ti.f64, ndim=1)):  # [N] out
     for p in range(F.shape[0]):
-        Fm = ti.Matrix.zero(ti.f64, 3, 3)
-        P = ti.Matrix.zero(ti.f64, 3, 3)
-        for i, j in ti.static(ti.ndrange(3, 3)):
-            Fm[i, j] = F[p, i, j]
-            P[i, j] = Fp[p, i, j]
+        Fm, P = _matrix_at(F, p), _matrix_at(Fp, p)
         Fe = Fm @ P.inverse()
         s = _singular_values(Fe)
         J = _det(Fe)
@@ -114,23 +119,14 @@ def _splat_kernel(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3]
 def _frame_strain_kernel(F_start: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
                          F_end: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
                          out: ti.types.ndarray(dtype=ti.f64, ndim=1)):  # [N] out; NaN where F_start is singular
-    """out_p = |F_end F_start^-1 - I|_F, F_start^-1 as its adjugate over its determinant (linalg3.inverse3)."""
+    """out_p = |F_end F_start^-1 - I|_F (frame_strain)."""
     for p in range(F_start.shape[0]):
-        A = ti.Matrix.zero(ti.f64, 3, 3)
-        B = ti.Matrix.zero(ti.f64, 3, 3)
-        for i, j in ti.static(ti.ndrange(3, 3)):
-            A[i, j] = F_start[p, i, j]
-            B[i, j] = F_end[p, i, j]
-        adj = ti.Matrix.zero(ti.f64, 3, 3)
-        for i, j in ti.static(ti.ndrange(3, 3)):  # adj[i, j]: the cofactor of A[j, i]
-            r0, r1 = ti.static((j + 1) % 3, (j + 2) % 3)
-            c0, c1 = ti.static((i + 1) % 3, (i + 2) % 3)
-            adj[i, j] = A[r0, c0] * A[r1, c1] - A[r0, c1] * A[r1, c0]
-        det = A[0, 0] * adj[0, 0] + A[0, 1] * adj[1, 0] + A[0, 2] * adj[2, 0]
+        A = _matrix_at(F_start, p)
+        det = _det(A)
         if det == 0.0 or not (ti.abs(det) < ti.math.inf):
             out[p] = ti.math.nan
         else:
-            D = B @ adj / det - ti.Matrix.identity(ti.f64, 3)
+            D = _matrix_at(F_end, p) @ A.inverse() - ti.Matrix.identity(ti.f64, 3)
             out[p] = ti.sqrt((D * D).sum())
 
 
