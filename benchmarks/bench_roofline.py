@@ -10,6 +10,8 @@ rate that makes, and that rate as a share of the triad's (the roofline's memory 
 per-particle stress (the polar decomposition warm-started from the last substep, P and the
 affine A) timed apart as a kernel of its own: the rest of P2G's time is its walk over the 27 nodes.
 With ``--markdown`` the same tables replace the generated section of docs/performance.md.
+``--device cuda`` measures a GPU the same way (its own section of that page): the probes' arrays are
+sized for a GPU's caches and rates, and the grid's model has one lane (a GPU's scatters are atomic).
 
 Traffic model (float32, per particle per substep, each array read or written once; the grid's
 scattered traffic counted at one 16-byte node (mass + momentum) per stencil point, 27 points):
@@ -35,6 +37,7 @@ kernel whose data stay in the caches (the 33^3 grid's 0.6 MB) can pass the triad
 memory's: above 100 % it is not bound by memory at all.
 
     .venv/bin/python benchmarks/bench_roofline.py [--n 20000] [--res 32] [--threads 2] [--reps 2] [--markdown]
+    python benchmarks/bench_roofline.py --device cuda --n 471282 --res 64 --markdown   # on a GPU machine
 """
 
 
@@ -52,16 +55,18 @@ NODE_BYTES = {"grid_update": 44}  # and 32 B per thread (kernel_rows adds it)
 PARTICLE_FLOPS = {"p2g": 1700, "g2p": 745}
 NODE_FLOPS = {"grid_update": 3}  # and 4 per thread after the first (kernel_rows adds it)
 P2G_STRESS_FLOPS = 1110
-TRIAD_ELEMENTS = 1 << 25  # 3 arrays of 128 MB: far past any cache
-FLOP_ELEMENTS = 1 << 18
+# elements of the probes' arrays by device: the triad's 3 arrays far past any cache (128 MB each on
+# a CPU, 1 GB on a GPU), and enough FMA chains to fill a GPU's cores for over a millisecond
+TRIAD_ELEMENTS = {"cpu": 1 << 25, "cuda": 1 << 28}
+FLOP_ELEMENTS = {"cpu": 1 << 18, "cuda": 1 << 24}
 FLOP_ITERS = 256  # fused multiply-adds per chain per element (8 chains)
 
 
-def machine_limits(reps: int = 5) -> dict:
+def machine_limits(device: str = "cpu", reps: int = 5) -> dict:
     """Measured triad bandwidth (bytes/s) and fused-multiply-add rate (FLOP/s), best of ``reps``."""
     import taichi as ti
 
-    n = TRIAD_ELEMENTS
+    n = TRIAD_ELEMENTS[device]
     a, b, c = (ti.field(ti.f32, shape=n) for _ in range(3))
 
     @ti.kernel
@@ -74,7 +79,7 @@ def machine_limits(reps: int = 5) -> dict:
         for i in range(n):
             a[i] = b[i] + s * c[i]
 
-    m = FLOP_ELEMENTS
+    m = FLOP_ELEMENTS[device]
     out = ti.field(ti.f32, shape=m)
 
     @ti.kernel
@@ -173,10 +178,10 @@ def p2g_stress_seconds(solver, reps: int = 5) -> float:
     return best / T
 
 
-def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, threads: int, peak: float) -> list:
+def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, lanes: int, peak: float) -> list:
     """(kernel, launches, seconds, share, bytes a launch or None, GB/s or None, share of the triad
     or None, FLOP/s or None, share of the FMA peak or None) for every kernel above 0.2 % of the
-    total, the slowest first."""
+    total, the slowest first. ``lanes``: the grid's scatter lanes (the CPU's threads; 1 on a GPU)."""
     total = sum(t for _, t in times.values())
     by_kernel: dict = {}
     for name, (count, seconds) in times.items():
@@ -188,19 +193,40 @@ def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, threads: int,
         if seconds < 0.002 * total:
             continue
         key = short if short in PARTICLE_BYTES or short in NODE_BYTES else None
-        node_bytes = NODE_BYTES.get(key, 0) + (32 * threads if key in NODE_BYTES else 0)
+        node_bytes = NODE_BYTES.get(key, 0) + (32 * lanes if key in NODE_BYTES else 0)
         per = PARTICLE_BYTES.get(key, 0) * n + node_bytes * nodes if key else None
         rate = per * count / seconds if per else None
-        ops = PARTICLE_FLOPS.get(key, 0) * n + (NODE_FLOPS.get(key, 0) + 4 * (threads - 1)) * nodes * (key in NODE_FLOPS)
+        ops = PARTICLE_FLOPS.get(key, 0) * n + (NODE_FLOPS.get(key, 0) + 4 * (lanes - 1)) * nodes * (key in NODE_FLOPS)
         flops = ops * count / seconds if key else None
         rows.append((short, count, seconds, seconds / total, per, rate, rate / bandwidth if rate else None,
                      flops, flops / peak if flops else None))
     return rows
 
 
+def where(args) -> str:
+    """The probes' and the rollout's device in words."""
+    return f"{args.threads} threads" if args.device == "cpu" else f"{args.device}: {gpu_name()}"
+
+
+def gpu_name() -> str:
+    try:
+        import torch
+
+        return torch.cuda.get_device_name(0)
+    except Exception:  # a name only: the measures stand without it
+        return "GPU"
+
+
+def command(args) -> str:
+    """The command line that makes this section."""
+    device = "" if args.device == "cpu" else f"--device {args.device} "
+    threads = f"--threads {args.threads} " if args.device == "cpu" else ""
+    return f"python benchmarks/bench_roofline.py {device}--n {args.n} --res {args.res} {threads}--reps {args.reps} --markdown"
+
+
 def print_report(args, limits: dict, wall: float, rows: list, p2g_stress: float) -> None:
     total = sum(r[2] for r in rows)
-    print(f"machine ({args.threads} threads): triad {limits['bandwidth'] / 1e9:.1f} GB/s, "
+    print(f"machine ({where(args)}): triad {limits['bandwidth'] / 1e9:.1f} GB/s, "
           f"fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s")
     print(f"physics: N={args.n}, grid {args.res}^3, {args.reps} forward+backward rollouts in {wall:.2f} s wall "
           f"({total:.2f} s in the kernels listed)")
@@ -220,10 +246,9 @@ def print_report(args, limits: dict, wall: float, rows: list, p2g_stress: float)
 def markdown_section(args, limits: dict, wall: float, rows: list, p2g_stress: float) -> str:
     """The generated section of docs/performance.md (between its roofline markers)."""
     total = sum(r[2] for r in rows)
-    lines = [f"Generated by `python benchmarks/bench_roofline.py --n {args.n} --res {args.res} --threads {args.threads} "
-             f"--reps {args.reps} --markdown` at commit {commit()}: the machine's triad "
+    lines = [f"Generated by `{command(args)}` at commit {args.commit or commit()}: the machine's triad "
              f"{limits['bandwidth'] / 1e9:.1f} GB/s and fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s "
-             f"on {args.threads} threads; {args.reps} forward+backward rollouts of {args.n:,} particles on "
+             f"({where(args)}); {args.reps} forward+backward rollouts of {args.n:,} particles on "
              f"{args.res}³ in {wall:.2f} s ({total:.2f} s in the kernels below).", "",
              "| kernel | launches | s | share | bytes a launch | GB/s | of the triad | GFLOP/s | of the FMA peak |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -247,9 +272,10 @@ def commit() -> str:
     return out.stdout.strip() or "unknown"
 
 
-def write_section(path: str, text: str) -> None:
-    """Replace what lies between the roofline markers of ``path`` with ``text``."""
-    begin, end = "<!-- roofline: generated by benchmarks/bench_roofline.py --markdown -->", "<!-- roofline end -->"
+def write_section(path: str, text: str, device: str = "cpu") -> None:
+    """Replace what lies between the device's roofline markers of ``path`` with ``text``."""
+    tag = "roofline" if device == "cpu" else f"roofline {device}"
+    begin, end = f"<!-- {tag}: generated by benchmarks/bench_roofline.py --markdown -->", f"<!-- {tag} end -->"
     doc = open(path, encoding="utf-8").read()
     i, j = doc.index(begin) + len(begin), doc.index(end)
     with open(path, "w", encoding="utf-8") as f:
@@ -262,20 +288,28 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--markdown", action="store_true", help="also write the tables into docs/performance.md")
+    ap.add_argument("--commit", help="the commit the section names (default: git's HEAD here)")
     args = ap.parse_args()
     os.environ["PHYSMORPH_KERNEL_PROFILER"] = "1"
     from physmorph.base.taichi_runtime import init_taichi
 
-    init_taichi("cpu", threads=args.threads)
-    limits = machine_limits()
+    init_taichi(args.device, threads=args.threads)
+    import taichi as ti
+    from taichi.lang import impl
+
+    if args.device == "cuda" and impl.current_cfg().arch != ti.cuda:  # Taichi falls back to the CPU silently
+        sys.exit("bench_roofline: --device cuda, but Taichi found no usable CUDA device")
+    limits = machine_limits(args.device)
     times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps)
-    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"], args.threads, limits["flops"])
+    lanes = solver.model.lanes.count
+    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"], lanes, limits["flops"])
     p2g_stress = p2g_stress_seconds(solver)
     print_report(args, limits, wall, rows, p2g_stress)
     if args.markdown:
         doc = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "performance.md")
-        write_section(doc, markdown_section(args, limits, wall, rows, p2g_stress))
+        write_section(doc, markdown_section(args, limits, wall, rows, p2g_stress), args.device)
 
 
 if __name__ == "__main__":
