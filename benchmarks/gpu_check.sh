@@ -4,11 +4,11 @@
 #   1. the bundle unpacked into /tmp/gpu_bundle: the packages (site/) and the raw meshes;
 #   2. the GPU tests (tests/test_gpu.py: the solver, the renderer and the plasticity's device
 #      work on CUDA against the CPU), which also prove the CUDA arch was really taken;
-#   3. the paper profile's frame on CUDA (benchmarks/bench_morph.py --profile paper --device cuda;
-#      PROFILE, DEVICE and FRAMES change it: DEVICE=cpu PROFILE=test checks a bundle on a CPU);
-#   4. on CUDA, the physics' roofline at the paper's particle count (benchmarks/bench_roofline.py
+#   3. on CUDA, the physics' roofline at the paper's particle count (benchmarks/bench_roofline.py
 #      --device cuda --markdown; COMMIT names the commit in its section): docs/performance.md with
-#      the section filled in comes back in $OUT.
+#      the section filled in comes back in $OUT;
+#   4. the paper profile's frame on CUDA (benchmarks/bench_morph.py --profile paper --device cuda;
+#      PROFILE, DEVICE and FRAMES change it: DEVICE=cpu PROFILE=test checks a bundle on a CPU).
 # Each step's output goes to the terminal and to $OUT (the device tool's folder; else
 # /tmp/gpu_check); the exit status is the first failed step's.
 set -uo pipefail
@@ -46,11 +46,11 @@ step() {  # step NAME COMMAND...: run it, its output also into $OUT/NAME.txt; ke
 }
 step device nvidia-smi
 step gpu_tests python3 -m pytest -p no:cacheprovider -m gpu -n 0 -rs tests/test_gpu.py
-step "frame_${PROFILE}_$DEVICE" python3 benchmarks/bench_morph.py --profile "$PROFILE" --frames "$FRAMES" --device "$DEVICE" \
-    --mesh-dir "$PHYSMORPH_MESH_DIR" --workdir /tmp/physmorph_bench_morph
 if [ "$DEVICE" = cuda ]; then
     step roofline_cuda python3 benchmarks/bench_roofline.py --device cuda --n 471282 --res 64 --reps 2 --markdown \
         ${COMMIT:+--commit "$COMMIT"}
     cp docs/performance.md "$OUT/performance.md"
 fi
+step "frame_${PROFILE}_$DEVICE" python3 benchmarks/bench_morph.py --profile "$PROFILE" --frames "$FRAMES" --device "$DEVICE" \
+    --mesh-dir "$PHYSMORPH_MESH_DIR" --workdir /tmp/physmorph_bench_morph
 exit $status
