@@ -3,7 +3,9 @@
 Prints this machine's measured limits, written here in Taichi on the same threads the solver uses:
 the memory bandwidth of a STREAM-like triad (a[i] = b[i] + s c[i] over arrays far larger than the
 caches: 12 bytes per element moved) and the floating-point rate of a register-bound kernel (eight
-independent chains of fused multiply-adds per element). Then one MPM frame's rollout, forward and
+independent chains of fused multiply-adds per element: what Taichi's code reaches, one particle per
+lane, not vectorised across particles on a CPU); beside them the machine's vector float32 peak as a
+tuned library reaches it (a matrix product in torch). Then one MPM frame's rollout, forward and
 backward, with Taichi's kernel profiler on: per kernel its launches, its time, its share of the
 physics, and, for the kernels whose traffic is modelled below, the bytes it moves per launch, the
 rate that makes, and that rate as a share of the triad's (the roofline's memory roof). Last, P2G's
@@ -82,17 +84,19 @@ def machine_limits(device: str = "cpu", reps: int = 5) -> dict:
     m = FLOP_ELEMENTS[device]
     out = ti.field(ti.f32, shape=m)
 
+    # the multiplier and the addend are arguments: as constants, fast math lets the compiler fold
+    # two steps a (a v + b) + b into one (a^2 v + c), and a GPU then "passes" its peak 2.4 times
     @ti.kernel
-    def fma_chains(x: ti.f32):
+    def fma_chains(x: ti.f32, mul: ti.f32, add: ti.f32):
         for i in range(m):
             v = ti.Vector([x + i * 1e-7 + k for k in ti.static(range(8))])
             for _ in range(FLOP_ITERS):
-                v = v * 0.999999 + 1e-6
+                v = v * mul + add
             out[i] = v.sum()
 
     fill()
     triad(1.5)
-    fma_chains(0.5)
+    fma_chains(0.5, 0.999999, 1e-6)
     ti.sync()
     best_t, best_f = np.inf, np.inf
     for _ in range(reps):
@@ -101,10 +105,30 @@ def machine_limits(device: str = "cpu", reps: int = 5) -> dict:
         ti.sync()
         best_t = min(best_t, time.perf_counter() - t0)
         t0 = time.perf_counter()
-        fma_chains(0.5)
+        fma_chains(0.5, 0.999999, 1e-6)
         ti.sync()
         best_f = min(best_f, time.perf_counter() - t0)
-    return {"bandwidth": 12.0 * n / best_t, "flops": 2.0 * 8 * FLOP_ITERS * m / best_f}
+    return {"bandwidth": 12.0 * n / best_t, "flops": 2.0 * 8 * FLOP_ITERS * m / best_f, "gemm": gemm_rate(device, reps)}
+
+
+def gemm_rate(device: str, reps: int, size: int = 4096) -> float:
+    """The machine's vector float32 peak as a tuned library reaches it: a size x size matrix product
+    in torch (FLOP/s, best of ``reps``; on a GPU without TF32's tensor cores). Taichi's own kernels
+    do not vectorise across particles, so the FMA chains above are their roof and this the machine's."""
+    import torch
+
+    torch.backends.cuda.matmul.allow_tf32 = False
+    a, b = (torch.randn(size, size, device=device) for _ in range(2))
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    a @ b
+    sync()
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        a @ b
+        sync()
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * size ** 3 / best
 
 
 def kernel_times() -> dict:
@@ -117,7 +141,7 @@ def kernel_times() -> dict:
     return {name: (int(r.counter), float(r.total_time) / 1e3) for name, r in profiler._statistical_results.items()}
 
 
-def physics_profile(n: int, res: int, reps: int) -> tuple:
+def physics_profile(n: int, res: int, reps: int, device: str = "cpu") -> tuple:
     """Per-kernel (launches, seconds) of ``reps`` forward+backward rollouts, their wall time, the
     grid's nodes and the solver."""
     import taichi as ti
@@ -129,7 +153,7 @@ def physics_profile(n: int, res: int, reps: int) -> tuple:
     from physmorph.mpm.state import ParticleState
     from physmorph.settings.mpm import MPMConfig
 
-    cfg = MPMConfig(grid_res=res)
+    cfg = MPMConfig(grid_res=res, device=device)
     x = lattice_ball(n)
     spacing = BALL_RADIUS * (4.0 * np.pi / (3.0 * n)) ** (1.0 / 3.0)
     st = ParticleState.at_rest(x, np.full(n, cfg.density * spacing ** 3), np.full(n, spacing ** 3))
@@ -178,9 +202,10 @@ def p2g_stress_seconds(solver, reps: int = 5) -> float:
     return best / T
 
 
-def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, lanes: int, peak: float) -> list:
+def kernel_rows(times: dict, n: int, nodes: int, limits: dict, lanes: int) -> list:
     """(kernel, launches, seconds, share, bytes a launch or None, GB/s or None, share of the triad
-    or None, FLOP/s or None, share of the FMA peak or None) for every kernel above 0.2 % of the
+    or None, FLOP/s or None, share of the FMA chains' rate or None, share of the GEMM peak or None)
+    for every kernel above 0.2 % of the
     total, the slowest first. ``lanes``: the grid's scatter lanes (the CPU's threads; 1 on a GPU)."""
     total = sum(t for _, t in times.values())
     by_kernel: dict = {}
@@ -196,10 +221,11 @@ def kernel_rows(times: dict, n: int, nodes: int, bandwidth: float, lanes: int, p
         node_bytes = NODE_BYTES.get(key, 0) + (32 * lanes if key in NODE_BYTES else 0)
         per = PARTICLE_BYTES.get(key, 0) * n + node_bytes * nodes if key else None
         rate = per * count / seconds if per else None
+        bandwidth, peak, gemm = limits["bandwidth"], limits["flops"], limits["gemm"]
         ops = PARTICLE_FLOPS.get(key, 0) * n + (NODE_FLOPS.get(key, 0) + 4 * (lanes - 1)) * nodes * (key in NODE_FLOPS)
         flops = ops * count / seconds if key else None
         rows.append((short, count, seconds, seconds / total, per, rate, rate / bandwidth if rate else None,
-                     flops, flops / peak if flops else None))
+                     flops, flops / peak if flops else None, flops / gemm if flops else None))
     return rows
 
 
@@ -227,15 +253,15 @@ def command(args) -> str:
 def print_report(args, limits: dict, wall: float, rows: list, p2g_stress: float) -> None:
     total = sum(r[2] for r in rows)
     print(f"machine ({where(args)}): triad {limits['bandwidth'] / 1e9:.1f} GB/s, "
-          f"fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s")
+          f"fused multiply-add chains {limits['flops'] / 1e9:.1f} GFLOP/s, float32 GEMM {limits['gemm'] / 1e9:.1f} GFLOP/s")
     print(f"physics: N={args.n}, grid {args.res}^3, {args.reps} forward+backward rollouts in {wall:.2f} s wall "
           f"({total:.2f} s in the kernels listed)")
     hdr = (f"{'kernel':<36} {'launches':>8} {'s':>7} {'share':>6} {'B/launch':>10} {'GB/s':>6} {'of triad':>8} "
-           f"{'GFLOP/s':>7} {'of FMA':>6}")
+           f"{'GFLOP/s':>7} {'of FMA':>6} {'of GEMM':>7}")
     print(hdr + "\n" + "-" * len(hdr))
-    for short, count, seconds, share, per, rate, of_triad, flops, of_peak in rows:
+    for short, count, seconds, share, per, rate, of_triad, flops, of_peak, of_gemm in rows:
         print(f"{short[:36]:<36} {count:>8} {seconds:>7.3f} {100 * share:>5.1f}% "
-              + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * of_triad:>7.0f}% {flops / 1e9:>7.1f} {100 * of_peak:>5.1f}%"
+              + (f"{per:>10,} {rate / 1e9:>6.1f} {100 * of_triad:>7.0f}% {flops / 1e9:>7.1f} {100 * of_peak:>5.1f}% {100 * of_gemm:>6.1f}%"
                  if per else ""))
     p2g = next((r for r in rows if r[0] == "p2g"), None)
     if p2g:
@@ -247,15 +273,16 @@ def markdown_section(args, limits: dict, wall: float, rows: list, p2g_stress: fl
     """The generated section of docs/performance.md (between its roofline markers)."""
     total = sum(r[2] for r in rows)
     lines = [f"Generated by `{command(args)}` at commit {args.commit or commit()}: the machine's triad "
-             f"{limits['bandwidth'] / 1e9:.1f} GB/s and fused multiply-add {limits['flops'] / 1e9:.1f} GFLOP/s "
+             f"{limits['bandwidth'] / 1e9:.1f} GB/s, fused multiply-add chains {limits['flops'] / 1e9:.1f} GFLOP/s "
+             f"and float32 GEMM {limits['gemm'] / 1e9:.1f} GFLOP/s "
              f"({where(args)}); {args.reps} forward+backward rollouts of {args.n:,} particles on "
              f"{args.res}³ in {wall:.2f} s ({total:.2f} s in the kernels below).", "",
-             "| kernel | launches | s | share | bytes a launch | GB/s | of the triad | GFLOP/s | of the FMA peak |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for short, count, seconds, share, per, rate, of_triad, flops, of_peak in rows:
+             "| kernel | launches | s | share | bytes a launch | GB/s | of the triad | GFLOP/s | of the FMA chains | of the GEMM peak |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for short, count, seconds, share, per, rate, of_triad, flops, of_peak, of_gemm in rows:
         lines.append(f"| `{short}` | {count} | {seconds:.3f} | {100 * share:.1f} % | "
-                     + (f"{per:,} | {rate / 1e9:.1f} | {100 * of_triad:.0f} % | {flops / 1e9:.1f} | {100 * of_peak:.1f} % |"
-                        if per else " | | | | |"))
+                     + (f"{per:,} | {rate / 1e9:.1f} | {100 * of_triad:.0f} % | {flops / 1e9:.1f} | {100 * of_peak:.1f} % | {100 * of_gemm:.1f} % |"
+                        if per else " | | | | | |"))
     p2g = next((r for r in rows if r[0] == "p2g"), None)
     if p2g:
         lines += ["", f"P2G: {1e3 * p2g[2] / p2g[1]:.2f} ms a launch, of which its stress {1e3 * p2g_stress:.2f} ms "
@@ -302,9 +329,9 @@ def main() -> None:
     if args.device == "cuda" and impl.current_cfg().arch != ti.cuda:  # Taichi falls back to the CPU silently
         sys.exit("bench_roofline: --device cuda, but Taichi found no usable CUDA device")
     limits = machine_limits(args.device)
-    times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps)
+    times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps, args.device)
     lanes = solver.model.lanes.count
-    rows = kernel_rows(times, args.n, nodes, limits["bandwidth"], lanes, limits["flops"])
+    rows = kernel_rows(times, args.n, nodes, limits, lanes)
     p2g_stress = p2g_stress_seconds(solver)
     print_report(args, limits, wall, rows, p2g_stress)
     if args.markdown:
