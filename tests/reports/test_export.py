@@ -373,3 +373,50 @@ def test_a_run_without_every_frames_motion_ends_the_video_job_in_one_line(tmp_pa
         # lock as this one starts or exits) are not the job's
         last = [line for line in out.stderr.strip().splitlines() if not TAICHI_LINE.match(line)][-1]
         assert log.read_text().strip().splitlines()[-1] == last and says in last and str(culprit) in last
+
+
+def test_video_draws_a_held_frames_body_once(tiny_run, tmp_path, monkeypatch):
+    """A frame whose positions and F equal the frame before's (held, or undone by the settle gate)
+    reuses that frame's body surface: one surface per distinct frame, the same Gaussians as drawn anew."""
+    import physmorph.reports.export.surface as surface
+    from physmorph.records.runfile import frame_motion
+    from physmorph.reports.export.runs import rest_particles
+    from physmorph.reports.export.video import video_frames
+    from physmorph.reports.export.video_body import BodyDrawing
+    from physmorph.settings.export import ExportConfig
+
+    parts = tiny_run / "p_iso.h5"
+    with h5py.File(parts, "r") as f:
+        x0 = f["x"][()]
+    n = len(x0)
+    maps = [frame_map(0), frame_map(1), frame_map(1), frame_map(1), frame_map(2)]  # frames 2 and 3 held
+    key = RunKey(json.dumps({"frames": 4}), (("particles", stored_identity(parts)), ("target", "bb" * 32)))
+    run = tmp_path / "held.h5"
+    with RunWriter(run, key) as w:
+        w.set_meta({"experiment": "iso_held", "sigma0": SIGMA0, "n_particles": n})
+        for k, A in enumerate(maps):
+            state = {"x": x0 @ A.T, "F": np.tile(A, (n, 1, 1)), "Fp": np.tile(np.eye(3), (n, 1, 1))}
+            w.commit(k, {"alpha_mse": 1.0 / (k + 1)}, np.zeros(2), state if k in (0, 4) else None, [],
+                     {"x": state["x"]}, last=k == 4, motion=state)
+        w.finish("complete", {}, {"frames": 4})
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=6.0)
+    mesh_h5 = tmp_path / "target_mesh.h5"
+    with h5py.File(mesh_h5, "w") as f:
+        f["vertices"], f["faces"] = sphere.vertices, sphere.faces
+    calls = []
+    real = surface.particle_surface
+    monkeypatch.setattr(surface, "particle_surface", lambda *a, **kw: calls.append(1) or real(*a, **kw))
+    drawn = []
+    monkeypatch.setattr("physmorph.render.api.shade",
+                        lambda x, F, s, *a, **kw: drawn.append((x, F, s)) or np.zeros((36, 64, 3)))
+    settings = ExportConfig(width=64, height=36)
+    cfg = {"elevation_deg": 10.0, "fov_y_deg": 40.0, "distance": 60.0}
+    frames = list(video_frames(run, mesh_h5, cfg, settings, lambda m: None, parts))
+    assert [k for k, _ in frames] == [0, 1, 2, 3, 4]
+    assert len(calls) == 3  # frames 0, 1 and 4; 2 and 3 as frame 1
+    bodies = drawn[0::2]  # each frame draws the body, then the target
+    with h5py.File(run, "r") as f:
+        fresh = BodyDrawing(settings, SIGMA0, rest_particles(run, parts)).gaussians(*frame_motion(f, 3))
+    for got, want in zip(bodies[3], fresh):
+        np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(bodies[4][0], bodies[3][0])

@@ -75,10 +75,17 @@ def video_frames(run_h5: Path, target_mesh_h5: Path, target_cfg: dict, settings:
         iou = f["metrics/volume_iou"][()] if "volume_iou" in f["metrics"] else np.full(len(alpha), np.nan)
         ceiling = float(f.attrs.get("ceiling_alpha_mse", np.nan))
         name = str(f.attrs.get("experiment", Path(run_h5).stem))
+        last = None  # the frame before: its positions, F and the body's Gaussians
         for k in range(frames + 1):
             cam = orbit_camera(settings.orbit_deg * k / max(frames, 1), target_cfg["elevation_deg"],
                                target_cfg["fov_y_deg"], target_cfg["distance"], settings.width, settings.height)
-            bx, bF, bs = drawing.gaussians(*frame_motion(f, k))
+            x, F = frame_motion(f, k)
+            if last is not None and np.array_equal(x, last[0]) and np.array_equal(F, last[1]):
+                body_gaussians = last[2]  # a held or undone frame: the body still, its surface the same
+            else:
+                body_gaussians = drawing.gaussians(x, F)
+            last = (x, F, body_gaussians)
+            bx, bF, bs = body_gaussians
             body = shade(bx, bF, bs, cam, 0, RenderConfig())
             target = shade(tx, tF, ts, cam, 0, RenderConfig(), color=(0.55, 0.62, 0.72))
             img = (255 * np.clip(np.concatenate([body, target], axis=1), 0, 1)).astype(np.uint8)
