@@ -6,7 +6,9 @@ append its reachable-gap numbers to docs/study/runs.csv (the study's raw record)
     python benchmarks/study_convergence.py iso_bunny_full iso_cow_full --frames 20 --set morph.gamma=0.3
 
 Needs the prepared particles and targets of the profile under results/{profile}/ (e.g.
-`snakemake --cores 2 results/default/particles/iso_32x2x1.h5 results/default/targets/bunny_32x2x1.h5`).
+`snakemake --cores 2 results/default/particles/iso_32x2x1.h5 results/default/targets/bunny_32x2x1.h5`),
+or ``--prepare MESH_DIR``: what is missing made there by the workflow's stages from the raw meshes in
+MESH_DIR (a machine without Snakemake, such as a lent GPU machine).
 Each row: alpha MSE at frame 0 / best / final, the ceiling (the target's own particles at rest),
 the share of the reachable gap closed at the best and last frame, silhouette IoU, Chamfer, wall,
 and the body in 3D at the last saved frame as the export measures it (stray share, mass outside
@@ -38,6 +40,7 @@ from physmorph.records.runfile import partial_dir
 from physmorph.reports.export.measures import frame_measures
 from physmorph.reports.export.runs import frame_state, saved_frames
 from physmorph.reports.export.surface import particle_surface
+from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
 
 REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "study" / "runs.csv"
@@ -70,6 +73,27 @@ def body_columns(run_h5: Path, particles_h5: Path, mesh_h5: Path, export) -> dic
     return {"stray_percent": 100.0 * m["stray_share"], "outside_body_percent": 100.0 * m["outside_largest_body"],
             "components": m["components"], "genus": m["genus"], "target_genus": m["target_genus"],
             "surface_p95_dx": m["surface_p95_dx"], "rough_percent": m["roughness_percent"]}
+
+
+def prepare_inputs(cfg, name: str, prepared: Path, mesh_dir: Path) -> None:
+    """The experiment's prepared meshes, source particles and target under ``prepared`` (the
+    workflow's layout: meshes/, particles/, targets/), made by the workflow's stages where missing."""
+    exp, res = cfg.experiment(name), cfg.sampling.tag
+    for role, shape in (("source", exp.source), ("target", exp.target)):
+        spec = cfg.shape(shape)
+        mesh = prepared / "meshes" / f"{shape}.h5"
+        mesh.parent.mkdir(parents=True, exist_ok=True)
+        if not mesh.exists():
+            raw = (Path(spec.path) if spec.path else mesh_dir / spec.file) if spec.kind == "file" else None
+            prepare_mesh_stage(shape, spec, raw, mesh)
+        out = prepared / ("particles" if role == "source" else "targets") / f"{shape}_{res}.h5"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.exists():
+            continue
+        if role == "source":
+            sample_particles_stage(mesh, out, out.with_suffix(".png"), cfg.sampling, 0)
+        else:
+            rasterize_target_stage(mesh, out, out.with_suffix(".png"), cfg.sampling, cfg.target, 0)
 
 
 def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float, body: dict | None = None) -> dict:
@@ -150,6 +174,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--no-release", action="store_true", help="no release frames after the run (the experiment's release_frames set to 0)")
     ap.add_argument("--resume", action="store_true",
                     help="continue a killed call's run from its last committed frame instead of starting again")
+    ap.add_argument("--prepare", metavar="MESH_DIR", default=None,
+                    help="make the missing prepared inputs under --results from the raw meshes in MESH_DIR")
     ap.add_argument("--record", metavar="RUNS_DIR", default=None,
                     help="record the finished runs RUNS_DIR/{experiment}.h5 a workflow made, without running them")
     args = ap.parse_args(argv)
@@ -175,6 +201,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows = []
     for name in args.experiments:
         exp = cfg.experiment(name)
+        if args.prepare:
+            prepare_inputs(cfg, name, prepared, Path(args.prepare))
         mc = morph_config(cfg, name)
         mc = dataclasses.replace(mc, progress=False, **({"release_frames": 0} if args.no_release else {}))
         parts = Path(args.results) / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
