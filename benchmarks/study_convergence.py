@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import shutil
+import subprocess
 import csv
 import json
 import sys
@@ -175,7 +176,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--resume", action="store_true",
                     help="continue a killed call's run from its last committed frame instead of starting again")
     ap.add_argument("--prepare", metavar="MESH_DIR", default=None,
-                    help="make the missing prepared inputs under --results from the raw meshes in MESH_DIR")
+                    help="make the missing prepared inputs under --results from the raw meshes in MESH_DIR (in a "
+                         "process of its own: the stages start Taichi on the CPU, a run on CUDA could not follow)")
+    ap.add_argument("--prepare-only", action="store_true", help="with --prepare: make the inputs, run nothing")
     ap.add_argument("--record", metavar="RUNS_DIR", default=None,
                     help="record the finished runs RUNS_DIR/{experiment}.h5 a workflow made, without running them")
     args = ap.parse_args(argv)
@@ -198,11 +201,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if args.record:
         return record_runs(Path(args.record), args.experiments, args.tag, recorded,
                            None if args.no_csv else csv_path, body)
+    if args.prepare and args.prepare_only:
+        for name in args.experiments:
+            prepare_inputs(cfg, name, prepared, Path(args.prepare))
+        return []
+    if args.prepare:
+        subprocess.run([sys.executable, __file__, *(argv if argv is not None else sys.argv[1:]), "--prepare-only"],
+                       check=True)
     rows = []
     for name in args.experiments:
         exp = cfg.experiment(name)
-        if args.prepare:
-            prepare_inputs(cfg, name, prepared, Path(args.prepare))
         mc = morph_config(cfg, name)
         mc = dataclasses.replace(mc, progress=False, **({"release_frames": 0} if args.no_release else {}))
         parts = Path(args.results) / cfg.profile / "particles" / f"{exp.source}_{res}.h5"
