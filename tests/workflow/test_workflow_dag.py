@@ -116,10 +116,10 @@ def test_slurm_profile_dry_run(tmp_path):
     wd = _workdir(tmp_path)
     out = _run(wd, "--profile", str(REPO / "workflow/profiles/slurm"), "-n", "tables", "--configfile", "config/paper.yaml")
     assert "results/paper/runs/iso_bunny_full.h5" in planned_outputs(out)
-    assert "_64x5x1.h5" in out.stdout
+    assert "_64x5x2.h5" in out.stdout
     planned = planned_outputs(out)
-    assert "results/paper/particles/isob_64x5x1.h5" in planned  # a source only: no target rasterised for it
-    assert not any("targets/isob" in p for p in planned) and "results/paper/targets/bunny_64x5x1.h5" in planned
+    assert "results/paper/particles/isob_64x5x2.h5" in planned  # a source only: no target rasterised for it
+    assert not any("targets/isob" in p for p in planned) and "results/paper/targets/bunny_64x5x2.h5" in planned
     morph = out.stdout.split("rule morph:", 1)[1].split("rule ", 1)[0]
     assert re.search(r"mem_mb=\d{4,}", morph) and re.search(r"runtime=\d{3,}", morph) and "gpu=1" in morph, morph
 
