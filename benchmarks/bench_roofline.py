@@ -17,11 +17,12 @@ sized for a GPU's caches and rates, and the grid's model has one lane (a GPU's s
 
 Traffic model (float32, per particle per substep, each array read or written once; the grid's
 scattered traffic counted at one 16-byte node (mass + momentum) per stencil point, 27 points):
-  p2g          reads x v C F Fp^-1 m V0 (3+3+9+9+9+1+1 floats) and the control dFc (9),
-               adds to 27 nodes (of its thread's lane)             = 44*4 + 27*16 = 608 B
+  p2g          reads x v C F Fp^-1 m V0 (3+3+9+9+9+1+1 floats), the control dFc (9) and the last
+               substep's rotation R (9), writes R, its quaternion and the polar gap (9+4+1), adds
+               to 27 nodes (of its thread's lane)                  = 67*4 + 27*16 = 700 B
   grid_update  reads and zeroes each thread's lane of a node (16 B each, twice a lane), writes the
                node's m, mv, their copy for the backward and v   = 32 * threads + 44 B per node
-  g2p          reads x v C F (24 floats) and 27 nodes (12 B each), writes x v C F = 24*4*2 + 27*12 = 516 B
+  g2p          reads x F (12 floats) and 27 nodes (12 B each), writes x v C F (24) = 36*4 + 27*12 = 468 B
 Operation model (per particle, or per node for the grid, counted from the kernels' code: +, -, x,
 / one each, and sqrt, pow, floor, sin, cos, acos one each though they take many cycles; a fused
 multiply-add is two, as the peak probe counts them):
@@ -51,7 +52,7 @@ import time
 import numpy as np
 
 # bytes per particle per launch (per node for grid kernels), as the docstring derives them
-PARTICLE_BYTES = {"p2g": 608, "g2p": 516}
+PARTICLE_BYTES = {"p2g": 700, "g2p": 468}
 NODE_BYTES = {"grid_update": 44}  # and 32 B per thread (kernel_rows adds it)
 # floating-point operations per particle per launch (per node for grid kernels), as the docstring counts them
 PARTICLE_FLOPS = {"p2g": 1700, "g2p": 745}
