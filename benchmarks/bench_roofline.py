@@ -65,7 +65,7 @@ FLOP_ELEMENTS = {"cpu": 1 << 18, "cuda": 1 << 24}
 FLOP_ITERS = 256  # fused multiply-adds per chain per element (8 chains)
 
 
-def machine_limits(device: str = "cpu", reps: int = 5) -> dict:
+def machine_limits(device: str = "cpu", reps: int = 5, threads: int = 2) -> dict:
     """Measured triad bandwidth (bytes/s) and fused-multiply-add rate (FLOP/s), best of ``reps``."""
     import taichi as ti
 
@@ -109,15 +109,18 @@ def machine_limits(device: str = "cpu", reps: int = 5) -> dict:
         fma_chains(0.5, 0.999999, 1e-6)
         ti.sync()
         best_f = min(best_f, time.perf_counter() - t0)
-    return {"bandwidth": 12.0 * n / best_t, "flops": 2.0 * 8 * FLOP_ITERS * m / best_f, "gemm": gemm_rate(device, reps)}
+    return {"bandwidth": 12.0 * n / best_t, "flops": 2.0 * 8 * FLOP_ITERS * m / best_f, "gemm": gemm_rate(device, reps, threads)}
 
 
-def gemm_rate(device: str, reps: int, size: int = 4096) -> float:
+def gemm_rate(device: str, reps: int, threads: int, size: int = 4096) -> float:
     """The machine's vector float32 peak as a tuned library reaches it: a size x size matrix product
     in torch (FLOP/s, best of ``reps``; on a GPU without TF32's tensor cores). Taichi's own kernels
-    do not vectorise across particles, so the FMA chains above are their roof and this the machine's."""
+    do not vectorise across particles, so the FMA chains above are their roof and this the machine's.
+    On the CPU on ``threads`` threads, as the solver."""
     import torch
 
+    if device == "cpu":
+        torch.set_num_threads(threads)
     torch.backends.cuda.matmul.allow_tf32 = False
     a, b = (torch.randn(size, size, device=device) for _ in range(2))
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
@@ -329,7 +332,7 @@ def main() -> None:
 
     if args.device == "cuda" and impl.current_cfg().arch != ti.cuda:  # Taichi falls back to the CPU silently
         sys.exit("bench_roofline: --device cuda, but Taichi found no usable CUDA device")
-    limits = machine_limits(args.device)
+    limits = machine_limits(args.device, threads=args.threads)
     times, wall, nodes, solver = physics_profile(args.n, args.res, args.reps, args.device)
     lanes = solver.model.lanes.count
     rows = kernel_rows(times, args.n, nodes, limits, lanes)
