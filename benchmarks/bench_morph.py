@@ -38,7 +38,7 @@ from physmorph.settings.workflow import load_settings
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.records.runfile import read_metrics
 from physmorph.records.runfile import partial_dir
-from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
+from physmorph.stages import prepare_experiment_inputs
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -47,20 +47,10 @@ STAGES = ("t_physics", "t_render", "t_plasticity", "t_mask", "t_frame")
 
 
 def prepare(cfg, experiment: str, wd: Path, mesh_dir: str | Path) -> None:
-    """The source particles and the target of ``experiment`` in ``wd`` (kept where already there)."""
-    s = cfg.sampling
-    exp = cfg.experiment(experiment)
-    wd.mkdir(parents=True, exist_ok=True)
-    for role, shape in (("source", exp.source), ("target", exp.target)):
-        spec = cfg.shape(shape)
-        raw = (Path(spec.path) if spec.path else Path(mesh_dir) / spec.file) if spec.kind == "file" else None
-        mesh = wd / f"{shape}.h5"
-        if not mesh.exists():
-            prepare_mesh_stage(shape, spec, raw, mesh)
-        if role == "source" and not (wd / f"p_{shape}.h5").exists():
-            sample_particles_stage(mesh, wd / f"p_{shape}.h5", wd / f"p_{shape}.png", s, 0)
-        if role == "target" and not (wd / f"t_{shape}.h5").exists():
-            rasterize_target_stage(mesh, wd / f"t_{shape}.h5", wd / f"t_{shape}.png", s, cfg.target, 0)
+    """The source particles and the target of ``experiment`` in ``wd`` (kept where already there):
+    {shape}.h5, p_{shape}.h5 and t_{shape}.h5."""
+    prefix = {"mesh": "", "particles": "p_", "target": "t_"}
+    prepare_experiment_inputs(cfg, experiment, mesh_dir, lambda kind, shape: Path(wd) / f"{prefix[kind]}{shape}.h5")
 
 
 def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path) -> dict:

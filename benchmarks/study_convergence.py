@@ -41,7 +41,7 @@ from physmorph.records.runfile import partial_dir
 from physmorph.reports.export.measures import frame_measures
 from physmorph.reports.export.runs import frame_state, saved_frames
 from physmorph.reports.export.surface import particle_surface
-from physmorph.stages import prepare_mesh_stage, rasterize_target_stage, sample_particles_stage
+from physmorph.stages import prepare_experiment_inputs
 
 REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "study" / "runs.csv"
@@ -79,22 +79,11 @@ def body_columns(run_h5: Path, particles_h5: Path, mesh_h5: Path, export) -> dic
 def prepare_inputs(cfg, name: str, prepared: Path, mesh_dir: Path) -> None:
     """The experiment's prepared meshes, source particles and target under ``prepared`` (the
     workflow's layout: meshes/, particles/, targets/), made by the workflow's stages where missing."""
-    exp, res = cfg.experiment(name), cfg.sampling.tag
-    for role, shape in (("source", exp.source), ("target", exp.target)):
-        spec = cfg.shape(shape)
-        mesh = prepared / "meshes" / f"{shape}.h5"
-        mesh.parent.mkdir(parents=True, exist_ok=True)
-        if not mesh.exists():
-            raw = (Path(spec.path) if spec.path else mesh_dir / spec.file) if spec.kind == "file" else None
-            prepare_mesh_stage(shape, spec, raw, mesh)
-        out = prepared / ("particles" if role == "source" else "targets") / f"{shape}_{res}.h5"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists():
-            continue
-        if role == "source":
-            sample_particles_stage(mesh, out, out.with_suffix(".png"), cfg.sampling, 0)
-        else:
-            rasterize_target_stage(mesh, out, out.with_suffix(".png"), cfg.sampling, cfg.target, 0)
+    res = cfg.sampling.tag
+    paths = {"mesh": lambda shape: prepared / "meshes" / f"{shape}.h5",
+             "particles": lambda shape: prepared / "particles" / f"{shape}_{res}.h5",
+             "target": lambda shape: prepared / "targets" / f"{shape}_{res}.h5"}
+    prepare_experiment_inputs(cfg, name, mesh_dir, lambda kind, shape: paths[kind](shape))
 
 
 def study_row(tag: str, name: str, recorded: dict, run_h5: Path, wall: float, body: dict | None = None) -> dict:

@@ -128,6 +128,32 @@ def rasterize_target_stage(mesh_h5: str, output: str, preview: str, sampling, ta
                                 render=rcfg)
 
 
+def prepare_experiment_inputs(settings, experiment: str, mesh_dir: str | Path, path_of) -> None:
+    """The prepared meshes, the source's particles and the target of ``experiment`` (settings: a
+    Settings), each made by its stage with the workflow's settings (domain, seeds, the ceiling's
+    render) where the file ``path_of(kind, shape)`` does not exist yet; kind is "mesh", "particles"
+    or "target", so a benchmark lays them out as it likes. Raw meshes: a shape's own path, else its
+    file in ``mesh_dir``."""
+    exp = settings.experiment(experiment)
+    render = replace(settings.render, device="cpu")
+    for kind, shape in (("particles", exp.source), ("target", exp.target)):
+        spec = settings.shape(shape)
+        mesh = Path(path_of("mesh", shape))
+        if not mesh.exists():
+            mesh.parent.mkdir(parents=True, exist_ok=True)
+            raw = (Path(spec.path) if spec.path else Path(mesh_dir) / spec.file) if spec.kind == "file" else None
+            prepare_mesh_stage(shape, spec, raw, mesh, domain=tuple(settings.domain))
+        out = Path(path_of(kind, shape))
+        if out.exists():
+            continue
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if kind == "particles":
+            sample_particles_stage(mesh, out, out.with_suffix(".png"), settings.sampling, settings.particle_seed(shape))
+        else:
+            rasterize_target_stage(mesh, out, out.with_suffix(".png"), settings.sampling, settings.target, settings.seed,
+                                   render=render)
+
+
 def morph_stage(settings, name: str, particles_h5: str, target_h5: str, output: str, threads: int | None = None,
                 log=None, experiment: dict | None = None, target_size: float | None = None) -> dict:
     """One morph run. ``settings``: its MorphConfig or that config's params JSON

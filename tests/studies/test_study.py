@@ -111,3 +111,34 @@ def test_study_run_applies_its_overrides_and_records_the_runs_numbers(test_profi
     for k, v in saved.items():
         assert v["volume_iou"] == pytest.approx(m["volume_iou"][k], abs=0.01)
         assert v["overfilled_mass"] == pytest.approx(m["overfilled_mass"][k], abs=0.01)
+
+
+def test_benchmarks_prepare_an_experiments_inputs_as_the_workflow_does(tmp_path):
+    """physmorph.stages.prepare_experiment_inputs (bench_morph.py's and study_convergence.py's inputs):
+    each file where the layout puts it, the source sampled with its shape's own seed (the workflow's
+    sample_particles rule), and nothing made again on a second call."""
+    from physmorph.meshes.particles import load_particles
+    from physmorph.stages import prepare_experiment_inputs, sample_particles_stage
+
+    cfg = load_settings(REPO / "config" / "config.yaml", REPO / "config" / "test.yaml", overrides={
+        "shapes": {"isob": {"kind": "isosphere", "size": 13.7, "seed": 1}},
+        "experiments": {"isob_iso": {"source": "isob", "target": "iso", "method": "full"}}})
+    paths = []
+
+    def path_of(kind, shape):
+        paths.append((kind, shape))
+        return tmp_path / kind / f"{shape}.h5"
+
+    prepare_experiment_inputs(cfg, "isob_iso", tmp_path / "no-raw-meshes", path_of)
+    made = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*.h5")}
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in made) == [
+        "mesh/iso.h5", "mesh/isob.h5", "particles/isob.h5", "target/iso.h5"]
+    assert (tmp_path / "particles" / "isob.png").exists() and (tmp_path / "target" / "iso.png").exists()
+    x = load_particles(tmp_path / "particles" / "isob.h5").x
+    for seed in (0, 1):
+        sample_particles_stage(tmp_path / "mesh" / "isob.h5", tmp_path / f"s{seed}.h5", tmp_path / f"s{seed}.png",
+                               cfg.sampling, seed)
+    assert np.array_equal(x, load_particles(tmp_path / "s1.h5").x)
+    assert not np.array_equal(x, load_particles(tmp_path / "s0.h5").x)
+    prepare_experiment_inputs(cfg, "isob_iso", tmp_path / "no-raw-meshes", path_of)
+    assert {p: p.stat().st_mtime_ns for p in made} == made
