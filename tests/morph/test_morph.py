@@ -1,9 +1,8 @@
 """The morph loop on the tiny test profile: it improves, full beats physics-only, every component
-runs, the restart, the release and the stray pull do what they say (runs under failure:
-test_morph_resume.py)."""
+runs, the restart and the stray pull do what they say (the release: test_morph_release.py; runs
+under failure: test_morph_resume.py)."""
 
 import dataclasses
-import json
 
 import h5py
 import numpy as np
@@ -11,22 +10,13 @@ import pytest
 
 import physmorph.morph.loop as morph
 from physmorph.settings.workflow import load_settings
-from physmorph.settings.morph import MorphConfig
 from physmorph.morph.loop import morph_config, run_morph
 from physmorph.records.runfile import read_metrics
-from physmorph.reports.metrics import rebound_percent, release_rebound_percent
 from physmorph.morph.quality import GAP_REL_TOL
 from physmorph.morph.steering import stray_pull_anchors
 from physmorph.stages import rasterize_target_stage, sample_particles_stage
 
-
-def _run(tiny, experiment, out_name, **changes):
-    """One tiny run; without the experiment's release frames unless a test asks for them."""
-    cfg, d = tiny
-    mc = dataclasses.replace(morph_config(cfg, experiment), progress=False, **{"release_frames": 0, **changes})
-    out = d / out_name
-    run_morph(d / "p_iso.h5", d / "t_bunny.h5", out, mc, name=out_name)
-    return out
+from tiny_morph import TINY_CLOSED_FINAL, run_tiny
 
 
 class _Killed(Exception):
@@ -37,7 +27,7 @@ class _Killed(Exception):
 def tiny_runs(tiny):
     """The tiny iso -> bunny physics-only and full runs, read back: method -> metrics.
     Slow: two whole tiny morphs of 12 frames each, physics-only and full."""
-    return {m: read_metrics(_run(tiny, f"iso_bunny_{m}", f"{m}.h5")) for m in ("physics_only", "full")}
+    return {m: read_metrics(run_tiny(tiny, f"iso_bunny_{m}", f"{m}.h5")) for m in ("physics_only", "full")}
 
 
 def test_the_same_morph_at_two_resolutions_closes_a_comparable_share(tiny, mesh_dir, tmp_path):
@@ -60,7 +50,7 @@ def test_the_same_morph_at_two_resolutions_closes_a_comparable_share(tiny, mesh_
     assert mc.mpm.dx == pytest.approx(4 / 3) and mc.mpm.step_size == pytest.approx(4 / 3 * mc.mpm.learning_rate)
     run_morph(tmp_path / "p_iso.h5", tmp_path / "t_bunny.h5", tmp_path / "run.h5", mc, name="coarse")
     coarse = read_metrics(tmp_path / "run.h5")
-    fine = read_metrics(_run(tiny, "iso_bunny_full", "fine_no_push.h5", plan_push_speed=0.0))
+    fine = read_metrics(run_tiny(tiny, "iso_bunny_full", "fine_no_push.h5", plan_push_speed=0.0))
     assert coarse["attrs"]["n_particles"] < 0.6 * fine["attrs"]["n_particles"]
     best = {k: np.nanmax(m["gap_closed"]) for k, m in (("coarse", coarse), ("fine", fine))}
     last = {k: m["gap_closed"][-1] for k, m in (("coarse", coarse), ("fine", fine))}
@@ -112,7 +102,7 @@ def test_run_records_metrics_and_provenance(tiny_runs):
 
 
 def test_position_injection_runs_and_records_its_outcome(tiny):
-    out = _run(tiny, "iso_bunny_position_inject", "position.h5", frames=4)
+    out = run_tiny(tiny, "iso_bunny_position_inject", "position.h5", frames=4)
     m = read_metrics(out)
     status = str(m["attrs"]["status"])
     assert status == "complete" or status.startswith("diverged: frame")
@@ -122,7 +112,7 @@ def test_position_injection_runs_and_records_its_outcome(tiny):
 def test_absolute_injection_gain_is_used_as_given(tiny):
     """morph.injection_calibration = absolute: the injected adjoint is gamma * dL/dF unscaled (the
     paper's eq. 3 as printed), recorded as the run's injection scale, and it acts on the morph."""
-    runs = {g: read_metrics(_run(tiny, "iso_bunny_f_inject", f"absolute_{g:g}.h5", frames=3,
+    runs = {g: read_metrics(run_tiny(tiny, "iso_bunny_f_inject", f"absolute_{g:g}.h5", frames=3,
                                  injection_calibration="absolute", gamma=g)) for g in (1e-3, 1e9)}
     for g, m in runs.items():
         np.testing.assert_allclose(m["injection_scale"][1:], g)
@@ -134,7 +124,7 @@ def test_the_injection_gain_measured_every_few_frames_is_kept_in_between(tiny):
     """morph.injection_calibration_every = 2: the gain is measured at the first frame with a render
     gradient and at the even frames, and each odd frame after the first keeps the frame before's;
     up to the first frame that keeps one the run is the every-frame run's."""
-    every = {n: read_metrics(_run(tiny, "iso_bunny_f_inject", f"every_{n}.h5", frames=5, injection_calibration_every=n))
+    every = {n: read_metrics(run_tiny(tiny, "iso_bunny_f_inject", f"every_{n}.h5", frames=5, injection_calibration_every=n))
              for n in (1, 2)}
     one, two = every[1]["injection_scale"], every[2]["injection_scale"]
     first = int(np.flatnonzero(np.isfinite(two))[0])  # the first frame with a render gradient (2 here)
@@ -164,12 +154,12 @@ def test_the_transport_blur_setting_reaches_the_plan(tiny, monkeypatch):
     base = morph_config(cfg, "iso_bunny_full")
     assert base.plasticity.transport_projection == "sampled"  # shipped
     pl = dataclasses.replace(base.plasticity, transport_blur=2.5, transport_projection="barycentric")
-    _run(tiny, "iso_bunny_full", "blur.h5", frames=base.plasticity.start_frame, plasticity=pl)
+    run_tiny(tiny, "iso_bunny_full", "blur.h5", frames=base.plasticity.start_frame, plasticity=pl)
     assert seen == [(2.5, "barycentric")]
 
 
 def test_camera_subset_for_the_loss_but_every_view_for_the_metric(tiny):
-    out = _run(tiny, "iso_bunny_full", "two_cameras.h5", frames=1, cameras=2)
+    out = run_tiny(tiny, "iso_bunny_full", "two_cameras.h5", frames=1, cameras=2)
     m = read_metrics(out)
     assert list(m["attrs"]["loss_views"]) == [0, 4]  # evenly spaced on the ring of 8
     assert m["alpha_mse_views"].shape == (2, 8)
@@ -201,7 +191,7 @@ def test_isochoric_smoothing_stops_the_packing(tiny, tiny_runs):
     cfg, _ = tiny
     base = morph_config(cfg, "iso_bunny_physics_only")
     assert base.mpm.smoothing_mode == "isochoric" and base.mpm.step_volume == "particle"
-    paper = read_metrics(_run(tiny, "iso_bunny_physics_only", "paper_smoothing.h5",
+    paper = read_metrics(run_tiny(tiny, "iso_bunny_physics_only", "paper_smoothing.h5",
                               mpm=dataclasses.replace(base.mpm, smoothing_mode="full", step_volume="full")))
     run = tiny_runs["physics_only"]
     assert np.nanmax(paper["overfilled_mass"]) > 0.1
@@ -231,7 +221,7 @@ def test_momentum_restart_starts_the_next_frame_at_rest_when_the_mass_loss_rose(
     runs = {}
     for mode in ("mass_loss", "off"):
         starts.clear()
-        m = read_metrics(_run(tiny, "iso_bunny_physics_only", f"restart_{mode}.h5", mpm=mpm, momentum_restart=mode))
+        m = read_metrics(run_tiny(tiny, "iso_bunny_physics_only", f"restart_{mode}.h5", mpm=mpm, momentum_restart=mode))
         runs[mode] = (m, np.array(starts))
     m, start = runs["mass_loss"]
     flagged = m["momentum_restart"][1:] == 1.0  # frames 1..K
@@ -254,7 +244,7 @@ def test_restart_against_two_frames_back(tiny):
     assert base.restart_reference == "previous"
     mpm = dataclasses.replace(base.mpm, learning_rate=3 * base.mpm.learning_rate)
     # without the settle phase, whose undone frames repeat the accepted frame's loss
-    m = read_metrics(_run(tiny, "iso_bunny_full", "restart_two_back.h5", mpm=mpm, frames=24,
+    m = read_metrics(run_tiny(tiny, "iso_bunny_full", "restart_two_back.h5", mpm=mpm, frames=24,
                           restart_reference="two_back", settle="off"))
     loss = m["physics_loss"]  # [K + 1]; frame 0's has no value
     flagged = m["momentum_restart"][1:] == 1.0
@@ -309,7 +299,7 @@ def test_control_decay_and_restart_control_keep_scale_the_carried_control(tiny, 
     for decay, keep in ((0.9, 1.0), (1.0, 0.5), (1.0, 1.0)):
         entry.clear()
         end.clear()
-        m = read_metrics(_run(tiny, "iso_bunny_physics_only", f"decay_{decay}.h5", mpm=mpm,
+        m = read_metrics(run_tiny(tiny, "iso_bunny_physics_only", f"decay_{decay}.h5", mpm=mpm,
                               control_decay=decay, restart_control_keep=keep))
         restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
         if keep < 1.0:
@@ -342,11 +332,11 @@ def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_fir
 
     monkeypatch.setattr(morph.MPMSolver, "optimize_control", spy)
     with pytest.raises(_Killed):
-        _run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm)
+        run_tiny(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm)
     before_kill = seen[:-1]  # the killed frame computes again after the resume
     resumed.append(True)
     seen.clear()
-    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm))
+    m = read_metrics(run_tiny(tiny, "iso_bunny_physics_only", "onset.h5", frames=10, mpm=mpm))
     restarted = m["momentum_restart"][1:] == 1.0  # frames 1..K
     assert restarted.any(), "no restart: the test needs a run whose mass loss rises"
     first = int(np.argmax(restarted)) + 1  # the frame whose restart fired first
@@ -354,7 +344,7 @@ def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_fir
     assert before_kill + seen == [0.0] * first + [1.0] * (len(restarted) - first)
 
     seen.clear()
-    m = read_metrics(_run(tiny, "iso_bunny_physics_only", "onset_no_restart.h5", frames=10, mpm=mpm,
+    m = read_metrics(run_tiny(tiny, "iso_bunny_physics_only", "onset_no_restart.h5", frames=10, mpm=mpm,
                           momentum_restart="off"))
     assert np.isnan(m["momentum_restart"]).all()
     loss = m["physics_loss"]
@@ -362,12 +352,6 @@ def test_overfill_onset_first_restart_switches_the_packing_term_on_after_the_fir
     assert rose.any(), "the mass loss never rose: the test needs a run where it does"
     first = int(np.argmax(rose)) + 2
     assert seen == [0.0] * first + [1.0] * (len(loss) - 1 - first)
-
-
-# Measured on the tiny profile (12 frames, ~1.2K particles): see docs/study/log.md.
-TINY_CLOSED_FINAL = 0.5
-# Measured on the tiny run (2026-11-22): 4.5 % with the control absorbed, 101 % without plasticity.
-RELEASE_REBOUND_ABSORB, RELEASE_REBOUND_GAP = 20.0, 50.0
 
 
 def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
@@ -395,89 +379,6 @@ def test_source_equal_to_target_has_nothing_to_close(tiny, mesh_dir):
     # the source is the target's own sampling: its filled cells are the target's
     assert m["volume_iou"][0] == pytest.approx(1.0) and np.all(m["volume_iou"] > 0.95)
     assert m["overfilled_mass"][0] == 0.0
-
-
-def _paper_loop(cfg: MorphConfig) -> dict:
-    """The changes that make a run use the paper's loop: its F smoothing, the authors' step (no
-    share of the particles' volume change removed), no momentum restart, and the loss without the
-    terms added since these runs were measured (no packing term, no blurred level)."""
-    return dict(mpm=dataclasses.replace(cfg.mpm, smoothing_mode="full", step_volume="full", overfill_weight=0.0,
-                                        mass_loss_blur=0.0), momentum_restart="off")
-
-
-def test_paper_eta_runs_without_oscillation_when_the_stress_is_continuous(tiny):
-    """The paper's eta = 0.2 on the tiny iso -> bunny run (plasticity from frame 4 of 12): with the
-    control re-based at each Fp update (plasticity.continuous_stress) the morph keeps closing its
-    gap with no rebound. With a stress step at each update, the paper's loop (its F smoothing, no
-    momentum restart) rings and ends worse than it started (64 % rebound, 20 % closed against
-    81 %, measured 2026-11-24); the default's restart damps that ringing (4 % rebound with the
-    control leaking 5 % a frame, 13 % with the present 2.5 %, measured 2026-11-28). The paper's
-    plasticity: each particle pulled toward its nearest target surface point. Slow: four whole tiny
-    full morphs of 12 frames each (continuous stress on and off, in the default and the paper's loop)."""
-    cfg, _ = tiny
-    base = morph_config(cfg, "iso_bunny_full")
-    out = {}
-    for cs in (True, False):
-        pl = dataclasses.replace(base.plasticity, eta=0.2, continuous_stress=cs, absorb_control=False,
-                                 correspondence="nearest")
-        out[cs] = read_metrics(_run(tiny, "iso_bunny_full", f"eta02_cs{int(cs)}.h5", plasticity=pl))
-        out["paper", cs] = read_metrics(_run(tiny, "iso_bunny_full", f"eta02_cs{int(cs)}_paper.h5", plasticity=pl,
-                                             **_paper_loop(base)))
-    for steady in (out[True], out["paper", True]):
-        assert steady["fp_det_min"][-1] < 0.99  # plasticity acted
-        assert rebound_percent(steady["alpha_mse"]) < 5.0
-        assert steady["gap_closed"][-1] >= TINY_CLOSED_FINAL
-        assert not json.loads(steady["attrs"].get("warnings", "[]"))
-    assert out["paper", False]["gap_closed"][-1] < out["paper", True]["gap_closed"][-1] - 0.3
-    ringing = rebound_percent(out["paper", False]["alpha_mse"])
-    damped = rebound_percent(out[False]["alpha_mse"])
-    print("rebound with a stress step at each update: paper's loop", ringing, "default loop", damped)
-    assert ringing > 30.0
-    assert damped < 15.0 and damped < ringing / 2
-
-
-def test_absorbed_control_keeps_the_morph_when_the_control_is_released(tiny):
-    """plasticity.absorb_control moves the achieved deformation into the rest state: released
-    (control off, morph.release_frames) the tiny iso -> bunny morph keeps most of its gain, while
-    without plasticity (f_inject) the elastic body springs back toward the source.
-    Slow: two whole tiny morphs of 12 frames each, each then released for 12 frames."""
-    cfg, _ = tiny
-    base = morph_config(cfg, "iso_bunny_full")
-    pl = dataclasses.replace(base.plasticity, absorb_control=True, absorb_target="control", absorb_start_frame=None,
-                             correspondence="nearest", eta=0.02)
-    # At the step size where absorb_control was measured (0.001, docs/study/log.md part 3). At the default
-    # since part 7 (0.002) the tiny run closes 81 % but loses 107 % of it released: not by
-    # springing back (f_inject does), but because the absorbed control is a driving stress that
-    # keeps stretching the body past the target (docs/study/log.md finding 42).
-    # Measured with the paper's loop (its F smoothing, no momentum restart; the tiny run closes 39 %
-    # of its gap at this step with the default's isochoric smoothing) and the paper's plasticity
-    # (the nearest-point map at the rate of docs/study/log.md part 3).
-    paper = _paper_loop(base)
-    paper["mpm"] = dataclasses.replace(paper["mpm"], learning_rate=0.001)
-    runs = {"absorb": read_metrics(_run(tiny, "iso_bunny_full", "absorb_release.h5", plasticity=pl, release_frames=12,
-                                        **paper)),
-            "none": read_metrics(_run(tiny, "iso_bunny_f_inject", "f_inject_release.h5", release_frames=12, **paper))}
-    rebound = {}
-    for key, m in runs.items():
-        release = json.loads(m["attrs"]["release_alpha_mse"])
-        # the run's last metric reuses the loss's render (float32, another summation order than
-        # the metric's own render, which the release curve's first value comes from)
-        assert len(release) == 13 and release[0] == pytest.approx(m["alpha_mse"][-1], rel=1e-5)
-        rebound[key] = release_rebound_percent(m["alpha_mse"], release)
-    print("release rebound", rebound, "closed", {k: m["gap_closed"][-1] for k, m in runs.items()})
-    assert runs["absorb"]["gap_closed"][-1] >= TINY_CLOSED_FINAL
-    assert rebound["absorb"] < RELEASE_REBOUND_ABSORB
-    assert rebound["none"] > rebound["absorb"] + RELEASE_REBOUND_GAP
-
-
-
-# The default (the shape absorbed at the last update) on the tiny profile, release rebound
-# (measured 2026-11-24): with the transport plasticity -30.5 % (it keeps closing), -15.7 % without
-# the absorption, and f_inject (no plasticity) springs back; with the nearest-point map 26.7 %,
-# 136 % without the absorption (measured 2026-11-23). The tiny run is still moving at its last
-# frame, so part of the body's momentum carries on. With the blurred level of the mass loss
-# (2026-11-27): -12.5 % with the absorption, 48 % without it, f_inject 122 %.
-RELEASE_REBOUND_SHAPE = 40.0
 
 
 def _strays(tiny, run_h5) -> list[int]:
@@ -516,9 +417,9 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     # without the volume term, so that nothing but the pull separates the physics and mass losses
     bare = dict(plan_push_speed=0.0, mpm=dataclasses.replace(morph_config(cfg, "iso_bunny_full").mpm, volume_weight=0.0),
                 frames=8)
-    on = read_metrics(_run(tiny, "iso_bunny_full", "stray_pull.h5", **bare))
+    on = read_metrics(run_tiny(tiny, "iso_bunny_full", "stray_pull.h5", **bare))
     with_pull = _strays(tiny, d / "stray_pull.h5")  # frames 0, 4, 8
-    off = read_metrics(_run(tiny, "iso_bunny_full", "no_stray_pull.h5", stray_pull=0.0, **bare))
+    off = read_metrics(run_tiny(tiny, "iso_bunny_full", "no_stray_pull.h5", stray_pull=0.0, **bare))
     without = _strays(tiny, d / "no_stray_pull.h5")  # frames 0, 4, 8
     print("strays at the stored frames", without, "without the pull,", with_pull, "with it")
     assert without[0] >= 20 and with_pull[1] < without[1] and with_pull[2] <= without[2] / 4
@@ -529,7 +430,7 @@ def test_stray_pull_brings_the_particles_outside_the_target_in(tiny, tiny_runs):
     assert (pull_term >= 0).all() and pull_term[0] > 0
     np.testing.assert_array_equal(off["mass_loss"][1:], off["physics_loss"][1:])
     # the full method's alone: a physics-only run is the same without it (up to float32 atomics)
-    alone = read_metrics(_run(tiny, "iso_bunny_physics_only", "no_stray_pull_physics.h5", stray_pull=0.0, frames=3))
+    alone = read_metrics(run_tiny(tiny, "iso_bunny_physics_only", "no_stray_pull_physics.h5", stray_pull=0.0, frames=3))
     np.testing.assert_allclose(alone["alpha_mse"], tiny_runs["physics_only"]["alpha_mse"][:4], rtol=1e-4)
     # the selection and the weights on three hand-placed particles
     from physmorph.morph.targets import load_target
@@ -569,61 +470,3 @@ def test_stray_pull_density_counts_the_target_splats_rim_as_outside(tiny):
     by_density = dataclasses.replace(by_node, stray_pull_density=0.1)
     _, w = stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_density)
     assert w[0] == 1.0 / (cfg.mpm.density * g.dx ** 3) / g.dx ** 2 and w[1] == 0.0
-
-
-def test_the_default_commits_the_final_shape_so_the_released_morph_keeps_it(tiny):
-    """The default plasticity (absorb_target: shape at the last update) makes the achieved shape
-    the stress-free rest state: it leaves the run itself unchanged (alpha MSE equal frame by frame
-    to the same run without absorption), and released the tiny morph keeps most of its gain, while
-    without plasticity (f_inject) it springs back. Without the absorption the plasticity alone
-    does not hold the shape, with either map: measured 2026-12-03, rebound -0.5 % with the absorption
-    and 98.7 % without (transport, with the push along the plan, 99.4 % of the gap), -5.6 and 133.5 %
-    (nearest, 56.2 %), f_inject 123.9 % (57.1 %). Before the push the transport map's rest state
-    alone kept part of it (it sprang back 50 points less than f_inject at half the gain). Slow: five
-    whole tiny morphs of 12 frames each, one per variant compared, each then released for 12 frames."""
-    cfg, _ = tiny
-    base = morph_config(cfg, "iso_bunny_full")
-    assert base.plasticity.absorb_control and base.plasticity.absorb_target == "shape"
-    assert base.plasticity.absorb_start_frame == -1 and base.plasticity.correspondence == "transport"
-    nearest = dataclasses.replace(base.plasticity, correspondence="nearest", eta=0.02)
-    variants = {"shape": base.plasticity, "off": dataclasses.replace(base.plasticity, absorb_control=False),
-                "nearest_shape": nearest, "nearest_off": dataclasses.replace(nearest, absorb_control=False)}
-    runs = {k: read_metrics(_run(tiny, "iso_bunny_full", f"{k}_release.h5", plasticity=pl, release_frames=12))
-            for k, pl in variants.items()}
-    runs["none"] = read_metrics(_run(tiny, "iso_bunny_f_inject", "none_release.h5", release_frames=12))
-    # equal up to float32 atomics in another order (more than one thread), as in the resume test;
-    # absorbing during the run changes it (docs/study/log.md part 9)
-    for a, b in (("shape", "off"), ("nearest_shape", "nearest_off")):
-        np.testing.assert_allclose(runs[a]["alpha_mse"], runs[b]["alpha_mse"], rtol=1e-4)
-    rebound = {k: release_rebound_percent(m["alpha_mse"], json.loads(m["attrs"]["release_alpha_mse"]))
-               for k, m in runs.items()}
-    print("release rebound", rebound, "closed", {k: m["gap_closed"][-1] for k, m in runs.items()})
-    for k in ("shape", "nearest_shape"):
-        assert runs[k]["gap_closed"][-1] >= TINY_CLOSED_FINAL
-        assert rebound[k] < RELEASE_REBOUND_SHAPE
-        assert rebound["none"] > rebound[k] + RELEASE_REBOUND_GAP
-    assert rebound["nearest_off"] > rebound["nearest_shape"] + RELEASE_REBOUND_GAP
-    assert rebound["off"] > rebound["shape"] + RELEASE_REBOUND_GAP
-
-
-def test_the_release_starts_from_rest(tiny):
-    """morph.release_curve releases the body from rest (v = 0, C = 0): the curve is the elastic
-    rebound of the rest state alone, whatever velocity the last frame ended with (a stress-free
-    body handed a velocity coasts on; docs/study/log.md finding 112). keep_velocity keeps it."""
-    from physmorph.mpm.state import ParticleState
-    from physmorph.mpm.solver import solver_for
-    from physmorph.meshes.particles import load_particles
-
-    cfg, d = tiny
-    parts = load_particles(d / "p_iso.h5")
-    rest = ParticleState.at_rest(parts.x, parts.mass, parts.volume)  # F = Fp = I: no stress anywhere
-    moving = dataclasses.replace(rest, v=np.tile([2.0, 0.0, 0.0], (rest.n, 1)),
-                                 C=np.full((rest.n, 3, 3), 0.5))
-    solver = solver_for(morph_config(cfg, "iso_bunny_full").mpm, rest.n)
-    mean_x = lambda st: float(st.x[:, 0].mean())  # noqa: E731
-    quiet = morph.release_curve(solver, rest, 3, mean_x, print, "rest")
-    released = morph.release_curve(solver, moving, 3, mean_x, print, "moving")
-    coasting = morph.release_curve(solver, moving, 3, mean_x, print, "coasting", keep_velocity=True)
-    np.testing.assert_allclose(released, quiet, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(quiet, quiet[0], rtol=0, atol=1e-4)  # at rest and stress-free: it stays
-    assert coasting[-1] > coasting[0] + 0.05  # 2 units/s for 3 frames of 1/240 s x 20 substeps
