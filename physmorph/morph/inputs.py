@@ -21,6 +21,10 @@ from physmorph.render.api import render_views
 from physmorph.render.containers import RenderTarget
 from physmorph.settings.morph import MorphConfig
 
+# points per leaf of the target's KD tree: the paper profile's nearest-target query (511K particles
+# against 200K surface points, one thread) 1.29 s at 64 against 1.66 s at scipy's 16, 1.40 at 128
+# (docs/study/performance_history.md); any size gives the same nearest points
+TARGET_TREE_LEAFSIZE = 64
 
 class MorphInputs:
     """The run's particles, target, views and solver, and the measures against the target."""
@@ -42,8 +46,10 @@ class MorphInputs:
         self.ceiling = float(getattr(target, "ceiling_alpha_mse", np.nan))
         # Sliding-midpoint splits (balanced_tree=False): the surface points lie on a 2D sheet, where the
         # median-split tree makes each particle's nearest-point query 3.3x slower (471K particles
-        # against 200K points, the paper profile: 5.8 s against 1.75 s a query).
-        self.tree = cKDTree(target.surface_points, balanced_tree=False, compact_nodes=False)
+        # against 200K points, the paper profile: 5.8 s against 1.75 s a query); leaves of
+        # TARGET_TREE_LEAFSIZE points: fewer nodes to descend for the particles deep inside the body.
+        self.tree = cKDTree(target.surface_points, leafsize=TARGET_TREE_LEAFSIZE, balanced_tree=False,
+                            compact_nodes=False)
         self.N = N = len(parts.x)
         self.solver = solver_for(cfg.mpm, N)  # a reset solver, reused from the previous run of this config and size
         # the device of the solver's Taichi runtime, and the torch device of the transport plan; on
