@@ -3,7 +3,7 @@
 Pipeline (paper sections 3.2 and 3.5): F, x --> Sigma = sigma0^2 F F^T --> EWA projection -->
 screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D
 --(torch)--> losses. The projection and its reverse are Taichi kernels (projection_kernels, no
-autograd graph); the rasterizer's backward and the projection's reverse each run once with one
+autograd graph); the rasterizer's backward and the projection's reverse run once per view with one
 channel per loss, which is what adaptive gradient matching needs (each loss's gradient norm
 separately).
 """
@@ -23,7 +23,7 @@ from physmorph.settings.render import LOSS_TERMS, RenderConfig
 from .containers import RenderResult, RenderTarget
 from .losses import alpha_mse, expected_depth, match_gradients, render_losses
 from .projection import CameraTensors, ProjectedGaussians
-from .projection_kernels import project_backward, project_forward
+from .projection_kernels import ProjectionReverse, project_forward
 from .rasterizer import composite_backward, composite_forward
 from .tiles import TileBins, bin_gaussians
 
@@ -58,7 +58,7 @@ class Splats:
     """One forward pass: the screen-space params and their tile bins."""
 
     projected: ProjectedGaussians
-    params: torch.Tensor  # [V*N, 6], no graph (the reverse is projection_kernels.project_backward)
+    params: torch.Tensor  # [V*N, 6], no graph (the reverse is reverse_by_view)
     bins: TileBins
 
 
@@ -70,6 +70,30 @@ def splat(x: torch.Tensor, F: torch.Tensor, sigma0: torch.Tensor, cams: CameraTe
     bins = bin_gaussians(projected.params[..., :2].detach(), projected.half_extent, projected.params[..., 5].detach(),
                          projected.visible, cams.width, cams.height, cfg.tile_size)
     return Splats(projected, params, bins)
+
+
+def reverse_by_view(x: torch.Tensor,  # [N, 3]
+                    F: torch.Tensor,  # [N, 3, 3]
+                    sigma0: torch.Tensor,  # scalar or [N]
+                    cams: CameraTensors, sp: Splats,
+                    t_final: torch.Tensor,  # [V, H, W]
+                    last: torch.Tensor,  # [V, H, W]
+                    g_alpha: torch.Tensor,  # [L, V, H, W] each loss's gradient of alpha
+                    g_depth: torch.Tensor,  # [L, V, H, W] ... of the accumulated depth
+                    cfg: RenderConfig, want_grad_x: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """The rasterizer's backward and the projection's reverse, all losses at once, one view at a
+    time: dL_l/dx [L, N, 3] (or None) and dL_l/dF [L, N, 3, 3]. The params' gradients of one view
+    ([L, N, 6]) exist at a time, not all views' (at the paper's scale 35 MB, not 276); the numbers
+    are those of both passes over all views at once."""
+    n = x.shape[0]
+    reverse = ProjectionReverse(x, F, sigma0, g_alpha.shape[0], want_grad_x)
+    for v in range(cams.count):
+        bins, first = sp.bins.view(v, n)
+        g_params = composite_backward(sp.params[v * n:(v + 1) * n], bins, t_final[v:v + 1], last[v:v + 1] - first,
+                                      g_alpha[:, v:v + 1], g_depth[:, v:v + 1], cfg)
+        reverse.add(cams.view(v), cfg, g_params[:, None])
+        del g_params
+    return reverse.result()
 
 
 def _to_tensors(x, F, s, cameras: Cameras, cfg: RenderConfig):
@@ -110,7 +134,7 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     t_alpha, t_depth, t_sdt = (torch.as_tensor(np.asarray(a), dtype=dt, device=dev)
                                for a in (target.alpha, target.depth, target.sdt))
 
-    # the projection keeps no autograd graph: its reverse is project_backward
+    # the projection keeps no autograd graph: its reverse is reverse_by_view's
     with torch.no_grad():
         sp = splat(xt, Ft, st, cams, cfg)
     t_final, depth_acc, last = composite_forward(sp.params, sp.bins, n_views, height, width, cfg)
@@ -133,17 +157,11 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     del losses  # frees the loss graph's pixel-sized buffers before the rasterizer backward
     # ... and hands them back to the system (outside a morph run's held heap, where the backward
     # reuses them instead: physmorph.base.memory): under glibc's mmap threshold they stay resident
-    # under the backward's [C, V*N, 6] gradients otherwise (the paper frame's peak: 0.92-1.03 GB
-    # above the render's start without this, 0.70-0.76 GB with it)
+    # under the backward's gradients otherwise (the paper frame's peak: 0.92-1.03 GB above the
+    # render's start without this, 0.70-0.76 GB with it, when the backward ran all views at once)
     release_free_memory()
-    g_params = composite_backward(sp.params, sp.bins, t_final, last, g_alpha, g_depth, cfg)
+    g_x, g_F = reverse_by_view(xt, Ft, st, cams, sp, t_final, last, g_alpha, g_depth, cfg, want_grad_x)
     del g_alpha, g_depth, sp
-
-    # the projection's reverse, all losses at once, view by view
-    n_losses = len(LOSS_TERMS)
-    g_x, g_F = project_backward(xt, Ft, st, cams, cfg, g_params.reshape(n_losses, n_views, x.shape[0], 6),
-                                want_grad_x)
-    del g_params
     per_loss_F = {name: g_F[c] for c, name in enumerate(LOSS_TERMS)}
     per_loss_x = {name: g_x[c] for c, name in enumerate(LOSS_TERMS)} if want_grad_x else {}
     grad_F, weights = match_gradients(per_loss_F, cfg)

@@ -54,6 +54,11 @@ class CameraTensors:
     def count(self) -> int:
         return int(self.rotation.shape[0])
 
+    def view(self, v: int) -> "CameraTensors":
+        """View v alone."""
+        return CameraTensors(self.rotation[v:v + 1], self.translation[v:v + 1], self.intrinsics[v:v + 1],
+                             self.width, self.height, self.near)
+
 
 @dataclass
 class ProjectedGaussians:

@@ -128,14 +128,16 @@ def _project_forward(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.types.
 
 
 @ti.kernel
-def _project_backward(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.types.ndarray(),
-                      rot: ti.types.ndarray(), trans: ti.types.ndarray(), intr: ti.types.ndarray(),
-                      grad_params: ti.types.ndarray(),  # [L, V, N, 6]
-                      grad_F: ti.types.ndarray(),  # out [L, N, 3, 3]
-                      grad_x: ti.types.ndarray(),  # out [L, N, 3] (written when want_x)
-                      width: ti.i32, height: ti.i32, near: ti.f64, margin: ti.f64, low_pass: ti.f64,
-                      det_floor: ti.f64,
-                      n_losses: ti.template(), want_x: ti.template(), dtype: ti.template()):
+def _project_backward_add(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.types.ndarray(),
+                          rot: ti.types.ndarray(), trans: ti.types.ndarray(), intr: ti.types.ndarray(),
+                          grad_params: ti.types.ndarray(),  # [L, V, N, 6] of the V views in rot
+                          sigma_bar: ti.types.ndarray(),  # [L, N, 6] in/out: Sigma_bar (00 01 02 11 12 22)
+                          grad_x: ti.types.ndarray(),  # [L, N, 3] in/out (when want_x)
+                          width: ti.i32, height: ti.i32, near: ti.f64, margin: ti.f64, low_pass: ti.f64,
+                          det_floor: ti.f64,
+                          n_losses: ti.template(), want_x: ti.template(), dtype: ti.template()):
+    """Each loss's Sigma_bar and x_bar of the views in rot, added to what sigma_bar and grad_x hold
+    (the views before, in order: the same sums as one call over all of them)."""
     n_views = rot.shape[0]
     for n in range(x.shape[0]):
         xn = _load(x, n, dtype)
@@ -143,6 +145,11 @@ def _project_backward(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.types
         Sigma = s2[n] * (Fn @ Fn.transpose())
         G = ti.Matrix.zero(dtype, n_losses, 6)  # each loss's Sigma_bar: entries 00 01 02 11 12 22
         gx = ti.Matrix.zero(dtype, n_losses, 3)
+        for l, k in ti.static(ti.ndrange(n_losses, 6)):
+            G[l, k] = sigma_bar[l, n, k]
+        if ti.static(want_x):
+            for l, k in ti.static(ti.ndrange(n_losses, 3)):
+                gx[l, k] = grad_x[l, n, k]
         for v in range(n_views):
             z, z_safe, tx, ty, u, vv, m0, m1, r2, in_front, free_x, free_y, fx, fy = _camera_terms(
                 xn, rot, trans, intr, v, width, height, near, margin, dtype)
@@ -181,14 +188,28 @@ def _project_backward(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.types
                     for kk in ti.static(range(3)):  # x_c = R x + t: x_bar = R^T x_c_bar
                         gx[l, kk] += (xc_bar[0] * rot[v, 0, kk] + xc_bar[1] * rot[v, 1, kk]
                                       + xc_bar[2] * rot[v, 2, kk])
+        for l, k in ti.static(ti.ndrange(n_losses, 6)):
+            sigma_bar[l, n, k] = G[l, k]
+        if ti.static(want_x):
+            for l, k in ti.static(ti.ndrange(n_losses, 3)):
+                grad_x[l, n, k] = gx[l, k]
+
+
+@ti.kernel
+def _project_backward_F(F: ti.types.ndarray(), s2: ti.types.ndarray(),
+                        sigma_bar: ti.types.ndarray(),  # [L, N, 6] the views' summed Sigma_bar
+                        grad_F: ti.types.ndarray(),  # out [L, N, 3, 3]
+                        n_losses: ti.template(), dtype: ti.template()):
+    """dL/dF = 2 sigma0^2 Sigma_bar F (Sigma = sigma0^2 F F^T, Sigma_bar symmetric)."""
+    for n in range(F.shape[0]):
+        Fn = _load33(F, n, dtype)
         for l in ti.static(range(n_losses)):
-            Gl = ti.Matrix([[G[l, 0], G[l, 1], G[l, 2]], [G[l, 1], G[l, 3], G[l, 4]], [G[l, 2], G[l, 4], G[l, 5]]])
+            Gl = ti.Matrix([[sigma_bar[l, n, 0], sigma_bar[l, n, 1], sigma_bar[l, n, 2]],
+                            [sigma_bar[l, n, 1], sigma_bar[l, n, 3], sigma_bar[l, n, 4]],
+                            [sigma_bar[l, n, 2], sigma_bar[l, n, 4], sigma_bar[l, n, 5]]])
             gF = 2 * s2[n] * (Gl @ Fn)
             for i, j in ti.static(ti.ndrange(3, 3)):
                 grad_F[l, n, i, j] = gF[i, j]
-            if ti.static(want_x):
-                for kk in ti.static(range(3)):
-                    grad_x[l, n, kk] = gx[l, kk]
 
 
 def _inputs(x: torch.Tensor, F: torch.Tensor, sigma0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -219,22 +240,51 @@ def project_forward(x: torch.Tensor,  # [N, 3]
     return params, half, visible.bool()
 
 
+class ProjectionReverse:
+    """The projection's reverse taken a few views at a time (the render's reverse runs view by
+    view, so that the rasterizer's [L, V N, 6] gradients never exist at once): each loss's
+    Sigma_bar and x_bar summed over the views added so far, in the order added; ``result`` then
+    gives dL_l/dx [L, N, 3] (or None) and dL_l/dF [L, N, 3, 3]. Views added one by one give the
+    numbers one call over all of them gives."""
+
+    def __init__(self, x: torch.Tensor,  # [N, 3]
+                 F: torch.Tensor,  # [N, 3, 3]
+                 sigma0,  # scalar or [N]
+                 n_losses: int, want_grad_x: bool = True):
+        ensure_taichi()
+        self.x, self.F, self.s2 = _inputs(x, F, sigma0)
+        self.n_losses, self.want_grad_x = int(n_losses), bool(want_grad_x)
+        opts = dict(dtype=self.x.dtype, device=self.x.device)
+        n = self.x.shape[0]
+        self.sigma_bar = torch.zeros((self.n_losses, n, 6), **opts)
+        self.grad_x = torch.zeros((self.n_losses, n, 3) if self.want_grad_x else (1, 1, 3), **opts)
+
+    def add(self, cams: CameraTensors, cfg: RenderConfig,
+            grad_params: torch.Tensor) -> None:  # [L, V, N, 6] of the V views of cams
+        if grad_params.shape != (self.n_losses, cams.count, self.x.shape[0], 6):
+            raise ValueError(f"grad_params is {tuple(grad_params.shape)}, expected "
+                             f"{(self.n_losses, cams.count, self.x.shape[0], 6)}")
+        if self.x.shape[0]:
+            _project_backward_add(self.x, self.F, self.s2, cams.rotation.contiguous(), cams.translation.contiguous(),
+                                  cams.intrinsics.contiguous(), grad_params.to(self.x.dtype).contiguous(),
+                                  self.sigma_bar, self.grad_x, cams.width, cams.height, float(cams.near),
+                                  _JACOBIAN_MARGIN, float(cfg.low_pass), float(torch.finfo(self.x.dtype).tiny ** 0.5),
+                                  self.n_losses, self.want_grad_x, _ti_dtype(self.x.dtype))
+
+    def result(self) -> tuple[torch.Tensor | None, torch.Tensor]:
+        grad_F = torch.zeros((self.n_losses,) + tuple(self.F.shape), dtype=self.x.dtype, device=self.x.device)
+        if self.x.shape[0]:
+            _project_backward_F(self.F, self.s2, self.sigma_bar, grad_F, self.n_losses, _ti_dtype(self.x.dtype))
+        return (self.grad_x if self.want_grad_x else None), grad_F
+
+
 def project_backward(x: torch.Tensor,  # [N, 3]
                      F: torch.Tensor,  # [N, 3, 3]
                      sigma0,  # scalar or [N]
                      cams: CameraTensors, cfg: RenderConfig,
                      grad_params: torch.Tensor,  # [L, V, N, 6]
                      want_grad_x: bool = True) -> tuple[torch.Tensor | None, torch.Tensor]:
-    """dL_l/dx [L, N, 3] (or None) and dL_l/dF [L, N, 3, 3] from the params' gradients."""
-    ensure_taichi()
-    x, F, s2 = _inputs(x, F, sigma0)
-    L, N = grad_params.shape[0], x.shape[0]
-    opts = dict(dtype=x.dtype, device=x.device)
-    grad_F = torch.zeros((L, N, 3, 3), **opts)
-    grad_x = torch.zeros((L, N, 3), **opts) if want_grad_x else torch.zeros((1, 1, 3), **opts)
-    if N:
-        _project_backward(x, F, s2, cams.rotation.contiguous(), cams.translation.contiguous(),
-                          cams.intrinsics.contiguous(), grad_params.to(x.dtype).contiguous(), grad_F, grad_x,
-                          cams.width, cams.height, float(cams.near), _JACOBIAN_MARGIN, float(cfg.low_pass),
-                          float(torch.finfo(x.dtype).tiny ** 0.5), int(L), bool(want_grad_x), _ti_dtype(x.dtype))
-    return (grad_x if want_grad_x else None), grad_F
+    """dL_l/dx [L, N, 3] (or None) and dL_l/dF [L, N, 3, 3] from the params' gradients of every view."""
+    reverse = ProjectionReverse(x, F, sigma0, grad_params.shape[0], want_grad_x)
+    reverse.add(cams, cfg, grad_params)
+    return reverse.result()

@@ -33,6 +33,18 @@ class TileBins:
     def pair_count(self) -> int:
         return int(self.point_list.shape[0])
 
+    def view(self, v: int, n_per_view: int) -> tuple["TileBins", int]:
+        """View v's bins alone, its entries numbered from 0 (entry v * n_per_view + n becomes n), and
+        where its stretch of point_list starts (the tiles are counted in view order, so a view's
+        entries are one stretch): positions in the list, such as composite_forward's ``last``,
+        less that start are positions in the view's list."""
+        tiles = self.tiles_x * self.tiles_y
+        ranges = self.tile_ranges[v * tiles:(v + 1) * tiles]
+        first, end = int(ranges[0, 0]), int(ranges[-1, 1])
+        return TileBins((self.point_list[first:end] - v * n_per_view).contiguous(), (ranges - first).contiguous(),
+                        self.half_extent[v * n_per_view:(v + 1) * n_per_view], self.tiles_x, self.tiles_y,
+                        self.tile_size), first
+
 
 @ti.func
 def _tile_box(means2d: ti.template(), half: ti.template(), v, n, tile, tiles_x, tiles_y):
