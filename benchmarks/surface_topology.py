@@ -1,0 +1,82 @@
+"""How a run's final surface's topology depends on how the surface is drawn, and how wide its tunnels are.
+
+    python benchmarks/surface_topology.py RUN.h5 PARTICLES.h5 [--frame F] [--pitches 0.1 0.25 0.4 0.5]
+
+RUN.h5 a run file, PARTICLES.h5 its source particles (results/{profile}/particles/...). For a saved
+frame (the last by default) it prints the (components, genus) of the surface that
+physmorph.reports.export.surface draws at the export's settings and at other refine / pore-closing
+pairs (SETTINGS), then that export-setting surface voxelised at each pitch (trimesh's surface voxels,
+filled: conservative, so a thin part stays solid) with its solid's pieces, tunnels and cavities. A
+tunnel that is counted at a pitch of a tenth of a cell and gone at half a cell is narrower than the
+surface's own grid draws stably; a hole a viewer sees (a torus's, a letter's) stays at a cell.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import trimesh
+from scipy import ndimage
+from skimage.measure import euler_number
+
+from physmorph.reports.export.body import components_and_genus
+from physmorph.reports.export.runs import frame_state, saved_frames
+from physmorph.reports.export.surface import particle_surface
+from physmorph.settings.export import ExportConfig
+
+# (refine, pore_closing) pairs the surface is drawn with besides the export's own
+SETTINGS = ((2.0, 4), (2.0, 5), (3.0, 3), (3.0, 4), (1.5, 3))
+
+
+def solid_topology(solid: np.ndarray) -> tuple[int, int, int]:  # solid: [X, Y, Z] bool
+    """(pieces, tunnels, cavities) of a voxel solid, 26-connected (its background 6-connected):
+    the Euler number chi = pieces - tunnels + cavities (scikit-image), the pieces and the cavities
+    (background pieces that do not reach the padded border) counted directly."""
+    padded = np.pad(np.asarray(solid, dtype=bool), 1)
+    pieces = int(ndimage.label(padded, structure=np.ones((3, 3, 3)))[1])
+    cavities = int(ndimage.label(~padded)[1]) - 1  # the default structure is 6-connected
+    chi = int(euler_number(padded, connectivity=3))
+    return pieces, pieces + cavities - chi, cavities
+
+
+def voxel_topology(mesh: trimesh.Trimesh, pitch: float) -> tuple[int, int, int]:
+    """solid_topology of ``mesh`` voxelised at ``pitch`` (surface voxels, then filled)."""
+    return solid_topology(mesh.voxelized(pitch).fill().matrix)
+
+
+def settings_topology(state: dict, settings=SETTINGS) -> list[tuple[float, int, int, int]]:
+    """(refine, pore_closing, components, genus) of the surface of ``state`` (frame_state) drawn at
+    the export's settings first, then at each of ``settings``."""
+    export = ExportConfig()
+    rows = []
+    for refine, closing in ((export.refine, export.pore_closing), *settings):
+        mesh = particle_surface(state["x"], state["volume"], state["det_F"], state["dx"], refine=refine,
+                                smooth_iterations=export.smooth_iterations, pore_closing=closing)
+        rows.append((refine, closing, *components_and_genus(mesh)))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run")
+    ap.add_argument("particles")
+    ap.add_argument("--frame", type=int, default=None, help="a saved frame (default: the last)")
+    ap.add_argument("--pitches", type=float, nargs="+", default=[0.1, 0.25, 0.4, 0.5],
+                    help="voxel pitches, in domain units")
+    args = ap.parse_args(argv)
+    frame = saved_frames(args.run)[-1] if args.frame is None else args.frame
+    state = frame_state(args.run, frame, args.particles)
+    print(f"{args.run}, frame {frame}, dx {state['dx']:g}")
+    for refine, closing, components, genus in settings_topology(state):
+        print(f"  surface at refine {refine:g}, pore closing {closing}: {components} piece(s), genus {genus}")
+    export = ExportConfig()
+    mesh = particle_surface(state["x"], state["volume"], state["det_F"], state["dx"], **export.surface())
+    for pitch in args.pitches:
+        pieces, tunnels, cavities = voxel_topology(mesh, pitch)
+        print(f"  the export's surface in voxels of {pitch:g} ({pitch / state['dx']:.2f} dx): {pieces} piece(s), "
+              f"{tunnels} tunnel(s), {cavities} cavit{'y' if cavities == 1 else 'ies'}")
+
+
+if __name__ == "__main__":
+    main()
