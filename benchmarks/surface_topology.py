@@ -45,12 +45,19 @@ def voxel_topology(mesh: trimesh.Trimesh, pitch: float) -> tuple[int, int, int]:
     return solid_topology(mesh.voxelized(pitch).fill().matrix)
 
 
-def settings_topology(state: dict, settings=SETTINGS) -> list[tuple[float, int, int, int]]:
+def export_surface(state: dict) -> trimesh.Trimesh:
+    """The surface of ``state`` (frame_state) as the export draws it."""
+    return particle_surface(state["x"], state["volume"], state["det_F"], state["dx"], **ExportConfig().surface())
+
+
+def settings_topology(state: dict, settings=SETTINGS,
+                      exported: trimesh.Trimesh | None = None) -> list[tuple[float, int, int, int]]:
     """(refine, pore_closing, components, genus) of the surface of ``state`` (frame_state) drawn at
-    the export's settings first, then at each of ``settings``."""
+    the export's settings first (``exported`` where it is drawn already), then at each of ``settings``."""
     export = ExportConfig()
-    rows = []
-    for refine, closing in ((export.refine, export.pore_closing), *settings):
+    first = export_surface(state) if exported is None else exported
+    rows = [(export.refine, export.pore_closing, *components_and_genus(first))]
+    for refine, closing in settings:
         mesh = particle_surface(state["x"], state["volume"], state["det_F"], state["dx"], refine=refine,
                                 smooth_iterations=export.smooth_iterations, pore_closing=closing)
         rows.append((refine, closing, *components_and_genus(mesh)))
@@ -68,10 +75,9 @@ def main(argv: list[str] | None = None) -> None:
     frame = saved_frames(args.run)[-1] if args.frame is None else args.frame
     state = frame_state(args.run, frame, args.particles)
     print(f"{args.run}, frame {frame}, dx {state['dx']:g}")
-    for refine, closing, components, genus in settings_topology(state):
+    mesh = export_surface(state)
+    for refine, closing, components, genus in settings_topology(state, exported=mesh):
         print(f"  surface at refine {refine:g}, pore closing {closing}: {components} piece(s), genus {genus}")
-    export = ExportConfig()
-    mesh = particle_surface(state["x"], state["volume"], state["det_F"], state["dx"], **export.surface())
     for pitch in args.pitches:
         pieces, tunnels, cavities = voxel_topology(mesh, pitch)
         print(f"  the export's surface in voxels of {pitch:g} ({pitch / state['dx']:.2f} dx): {pieces} piece(s), "
