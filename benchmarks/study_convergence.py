@@ -52,7 +52,7 @@ COLUMNS = ["tag", "experiment", "frames", "overrides", "a0", "a_best", "best_fra
 # the body in 3D at the last saved frame (physmorph.reports.export.measures.frame_measures; empty
 # where the target's mesh is not prepared, and in rows older than these columns)
 BODY_COLUMNS = ["stray_percent", "outside_body_percent", "components", "genus", "target_genus",
-                "surface_p95_dx", "rough_percent"]
+                "surface_p95_dx", "rough_percent", "surface_genus"]
 COLUMNS += BODY_COLUMNS
 
 
@@ -73,7 +73,8 @@ def body_columns(run_h5: Path, particles_h5: Path, mesh_h5: Path, export) -> dic
     m = frame_measures(k, s, mesh, mesh_h5)
     return {"stray_percent": 100.0 * m["stray_share"], "outside_body_percent": 100.0 * m["outside_largest_body"],
             "components": m["components"], "genus": m["genus"], "target_genus": m["target_genus"],
-            "surface_p95_dx": m["surface_p95_dx"], "rough_percent": m["roughness_percent"]}
+            "surface_p95_dx": m["surface_p95_dx"], "rough_percent": m["roughness_percent"],
+            "surface_genus": m["surface_genus"]}
 
 
 def prepare_inputs(cfg, name: str, prepared: Path, mesh_dir: Path) -> None:

@@ -15,34 +15,15 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
 import trimesh
-from scipy import ndimage
-from skimage.measure import euler_number
 
-from physmorph.reports.export.body import components_and_genus
+from physmorph.reports.export.body import components_and_genus, voxel_topology
 from physmorph.reports.export.runs import frame_state, saved_frames
 from physmorph.reports.export.surface import particle_surface
 from physmorph.settings.export import ExportConfig
 
 # (refine, pore_closing) pairs the surface is drawn with besides the export's own
 SETTINGS = ((2.0, 4), (2.0, 5), (3.0, 3), (3.0, 4), (1.5, 3))
-
-
-def solid_topology(solid: np.ndarray) -> tuple[int, int, int]:  # solid: [X, Y, Z] bool
-    """(pieces, tunnels, cavities) of a voxel solid, 26-connected (its background 6-connected):
-    the Euler number chi = pieces - tunnels + cavities (scikit-image), the pieces and the cavities
-    (background pieces that do not reach the padded border) counted directly."""
-    padded = np.pad(np.asarray(solid, dtype=bool), 1)
-    pieces = int(ndimage.label(padded, structure=np.ones((3, 3, 3)))[1])
-    cavities = int(ndimage.label(~padded)[1]) - 1  # the default structure is 6-connected
-    chi = int(euler_number(padded, connectivity=3))
-    return pieces, pieces + cavities - chi, cavities
-
-
-def voxel_topology(mesh: trimesh.Trimesh, pitch: float) -> tuple[int, int, int]:
-    """solid_topology of ``mesh`` voxelised at ``pitch`` (surface voxels, then filled)."""
-    return solid_topology(mesh.voxelized(pitch).fill().matrix)
 
 
 def export_surface(state: dict) -> trimesh.Trimesh:

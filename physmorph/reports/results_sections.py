@@ -84,8 +84,8 @@ def body_section(conv: pd.DataFrame) -> list[str]:
            "The volume IoU at the first and last frame (the share of the target's volume both cover, 1 = the "
            "target's own sampling), the share of the mass packed above twice the target's density at the end, "
            "and, for the exported full runs, the last surface's: stray share (mass more than 2 cells outside the "
-           "target), mass outside the largest connected body, genus against the target mesh's (a spurious "
-           "tunnel adds one), mean and 95th-percentile distance to the target mesh (cells) and roughness (the "
+           "target), mass outside the largest connected body, genus against the target mesh's (tunnels at least about a "
+           "cell wide; a spurious one adds one), mean and 95th-percentile distance to the target mesh (cells) and roughness (the "
            "area its lumps add).\n"]
     rows, short = [], []
     for _, r in conv.iterrows():

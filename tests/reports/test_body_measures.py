@@ -1,6 +1,6 @@
 """The body in 3D (physmorph.reports.export.body): the mass outside the largest connected body, a
-closed surface's components and genus, the 95th-percentile surface distance and the roughness,
-each on shapes whose answer is known."""
+closed surface's components and genus, the body's genus in voxels of half a cell, the
+95th-percentile surface distance and the roughness, each on shapes whose answer is known."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from physmorph.reports.export.body import (components_and_genus, largest_body_outside_share, roughness_percent,
+from physmorph.reports.export.body import (BODY_PITCH_DX, body_genus, components_and_genus,
+                                           largest_body_outside_share, roughness_percent, solid_topology,
                                            surface_distance_p95)
 
 
@@ -43,6 +44,49 @@ def test_genus_and_components_of_closed_surfaces():
     assert components_and_genus(two_holes) == (2, 2)
     open_sphere = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)  # a face missing
     assert components_and_genus(open_sphere) == (-1, -1)
+
+
+def test_pieces_tunnels_and_cavities_of_voxel_solids():
+    ring = np.zeros((8, 8, 3), bool)
+    ring[1:7, 1:7, :] = True
+    ring[3:5, 3:5, :] = False  # a square hole through the block: one tunnel
+    assert solid_topology(ring) == (1, 1, 0)
+    hollow = np.zeros((7, 7, 7), bool)
+    hollow[1:6, 1:6, 1:6] = True
+    hollow[3, 3, 3] = False  # a closed void: one cavity, no tunnel
+    assert solid_topology(hollow) == (1, 0, 1)
+    two = np.zeros((9, 4, 4), bool)
+    two[0:3], two[5:9] = True, True
+    assert solid_topology(two) == (2, 0, 0)
+    # a diagonal contact is a 26-connection: two cubes meeting at an edge are one piece
+    edge = np.zeros((4, 4, 2), bool)
+    edge[0:2, 0:2], edge[2:4, 2:4] = True, True
+    assert solid_topology(edge) == (1, 0, 0)
+
+
+def _slab_with_hole(hole_tenths: int, offset: int) -> trimesh.Trimesh:
+    """A 3.8 x 3.8 x 1 slab with a square hole ``hole_tenths`` tenths wide through it, ``offset`` tenths
+    off its middle, drawn by marching cubes on voxels of 0.1."""
+    solid = np.zeros((40, 40, 12), bool)
+    solid[1:39, 1:39, 1:11] = True
+    lo = 20 - hole_tenths // 2 + offset
+    solid[lo:lo + hole_tenths, lo:lo + hole_tenths, :] = False
+    return trimesh.voxel.VoxelGrid(solid).marching_cubes.apply_scale(0.1)
+
+
+def test_the_body_counts_a_tunnel_a_cell_wide_and_not_one_narrower_than_half_a_cell():
+    assert BODY_PITCH_DX == 0.5
+    torus = trimesh.creation.torus(5.0, 1.5)  # a hole 7 across
+    assert body_genus(torus, 1.0) == 1 and body_genus(trimesh.creation.icosphere(3, 5.0), 1.0) == 0
+    for offset in range(4):  # wherever the voxels fall against the hole
+        narrow, wide = _slab_with_hole(5, offset), _slab_with_hole(12, offset)
+        assert components_and_genus(narrow) == components_and_genus(wide) == (1, 1)  # the surfaces have both
+        assert body_genus(narrow, 1.0) == 0  # half a cell: not the body's
+        assert body_genus(wide, 1.0) == 1
+        assert body_genus(narrow, 0.5) == 1  # in a grid twice as fine the same hole is a cell wide
+    open_sphere = trimesh.creation.icosphere(3, 5.0)
+    open_sphere = trimesh.Trimesh(open_sphere.vertices, open_sphere.faces[1:], process=False)
+    assert body_genus(open_sphere, 1.0) == -1
 
 
 def test_the_95th_percentile_distance_sees_a_missing_part_the_mean_hides():

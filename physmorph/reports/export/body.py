@@ -6,6 +6,15 @@
 * components and genus of a closed surface: from its Euler characteristic chi = V - E + F, each
   closed orientable component of genus g having chi = 2 - 2g, so the surface's total genus is
   (2 c - chi) / 2 over its c components (a spurious tunnel raises it, a closed hole lowers it);
+* the body's genus: the tunnels through the solid a closed surface encloses, voxelised at
+  BODY_PITCH_DX of a grid cell (the voxels the surface touches, then filled), counted from the
+  solid's Euler number (26-connected, its background 6-connected): chi = pieces - tunnels +
+  cavities. A tunnel narrower than about half a cell is never counted, one a cell wide always
+  (between, by where the voxels fall). Two walls less than a cell apart share the grid nodes
+  whose velocities move them, so the physics cannot hold such a tunnel open or shut; the surface
+  drawn over the particles opens or shuts it with its own grid's settings (docs/study/log.md
+  findings 322 and 324). The target mesh is measured the same way: a gap of the target narrower
+  than that closes in both;
 * surface distance, 95th percentile: the 95th percentile of the distance from each of two point
   samples of the surfaces to the other surface, the larger of the two directions, in grid cells (a
   mean hides a missing hole or a stroke: this does not);
@@ -22,6 +31,8 @@ from physmorph.base.grid import occupied_pieces
 
 ROUGHNESS_PASSES = 50
 P95 = 95.0
+# The body's tunnels are counted in voxels of this many grid cells (the module docstring).
+BODY_PITCH_DX = 0.5
 
 
 def largest_body_outside_share(x: np.ndarray,  # [N, 3] positions
@@ -43,6 +54,33 @@ def components_and_genus(mesh: trimesh.Trimesh) -> tuple[int, int]:
     components = int(mesh.body_count)
     chi = int(mesh.euler_number)
     return components, (2 * components - chi) // 2
+
+
+def solid_topology(solid: np.ndarray) -> tuple[int, int, int]:  # solid: [X, Y, Z] bool
+    """(pieces, tunnels, cavities) of a voxel solid, 26-connected (its background 6-connected):
+    the Euler number chi = pieces - tunnels + cavities (scikit-image), the pieces and the cavities
+    (background pieces that do not reach the padded border) counted directly."""
+    from scipy import ndimage
+    from skimage.measure import euler_number
+
+    padded = np.pad(np.asarray(solid, dtype=bool), 1)
+    pieces = int(ndimage.label(padded, structure=np.ones((3, 3, 3)))[1])
+    cavities = int(ndimage.label(~padded)[1]) - 1  # the default structure is 6-connected
+    chi = int(euler_number(padded, connectivity=3))
+    return pieces, pieces + cavities - chi, cavities
+
+
+def voxel_topology(mesh: trimesh.Trimesh, pitch: float) -> tuple[int, int, int]:
+    """solid_topology of ``mesh`` voxelised at ``pitch`` (the voxels its surface touches, then filled)."""
+    return solid_topology(mesh.voxelized(pitch).fill().matrix)
+
+
+def body_genus(mesh: trimesh.Trimesh, dx: float) -> int:
+    """The tunnels through the solid a closed surface encloses, in voxels of BODY_PITCH_DX grid cells
+    (the module docstring); -1 for a surface that is not closed."""
+    if not mesh.is_watertight:
+        return -1
+    return voxel_topology(mesh, BODY_PITCH_DX * float(dx))[1]
 
 
 def surface_distance_p95(samples: np.ndarray,  # [S, 3] points on the surface

@@ -7,8 +7,10 @@
   grid cells;
 * closed: whether the exported surface is watertight;
 * the body in 3D (physmorph.reports.export.body): the mass outside the largest connected body, the
-  exported surface's components and genus beside the target mesh's, the 95th-percentile surface
-  distance and the surface's roughness.
+  exported surface's components, the body's genus (its tunnels at half a cell) beside the target
+  mesh's measured the same way, the exported surface's own genus (its Euler characteristic: every
+  tunnel the drawing has, however narrow), the 95th-percentile surface distance and the surface's
+  roughness.
 
 The target's outside distance comes from its prepared mesh voxelised at half a cell (inside by
 ray test) and a Euclidean distance transform of the outside.
@@ -25,8 +27,8 @@ import pandas as pd
 import trimesh
 
 from physmorph.reports.export.columns import MEASURE_COLUMNS
-from physmorph.reports.export.body import (components_and_genus, largest_body_outside_share, roughness_percent,
-                                           surface_distance_p95)
+from physmorph.reports.export.body import (body_genus, components_and_genus, largest_body_outside_share,
+                                           roughness_percent, surface_distance_p95)
 
 STRAY_DX = 2.0  # a particle this many grid cells outside the target's surface is stray
 SURFACE_SAMPLES = 20000
@@ -88,25 +90,26 @@ def _chamfer_dx(a: np.ndarray,  # [S, 3]
 
 
 @lru_cache(maxsize=4)
-def _target_surface(mesh_h5: str) -> tuple[trimesh.Trimesh, np.ndarray, int]:
-    """The target mesh, its surface samples and its genus (read once per target)."""
+def _target_surface(mesh_h5: str, dx: float) -> tuple[np.ndarray, int]:
+    """The target mesh's surface samples and its body's genus (read once per target)."""
     target = target_mesh(mesh_h5)
-    return target, _surface_samples(target), components_and_genus(target)[1]
+    return _surface_samples(target), body_genus(target, dx)
 
 
 def frame_measures(frame: int, state: dict, mesh: trimesh.Trimesh, target_mesh_h5: str | Path) -> dict:
     """The row of measures.csv for one exported frame (state: physmorph.reports.export.runs.frame_state
     with the particle file, mesh: its exported surface in domain coordinates)."""
     dx = float(state["dx"])
-    _, target_samples, target_genus = _target_surface(str(target_mesh_h5))
+    target_samples, target_genus = _target_surface(str(target_mesh_h5), dx)
     samples = _surface_samples(mesh)
-    components, genus = components_and_genus(mesh)
+    components, surface_genus = components_and_genus(mesh)
     return {"frame": int(frame),
             "stray_share": stray_share(state["x"], state["volume"], target_mesh_h5, dx),
             "surface_distance_dx": _chamfer_dx(samples, target_samples, dx),
             "closed": bool(mesh.is_watertight), "faces": int(len(mesh.faces)),
             "outside_largest_body": largest_body_outside_share(state["x"], state["volume"], dx),
-            "components": components, "genus": genus, "target_genus": target_genus,
+            "components": components, "genus": body_genus(mesh, dx), "target_genus": target_genus,
+            "surface_genus": surface_genus,
             "surface_p95_dx": surface_distance_p95(samples, target_samples, dx),
             "roughness_percent": roughness_percent(mesh)}
 
