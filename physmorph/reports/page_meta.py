@@ -27,13 +27,28 @@ from physmorph.records.provenance import differing_keys, git_state, merge_settin
 BLOCK_RE = re.compile(r"<!-- physmorph-page (\{.*\}) -->")
 
 
-@lru_cache(maxsize=1)
-def shipped_method_settings() -> dict[str, Any]:
-    """The method settings this code ships (MorphConfig's defaults, which config/config.yaml states):
-    what a page's method is compared with."""
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+
+
+@lru_cache(maxsize=16)
+def shipped_method_settings(profile: str = "default") -> dict[str, Any]:
+    """The method settings this code ships for ``profile`` (what its page's method is compared
+    with): MorphConfig's defaults, which config/config.yaml states, and where the profile has a file
+    of its own (config/{profile}.yaml, declaring that profile) the method keys that file sets on
+    purpose, as the paper profile sets the volume term's weight: its first full experiment's settings."""
+    import yaml
+
     from physmorph.settings.morph import MorphConfig
 
-    return method_settings(json.loads(json.dumps(asdict(MorphConfig(method="full")), default=str)))
+    own = CONFIG_DIR / f"{profile}.yaml"
+    if profile == "default" or not own.is_file() or (yaml.safe_load(own.read_text()) or {}).get("profile") != profile:
+        return method_settings(json.loads(json.dumps(asdict(MorphConfig(method="full")), default=str)))
+    from physmorph.settings.params import to_plain
+    from physmorph.settings.workflow import load_settings
+
+    settings = load_settings(CONFIG_DIR / "config.yaml", own)
+    full = next(name for name, exp in settings.experiments.items() if exp.method == "full")
+    return method_settings(to_plain(settings.experiment_config(full)))
 
 
 @dataclass
@@ -48,12 +63,12 @@ class PageProvenance:
     def sha(self) -> str:
         return method_sha(self.method)
 
-    def line(self) -> str:
+    def line(self, profile: str = "default") -> str:
         """The provenance sentence of a page: commit, local changes, method settings (and how they
-        differ from the method this code ships, when they do)."""
+        differ from the method this code ships for ``profile``, when they do)."""
         dirty = {"yes": "with local changes", "no": "no local changes"}.get(self.dirty, "local changes not recorded")
         text = f"made by the code at {self.commit} ({dirty}), method settings `{self.sha}`"
-        keys = differing_keys(self.method, shipped_method_settings())
+        keys = differing_keys(self.method, shipped_method_settings(profile))
         if keys:
             shown = ", ".join(f"`{k}`" for k in keys[:6]) + (f" and {len(keys) - 6} more" if len(keys) > 6 else "")
             text += f" (not the shipped method: {shown})"
@@ -161,7 +176,6 @@ def check_pages(docs_dir: Path) -> tuple[list[str], bool]:
     """(one line per page made with other than the shipped method, or with no record of it;
     whether the default profile's page is among them)."""
     lines, default_bad = [], False
-    shipped = shipped_method_settings()
     others = {p for p in (Path(docs_dir) / "stability.md", Path(docs_dir) / "tradeoff.md") if p.exists()}
     pages = sorted(set(generated_pages(docs_dir)) | set(results_pages(docs_dir)) | others
                    | {Path(docs_dir) / "results.md"})
@@ -172,7 +186,7 @@ def check_pages(docs_dir: Path) -> tuple[list[str], bool]:
             lines.append(f"{name}: records no method settings (regenerate it)")
             default_bad |= name == "results.md"
             continue
-        keys = differing_keys(record.get("method", {}), shipped)
+        keys = differing_keys(record.get("method", {}), shipped_method_settings(record.get("profile") or "default"))
         if keys:
             lines.append(f"{name} ({record.get('profile')}): method settings differ from the shipped ones in "
                          + ", ".join(keys))
@@ -230,7 +244,6 @@ def readme_table(docs_dir: Path) -> str:
     header = ["profile", "runs", "particles", "images", "frames", "jobs' time, summed", "per run", "peak RSS",
               "iso full, last", "page"]
     rows, marked, unrecorded = [], False, False
-    shipped = shipped_method_settings()
     for page in results_pages(docs_dir):
         record = read_block(page.read_text())
         if record is None:  # a page made before pages recorded what made them
@@ -240,7 +253,7 @@ def readme_table(docs_dir: Path) -> str:
         if record.get("kind") != "results":
             continue
         s = record.get("summary", {})
-        mark = " †" if differing_keys(record.get("method", {}), shipped) else ""
+        mark = " †" if differing_keys(record.get("method", {}), shipped_method_settings(record["profile"])) else ""
         marked |= bool(mark)
         iso = s.get("iso_full_last")
         iso_cell = f"{iso['closed_last_%']:.1f} % ({iso['experiment'].split('_')[1]})" if iso else ""

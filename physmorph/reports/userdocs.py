@@ -78,7 +78,7 @@ def results_markdown(tables_dir: str | Path, profile: str, figures: dict[str, st
     wall = jobs_wall_time_s(tables_dir.parent)
     out = [f"# {title or f'Results of the `{profile}` profile'}\n",
            f"Generated on {date} by `{command}` from `results/{profile}/{tables_dir.name}/`"
-           + f", {provenance.line()} (do not edit by hand: "
+           + f", {provenance.line(profile)} (do not edit by hand: "
            "rebuild the tables, then run the command again). What each table and column means: "
            f"[docs/outputs.md]({outputs_link}).\n"]
     if len(timing):
@@ -210,7 +210,7 @@ def write_stability_doc(profile: str, results_root: str | Path, out_md: str | Pa
              f"Generated {_dt.date.today().isoformat()}"
              + f" by `python -m physmorph.reports.userdocs stability {profile}` from `snakemake --cores 2 stability_map"
              + ("" if profile == "default" else f" --configfile config/{profile}.yaml") + "`, "
-             + f"{(provenance or from_checkout()).line()} (the base experiment's).", "",
+             + f"{(provenance or from_checkout()).line(profile)} (the base experiment's).", "",
              "The base experiment (iso → bunny, full method) with one setting at a time moved from the profile's "
              "default to and past its limit. Every cell runs in its own process under a wall-clock limit and "
              "ends in one outcome: **converged** (every frame ran, metrics finite, the last frame closed at "

@@ -30,11 +30,16 @@ def _profile_method(*profiles: str) -> dict:
 
 
 def test_resolution_profiles_run_the_shipped_method():
-    """mid and paper set resolution only: their method settings are the default profile's, which
-    are the shipped ones; the test profile's differ in exactly the keys it sets."""
+    """mid sets resolution only: its method settings are the default profile's, which are the
+    shipped ones; the paper profile's differ in the volume term's weight alone, which its own file
+    sets, so the paper profile ships that; the test profile's differ in exactly the keys it sets."""
     shipped = shipped_method_settings()
     assert _profile_method() == shipped
-    assert method_sha(_profile_method("mid")) == method_sha(_profile_method("paper")) == method_sha(shipped)
+    assert method_sha(_profile_method("mid")) == method_sha(shipped) == method_sha(shipped_method_settings("mid"))
+    assert differing_keys(_profile_method("paper"), shipped) == ["mpm.volume_weight"]
+    assert shipped_method_settings("paper") == _profile_method("paper")
+    # a profile with no file of its own, or a file that is not a profile's, ships the defaults
+    assert shipped_method_settings("mid_heldout") == shipped_method_settings("paper_results") == shipped
     assert differing_keys(_profile_method("test"), shipped) == ["mpm.learning_rate", "plasticity.k_neighbors",
                                                                 "plasticity.start_frame"]
     assert "mpm.grid_res" not in shipped and "frames" not in shipped and "mpm.drag" not in shipped
@@ -118,6 +123,13 @@ def test_check_names_the_keys_and_fails_on_the_default_page(tmp_path):
     (docs / "results.md").write_text("# no record\n")
     lines, default_bad = check_pages(docs)
     assert default_bad and "results.md: records no method settings (regenerate it)" in lines
+    # the paper profile's page is measured against what config/paper.yaml sets: its volume weight
+    paper = shipped_method_settings("paper")
+    _page(docs, "paper_scale.md", "paper", paper)
+    assert not any(ln.startswith("paper_scale.md") for ln in check_pages(docs)[0])
+    _page(docs, "paper_scale.md", "paper", {**paper, "mpm.volume_weight": shipped["mpm.volume_weight"]})
+    assert "paper_scale.md (paper): method settings differ from the shipped ones in mpm.volume_weight" in \
+        check_pages(docs)[0]
 
 
 def test_readme_table_has_one_value_a_cell_and_marks_other_methods(tmp_path):
