@@ -20,6 +20,12 @@ _state: dict = {}
 # stays, and every later process then skips the cache (each kernel compiled anew) and prints two
 # warnings at its start and exit. A lock this old is such a leftover.
 STALE_CACHE_LOCK_S = 600.0
+# Taichi's offline cache drops its least recently used quarter once its files pass a size (100 MB by
+# default). The test suite's many small solvers alone fill that, so a paper-scale run after them
+# compiled its solver and calibration kernels again: 5 s of its first frame and 3 s of its second
+# (benchmarks/bench_morph.py --profile paper, docs/study/performance_history.md). A gigabyte holds
+# every profile's kernels together.
+OFFLINE_CACHE_BYTES = 1 << 30
 
 
 def clear_stale_cache_locks(now: float | None = None) -> list[Path]:
@@ -148,7 +154,7 @@ def init_taichi(device: str = "cpu", threads: int | None = None, debug: bool = F
         env = os.environ.get("PHYSMORPH_THREADS")
         threads = int(env) if env else None
     kwargs = dict(arch=ti.cuda if arch == "cuda" else ti.cpu, debug=debug, log_level=ti.WARN,
-                  offline_cache=True, random_seed=0)
+                  offline_cache=True, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, random_seed=0)
     if os.environ.get("PHYSMORPH_QUICK_COMPILE") == "1":
         # Taichi's IR optimisation passes off: kernels compile in about 60 % of the time, for
         # many small solvers of different settings (the test suite sets it; runs do not)

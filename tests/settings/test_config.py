@@ -351,6 +351,8 @@ def test_quick_compile_turns_off_taichis_ir_optimisation_only_when_asked(monkeyp
         monkeypatch.delenv("PHYSMORPH_QUICK_COMPILE", raising=False)
     rt.init_taichi("cpu")
     assert seen["offline_cache"] is True
+    # the cache keeps a gigabyte of kernels: the suite's do not push a profile's out
+    assert seen["offline_cache_max_size_of_files"] == rt.OFFLINE_CACHE_BYTES >= 1 << 30
     assert seen.get("advanced_optimization", True) is (quick is None)
 
 
