@@ -253,7 +253,8 @@ def readme_table(docs_dir: Path) -> str:
         if record.get("kind") != "results":
             continue
         s = record.get("summary", {})
-        mark = " †" if differing_keys(record.get("method", {}), shipped_method_settings(record["profile"])) else ""
+        shipped = shipped_method_settings(record["profile"])
+        mark = " †" if differing_keys(record.get("method", {}), shipped) else ""
         marked |= bool(mark)
         iso = s.get("iso_full_last")
         iso_cell = f"{iso['closed_last_%']:.1f} % ({iso['experiment'].split('_')[1]})" if iso else ""
