@@ -17,6 +17,7 @@ from physmorph.morph.quality import silhouette_iou, volume_metrics
 from physmorph.morph.targets import load_target
 from physmorph.mpm.solver import solver_for
 from physmorph.mpm.state import ParticleState, kinetic_energy, total_volume
+from physmorph.plasticity.surface_walk import WALK_MIN_QUERIES, build_in_background
 from physmorph.render.api import render_views
 from physmorph.render.containers import RenderTarget
 from physmorph.settings.morph import MorphConfig
@@ -62,6 +63,11 @@ class MorphInputs:
             from physmorph.plasticity.nearest import DevicePoints
 
             self.target_on_device = DevicePoints(target.surface_points, self.search_device)
+        # From WALK_MIN_QUERIES particles on the CPU a frame's nearest points are walked to from the
+        # last frame's (physmorph.plasticity.surface_walk); its graph is built beside frame 0
+        self._walk_pending = (build_in_background(target.surface_points)
+                              if self.search_device is None and N >= WALK_MIN_QUERIES else None)
+        self.walk = None
         # MPM conserves mass, so a target of another total mass cannot be matched: the squared loss
         # would then be lowered by smearing the excess thinly. The target's mass distribution is
         # rescaled to the source's total mass (its shape is what is matched).
@@ -123,10 +129,19 @@ class MorphInputs:
                 "chamfer": float(d.mean()),
                 **volume_metrics(st.x, self.parts.mass, target.grid_mass, target.grid, splat=grid_mass)}, per_view, dm
 
+    def wait_for_walk(self) -> None:
+        """The surface walk's graph, where one is being built, ready (or None: Qhull could not)."""
+        if self._walk_pending is not None:
+            self.walk, self._walk_pending = self._walk_pending(), None
+
     def nearest_target(self, x: np.ndarray,  # [N, 3]
+                       start: np.ndarray | None = None,  # [N] indices: each x's nearest a little before
                        ) -> tuple[np.ndarray, np.ndarray]:  # [N] distances, [N] indices
-        """Each x's nearest target surface point: the KD tree on the CPU, the exhaustive search of
+        """Each x's nearest target surface point: on the CPU the KD tree, or with ``start`` and a
+        walk built the surface walk from there (the same points); the exhaustive search of
         physmorph.plasticity.nearest on the device."""
-        if self.target_on_device is None:
-            return self.tree.query(x, k=1, workers=-1)
-        return self.target_on_device.query(x)
+        if self.target_on_device is not None:
+            return self.target_on_device.query(x)
+        if start is not None and self.walk is not None:
+            return self.walk.query(x, start)
+        return self.tree.query(x, k=1, workers=-1)

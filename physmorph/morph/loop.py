@@ -111,6 +111,7 @@ class MorphRun:
             self.log(f"[{self.name}] resuming after frame {checkpoint.frame}/{cfg.frames}")
             self.a0 = run.frame_metric(0, "alpha_mse")
         self.judge.begin(start, self.fs, checkpoint)
+        self.inputs.wait_for_walk()  # built beside frame 0: its memory is given back before frame 1's
         return start
 
     def frame_zero(self) -> FrameState:
@@ -184,7 +185,7 @@ class MorphRun:
         """Each particle's nearest target surface point, shared by the mask, the plasticity's
         nearest-point map and the Chamfer metric (plasticity changes only Fp), and the surface mask."""
         cfg, fs = self.cfg, self.fs
-        self.nearest_d, self.nearest_i = self.inputs.nearest_target(fs.state.x)
+        self.nearest_d, self.nearest_i = self.inputs.nearest_target(fs.state.x, start=self.nearest_i)
         if self.inputs.need_mask:
             fs.mask = update_surface_mask(fs.state.x, fs.state.volume, self.inputs.tree, cfg.surface, cfg.mpm.domain_lo,
                                           cfg.mpm.domain_hi, previous=fs.mask, target_distance=self.nearest_d,

@@ -470,3 +470,29 @@ def test_stray_pull_density_counts_the_target_splats_rim_as_outside(tiny):
     by_density = dataclasses.replace(by_node, stray_pull_density=0.1)
     _, w = stray_pull_anchors(x, np.ones(2), near_d, np.zeros(2, int), target, by_density)
     assert w[0] == 1.0 / (cfg.mpm.density * g.dx ** 3) / g.dx ** 2 and w[1] == 0.0
+
+
+def test_a_run_that_walks_to_its_nearest_target_points_is_the_run_that_queries_the_tree(tiny, tiny_runs, monkeypatch):
+    """From WALK_MIN_QUERIES particles a run finds each frame's nearest target points by the surface
+    walk (physmorph.plasticity.surface_walk) instead of the KD tree: the same points, so the same run
+    to the bit. The tiny run walks here; its every metric equals the tree's run."""
+    import physmorph.morph.inputs as inputs
+    from physmorph.plasticity.surface_walk import SurfaceWalk
+
+    walked = []
+    query = SurfaceWalk.query
+
+    def counted(self, x, start):
+        walked.append(len(x))
+        return query(self, x, start)
+
+    monkeypatch.setattr(inputs, "WALK_MIN_QUERIES", 0)
+    monkeypatch.setattr(SurfaceWalk, "query", counted)
+    walking = read_metrics(run_tiny(tiny, "iso_bunny_full", "walk.h5"))
+    frames = len(walking["alpha_mse"]) - 1
+    assert len(walked) >= frames - 1  # every frame after the first (the first has no start)
+    tree = tiny_runs["full"]
+    for key, values in tree.items():
+        if key == "attrs" or key.startswith("t_"):
+            continue
+        np.testing.assert_array_equal(walking[key], values, err_msg=key)
