@@ -92,8 +92,9 @@ class SurfaceWalk:
 
     @classmethod
     def build(cls, points: np.ndarray,  # [M, 3]
-              ) -> "SurfaceWalk | None":
-        """The walk over ``points``, or None where Qhull cannot tetrahedralise them (module docstring)."""
+              audit: bool = True) -> "SurfaceWalk | None":
+        """The walk over ``points``, or None where it cannot be trusted (module docstring). Without
+        ``audit`` no Taichi kernel runs (the caller audits with :meth:`passes_audit`)."""
         from scipy.spatial import Delaunay, QhullError, cKDTree
 
         points = np.ascontiguousarray(points, dtype=np.float64)
@@ -116,17 +117,20 @@ class SurfaceWalk:
         if np.any(first[1:] == first[:-1]):
             return None
         walk = cls(points, first.astype(np.int32), neighbours.astype(np.int32))
-        return walk if walk.agrees_with(tree, extent) else None
+        return walk if not audit or walk.passes_audit() else None
 
-    def agrees_with(self, tree, extent: float) -> bool:
-        """The audit of a new walk: AUDIT_QUERIES queries near and around the surface, walked from
-        random starts, at the KD tree's distances (the same seed on every build)."""
+    def passes_audit(self) -> bool:
+        """A new walk's audit: AUDIT_QUERIES queries near and around the surface, walked from random
+        starts, at the KD tree's distances (the same seed on every build)."""
+        from scipy.spatial import cKDTree
+
+        extent = float(np.ptp(self.points, axis=0).max())
         rng = np.random.default_rng(0)
         n = AUDIT_QUERIES // len(AUDIT_SCALES)
         x = np.concatenate([self.points[rng.integers(0, len(self.points), n)] + rng.normal(scale=s * extent, size=(n, 3))
                             for s in AUDIT_SCALES])
         d, _ = self.query(x, rng.integers(0, len(self.points), len(x)))
-        return bool(np.array_equal(d, tree.query(x, k=1)[0]))
+        return bool(np.array_equal(d, cKDTree(self.points).query(x, k=1)[0]))
 
     def query(self, x: np.ndarray,  # [N, 3]
               start: np.ndarray,  # [N] each query's first point (last frame's nearest)
@@ -145,11 +149,17 @@ class SurfaceWalk:
 
 def build_in_background(points: np.ndarray,  # [M, 3]
                         ) -> Callable[[], "SurfaceWalk | None"]:
-    """SurfaceWalk.build(points) started on a thread of its own (Qhull releases the GIL, so it runs
-    beside the caller's work); returns the call that waits for it and gives its result."""
+    """SurfaceWalk.build(points) started on a thread of its own (Qhull lets go of the interpreter,
+    so it runs beside the caller's work); returns the call that waits for it and then audits the
+    walk in the caller's thread (Taichi's kernels are launched from one thread only)."""
     from concurrent.futures import ThreadPoolExecutor
 
     pool = ThreadPoolExecutor(1, thread_name_prefix="surface-walk")
-    future = pool.submit(SurfaceWalk.build, points)
+    future = pool.submit(SurfaceWalk.build, points, False)
     pool.shutdown(wait=False)
-    return future.result
+
+    def result() -> "SurfaceWalk | None":
+        walk = future.result()
+        return walk if walk is not None and walk.passes_audit() else None
+
+    return result

@@ -60,7 +60,7 @@ def test_degenerate_point_sets():
 
 def test_a_walk_that_disagrees_with_the_tree_is_not_used(monkeypatch):
     """The audit: a walk whose graph misses edges (every other neighbour dropped) ends short of the
-    nearest point somewhere, and build gives no walk."""
+    nearest point somewhere, and build gives no walk, nor does the build beside the caller's work."""
     import physmorph.plasticity.surface_walk as sw
 
     rng = np.random.default_rng(6)
@@ -73,8 +73,11 @@ def test_a_walk_that_disagrees_with_the_tree_is_not_used(monkeypatch):
         real(self, points, np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), neighbours[keep])
 
     assert sw.SurfaceWalk.build(pts) is not None
+    assert sw.build_in_background(pts)() is not None
     monkeypatch.setattr(sw.SurfaceWalk, "__init__", thinned)
+    assert sw.SurfaceWalk.build(pts, audit=False) is not None
     assert sw.SurfaceWalk.build(pts) is None
+    assert sw.build_in_background(pts)() is None  # built on its thread, audited in this one
 
 
 def test_a_start_of_the_wrong_size_or_out_of_range_is_refused():
