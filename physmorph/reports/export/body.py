@@ -13,8 +13,11 @@
   (between, by where the voxels fall). Two walls less than a cell apart share the grid nodes
   whose velocities move them, so the physics cannot hold such a tunnel open or shut; the surface
   drawn over the particles opens or shuts it with its own grid's settings (docs/study/log.md
-  findings 322 and 324). The target mesh is measured the same way: a gap of the target narrower
-  than that closes in both;
+  findings 322 and 324). The voxels also close a gap narrower than about a voxel, which can join
+  two parts that nearly touch into a loop the surface does not have (Homer's legs, a third of a
+  unit apart at the ankles: finding 327), so the count is the smaller of the solid's and the
+  closed surface's own genus: a tunnel is counted where the surface has it and it is as wide as
+  the body's scale. The target mesh is measured the same way;
 * surface distance, 95th percentile: the 95th percentile of the distance from each of two point
   samples of the surfaces to the other surface, the larger of the two directions, in grid cells (a
   mean hides a missing hole or a stroke: this does not);
@@ -76,11 +79,11 @@ def voxel_topology(mesh: trimesh.Trimesh, pitch: float) -> tuple[int, int, int]:
 
 
 def body_genus(mesh: trimesh.Trimesh, dx: float) -> int:
-    """The tunnels through the solid a closed surface encloses, in voxels of BODY_PITCH_DX grid cells
-    (the module docstring); -1 for a surface that is not closed."""
+    """The tunnels through the solid a closed surface encloses, in voxels of BODY_PITCH_DX grid cells,
+    no more than the surface's own genus (the module docstring); -1 for a surface that is not closed."""
     if not mesh.is_watertight:
         return -1
-    return voxel_topology(mesh, BODY_PITCH_DX * float(dx))[1]
+    return min(components_and_genus(mesh)[1], voxel_topology(mesh, BODY_PITCH_DX * float(dx))[1])
 
 
 def surface_distance_p95(samples: np.ndarray,  # [S, 3] points on the surface
