@@ -474,8 +474,8 @@ def test_stray_pull_density_counts_the_target_splats_rim_as_outside(tiny):
 
 def test_a_run_that_walks_to_its_nearest_target_points_is_the_run_that_queries_the_tree(tiny, tiny_runs, monkeypatch):
     """From WALK_MIN_QUERIES particles a run finds each frame's nearest target points by the surface
-    walk (physmorph.plasticity.surface_walk) instead of the KD tree: the same points, so the same run
-    to the bit. The tiny run walks here; its every metric equals the tree's run."""
+    walk (physmorph.plasticity.surface_walk) instead of the KD tree: the same points, so the same run.
+    The tiny run walks here; its every metric equals the tree's run's to the threads' summation order."""
     import physmorph.morph.inputs as inputs
     from physmorph.plasticity.surface_walk import SurfaceWalk
 
@@ -495,4 +495,7 @@ def test_a_run_that_walks_to_its_nearest_target_points_is_the_run_that_queries_t
     for key, values in tree.items():
         if key == "attrs" or key.startswith("t_"):
             continue
-        np.testing.assert_array_equal(walking[key], values, err_msg=key)
+        # the losses are atomic sums over the grid whose order the threads choose, so their last bit
+        # varies from run to run of the same code (seen: 2e-16 to 5e-15 relative at one frame of
+        # thirteen); a nearest point found otherwise would move a frame's numbers far above 1e-12
+        np.testing.assert_allclose(walking[key], values, rtol=1e-12, atol=0, err_msg=key)
