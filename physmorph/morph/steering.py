@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from physmorph.settings.morph import MorphConfig
-from physmorph.morph.waypoints import physics_objective, plan_exists
+from physmorph.morph.waypoints import outside_target, physics_objective, plan_exists
 from physmorph.mpm.state import ParticleState
 
 
@@ -154,8 +154,7 @@ def stray_pull_anchors(x: np.ndarray,  # [N, 3]
                              ((x - np.asarray(grid.lo)) / grid.dx).T, order=1, mode="constant", cval=0.0)
         outside = at <= cfg.stray_pull_density
     else:
-        node = np.clip(np.rint((x - np.asarray(grid.lo)) / grid.dx).astype(np.int64), 0, grid.res - 1)
-        outside = target.grid_mass[node[:, 0], node[:, 1], node[:, 2]] <= 0.0
+        outside = outside_target(x, target.grid_mass, grid)
     stray = outside & (nearest_d > cfg.stray_pull_onset * grid.dx)
     weight = np.where(stray, cfg.stray_pull * mass / cell_mass / grid.dx ** 2, 0.0)
     return np.asarray(target.surface_points)[nearest_i], weight

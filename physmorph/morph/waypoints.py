@@ -45,7 +45,8 @@ TO_TARGET = "physics_loss_to_target"
 
 def waypoint_positions(x: np.ndarray,  # [N, 3] the particles at the frame's start
                        destination: np.ndarray,  # [N, 3] their transport destinations
-                       step: float, onset: float) -> np.ndarray:  # [N, 3]
+                       step: float | np.ndarray,  # scalar or [N]
+                       onset: float) -> np.ndarray:  # [N, 3]
     """y_p: each particle farther than ``onset`` from its destination moved ``step`` toward it
     (at most onto it); every other particle where it is (lengths in domain units)."""
     to = destination - x
@@ -72,11 +73,20 @@ def waypoint_grid_mass(x: np.ndarray,  # [N, 3]
 
 def plan_push(x: np.ndarray,  # [N, 3] the particles at the frame's start
               destination: np.ndarray,  # [N, 3] their transport destinations
-              length: float, onset: float, frame_time: float) -> np.ndarray:  # [N, 3]
+              length: float | np.ndarray,  # scalar or [N]
+              onset: float, frame_time: float) -> np.ndarray:  # [N, 3]
     """MorphConfig.plan_push_speed: the velocity added to each particle more than ``onset`` from its
     destination that would carry it ``length`` toward it over the frame (at most onto it), zero for
     every other particle: (y_p - x_p) / frame_time with y_p its waypoint (lengths in domain units)."""
     return (waypoint_positions(x, destination, length, onset) - x) / frame_time
+
+
+def outside_target(x: np.ndarray,  # [N, 3]
+                   target_mass: np.ndarray,  # [R, R, R] the target's grid mass
+                   grid: Grid) -> np.ndarray:  # [N] bool
+    """Particles whose nearest grid node holds no target mass (the stray pull's outside test)."""
+    node = np.clip(np.rint((x - np.asarray(grid.lo)) / grid.dx).astype(np.int64), 0, grid.res - 1)
+    return np.asarray(target_mass)[node[:, 0], node[:, 1], node[:, 2]] <= 0.0
 
 
 def plan_distance(x: np.ndarray,  # [N, 3]
@@ -132,7 +142,12 @@ class FramePlan:
         cfg = self.cfg
         if not (self.exists and cfg.plan_push_speed > 0 and share > 0):
             return st
-        dv = plan_push(st.x, self.destinations(), share * cfg.plan_push_speed,
+        length = share * cfg.plan_push_speed
+        if cfg.plan_push_outside != 1.0:
+            target = self.inputs.target
+            outside = outside_target(st.x, target.grid_mass, target.grid)
+            length = np.where(outside, cfg.plan_push_outside * length, length)
+        dv = plan_push(st.x, self.destinations(), length,
                        cfg.plan_push_onset * self.inputs.target.grid.dx, cfg.mpm.substeps * cfg.mpm.dt)
         return dataclasses.replace(st, v=st.v + dv)
 

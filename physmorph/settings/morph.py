@@ -165,6 +165,11 @@ class MorphConfig:
     plan_push_onset: Annotated[Float, setting(
         "the plan's push acts on particles more than this far from their transport destination", "cells",
         ge=0)] = 1.0
+    # Material outside the target (a lump under a table's top) is what the push has to carry in; the
+    # body inside already fills the target, where a faster push only stirs it (docs/study/log.md part 77).
+    plan_push_outside: Annotated[Float, setting(
+        "the plan's push for particles outside the target (their nearest grid node holds no target mass), "
+        "as a multiple of plan_push_speed", "", ge=0)] = 1.0
     # Spray the control cannot move (a lone particle's stress moves it not at all) moved back into the
     # body between frames (physmorph.morph.reabsorb). Not in the paper: its adaptive particle
     # redistribution, the reabsorbing part.

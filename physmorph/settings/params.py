@@ -107,7 +107,8 @@ def morph_params(cfg) -> str:
     if cfg.method != "full":
         d.pop("plasticity", None)
         for k in ("stray_pull", "stray_pull_onset", "stray_pull_density", "destination_pull", "destination_pull_onset",
-                  "reabsorb_strays", "spray_links", "waypoint_cells", "plan_push_speed", "plan_push_onset"):
+                  "reabsorb_strays", "spray_links", "waypoint_cells", "plan_push_speed", "plan_push_onset",
+                  "plan_push_outside"):
             d.pop(k, None)
     if cfg.method == "physics_only":
         for k in ("gamma", "gamma_x", "injection_calibration", "injection_calibration_every"):

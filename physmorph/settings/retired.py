@@ -60,6 +60,7 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     "waypoint_cells": 0.0,  # each frame's physics aims at the target itself
     "plan_push_speed": 0.0,  # no velocity along the transport plan
     "plan_push_onset": 1.0,
+    "plan_push_outside": 1.0,  # the push as fast outside the target as inside
     "settle_regrow": False,  # the settle phase's step stays backed off
     "plasticity.transport_projection": "barycentric",  # each destination the mean of its plan row
     # read only by settle_objective physics_then_alpha, which did not exist before it: any value ran

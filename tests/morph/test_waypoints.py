@@ -119,6 +119,31 @@ def test_the_push_backs_off_with_the_settle_phase_step(tiny):
     np.testing.assert_allclose(whole[2] - 1.0, [0.0, 0.6 / frame_time, 0.0])  # beyond it: onto its destination
 
 
+def test_the_push_outside_the_target_is_its_multiple(tiny):
+    """MorphConfig.plan_push_outside: a particle whose nearest grid node holds no target mass is
+    pushed that multiple of plan_push_speed; one inside the target's mass the plain speed."""
+    from types import SimpleNamespace
+
+    from physmorph.mpm.state import ParticleState
+
+    cfg, _ = tiny
+    full = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), plan_push_speed=0.5, plan_push_onset=1.0,
+                               plan_push_outside=3.0)
+    grid = Grid(32)  # domain [-16, 16], dx 1
+    target_mass = np.zeros((32, 32, 32))
+    target_mass[16, 16, 16] = 1.0  # the node at the origin
+    plan = waypoints.FramePlan(full, SimpleNamespace(target=SimpleNamespace(grid=grid, grid_mass=target_mass)))
+    plan._destination = np.array([[8.0, 0.0, 0.0], [8.0, 5.0, 0.0]])
+    eye = np.tile(np.eye(3), (2, 1, 1))
+    x = np.array([[0.2, 0.0, 0.0], [0.0, 5.0, 0.0]])  # inside the target's node, outside
+    st = ParticleState(x=x, v=np.zeros((2, 3)), F=eye, C=0 * eye, Fp=eye, mass=np.ones(2), volume=np.ones(2))
+    frame_time = full.mpm.substeps * full.mpm.dt
+    v = plan.pushed(st).v
+    np.testing.assert_allclose(v[0], [0.5 / frame_time, 0.0, 0.0])
+    np.testing.assert_allclose(v[1], [1.5 / frame_time, 0.0, 0.0])
+    np.testing.assert_array_equal(waypoints.outside_target(x, target_mass, grid), [False, True])
+
+
 def test_a_run_with_the_push_starts_each_frame_with_it(tiny, monkeypatch):
     """The physics of each frame is loaded with the frame's start state plus the plan's push (the
     state committed at the frame's end is the solver's). Slow (~3 s): a tiny full morph of 2 frames."""
