@@ -160,7 +160,7 @@ def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: st
     """docs/tradeoff.md: for each profile whose study exists under ``results_root/{profile}/tradeoff/``
     its ranked points, knob ranking and budget recommendations, and one Pareto figure with every
     scale (``out_png``, linked relative to the page)."""
-    from physmorph.studies.tradeoff import pareto_figure, tradeoff_markdown
+    from physmorph.studies.tradeoff import pareto_figure, summarize_points, tradeoff_markdown
 
     frames = {}
     for p in profiles:
@@ -170,7 +170,8 @@ def write_tradeoff_doc(profiles: list[str], results_root: str | Path, out_md: st
                                     f"(snakemake --cores 2 tradeoff, with that profile's --configfile)")
         df = pd.read_csv(csv)
         df[["knob", "value"]] = df[["knob", "value"]].fillna("")  # the base's (written empty)
-        frames[p] = df
+        # the front and the gains per second from the points' own numbers, by the present rules
+        frames[p] = summarize_points(df.drop(columns=["pareto", "gap_gain_per_s"], errors="ignore").to_dict("records"))
     out_md, out_png = Path(out_md), Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     pareto_figure(frames, out_png, "speed / accuracy: one knob at a time around each profile's base")

@@ -23,6 +23,12 @@ from physmorph.base.markdown import markdown_table
 from physmorph.settings.study_points import TradeoffPoint, tradeoff_points  # noqa: F401
 
 QUALITY = 0.9  # the share of the reachable gap that time-to-quality is measured to
+# A knob's gain over the base within this share of the gap is no gain: the pages print the gap to a
+# tenth of a point, and what changes only the arithmetic moves it by about 1e-6 (the study's
+# threads-1 and precision-float64 points: two threads' sums, float64), which per second of extra
+# time would otherwise rank as a gain bought.
+GAP_TOLERANCE = 1e-3
+VERDICTS = ("free (faster and better)", "costs time", "no gain", "worse")  # knob_ranking's, in its order
 
 
 def pareto_front(time_s: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -59,36 +65,49 @@ def point_row(name: str, point: TradeoffPoint, metrics: dict, dx: float) -> dict
 def summarize_points(rows: list[dict]) -> pd.DataFrame:
     """rows: name, knob, value, time_to_90_s, gap_last, time_s (and more). Adds the Pareto flag
     (wall time against the gap left at the last frame) and, per point, the final gap closed per
-    extra second relative to the base (as knob_ranking: a point faster than the base and better
-    has no cost to divide by, inf; one faster and no better bought nothing, NaN); sorted by time to
-    90 % (never last)."""
+    extra second relative to the base (as knob_ranking: a gain within GAP_TOLERANCE is none; a point
+    faster than the base and better has no cost to divide by, inf; one faster and no better bought
+    nothing, NaN); sorted by time to 90 % (never last)."""
     df = pd.DataFrame(rows)
     df["pareto"] = pareto_front(df["time_s"].to_numpy(), 1.0 - df["gap_last"].to_numpy())
     base = df[df["name"] == "base"].iloc[0]
     dt = df["time_s"] - base["time_s"]
-    gain = df["gap_last"] - base["gap_last"]
+    gain = _gain(df["gap_last"] - base["gap_last"])
     costs = dt > 1e-9
     df["gap_gain_per_s"] = np.where(costs, gain / dt.where(costs, 1.0),
                                     np.where(gain > 0, np.inf, np.where(dt.abs() <= 1e-9, 0.0, np.nan)))
     return df.sort_values(["time_to_90_s", "time_s"], na_position="last", ignore_index=True)
 
 
+def _gain(gain):
+    """A gain in the share of the gap closed (a float or a Series), 0 where within GAP_TOLERANCE."""
+    if isinstance(gain, pd.Series):
+        return gain.where(gain.abs() > GAP_TOLERANCE, 0.0)
+    return 0.0 if abs(gain) <= GAP_TOLERANCE else float(gain)
+
+
 def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
     """One row per knob: its best point by final gap closed, the gain over the base, its cost and a
-    verdict (free: faster and better, its gain_per_s inf; costs time; worse)."""
+    verdict (free: faster and better, its gain_per_s inf; costs time; no gain: within GAP_TOLERANCE
+    of the base's gap, its gain_per_s 0; worse)."""
     base = df[df["name"] == "base"].iloc[0]
     rows = []
     for knob, g in df[df["knob"] != ""].groupby("knob"):
         best = g.loc[g["gap_last"].idxmax()]
         gain = best["gap_last"] - base["gap_last"]
         extra = best["time_s"] - base["time_s"]
+        bought = _gain(gain)
         # a knob that is both faster and better has no cost to divide by: "free" ranks it first
-        verdict = ("worse" if gain <= 0 else "free (faster and better)" if extra <= 1e-9 else "costs time")
+        verdict = ("worse" if bought < 0 else "no gain" if bought == 0 else
+                   "free (faster and better)" if extra <= 1e-9 else "costs time")
         rows.append({"knob": knob, "best_value": best["value"], "gap_last": best["gap_last"],
                      "gain_vs_base": gain, "extra_time_s": extra,
-                     "gain_per_s": gain / extra if extra > 1e-9 else (np.inf if gain > 0 else 0.0),
+                     "gain_per_s": bought / extra if extra > 1e-9 else (np.inf if bought > 0 else 0.0),
                      "verdict": verdict})
-    return pd.DataFrame(rows).sort_values("gain_per_s", ascending=False, ignore_index=True)
+    ranked = pd.DataFrame(rows)
+    order = ranked["verdict"].map({v: i for i, v in enumerate(VERDICTS)})
+    return ranked.assign(_order=order).sort_values(["_order", "gain_per_s"], ascending=[True, False],
+                                                    ignore_index=True).drop(columns="_order")
 
 
 def recommendations(df: pd.DataFrame, quality: float = QUALITY) -> pd.DataFrame:

@@ -5,7 +5,7 @@ import pytest
 
 from physmorph.settings.errors import ConfigError
 from physmorph.settings.workflow import load_settings
-from physmorph.studies.tradeoff import knob_ranking, pareto_front, point_row, recommendations, summarize_points, time_to_quality
+from physmorph.studies.tradeoff import GAP_TOLERANCE, knob_ranking, pareto_front, point_row, recommendations, summarize_points, time_to_quality
 from physmorph.settings.study_points import tradeoff_points
 
 FIELDS = ("grid_res", "ppc_surface", "ppc_interior", "width", "cameras", "grad_iters", "learning_rate", "frames",
@@ -135,6 +135,27 @@ def test_knob_ranking_gap_per_second():
     assert rank.set_index("knob").loc["cameras", "gain_vs_base"] == pytest.approx(-0.01)
 
 
+def test_a_gain_within_the_tolerance_is_no_gain():
+    """What changes only the arithmetic (threads, float64) moves the gap by about 1e-6: neither a gain
+    bought per second nor a loss."""
+    rows = _rows()[:1] + [
+        {"name": "threads-1", "knob": "threads", "value": "1", "gap_last": 0.90 + 2e-6, "time_s": 14.0,
+         "time_to_90_s": 9.0, "volume_iou_last": 0.9},
+        {"name": "precision-float64", "knob": "precision", "value": "float64", "gap_last": 0.90 - 1e-9,
+         "time_s": 20.0, "time_to_90_s": 12.0, "volume_iou_last": 0.9},
+        {"name": "cameras-4", "knob": "cameras", "value": "4", "gap_last": 0.90 + 2 * GAP_TOLERANCE, "time_s": 12.0,
+         "time_to_90_s": 9.0, "volume_iou_last": 0.9}]
+    df = summarize_points(rows)
+    assert df.set_index("name").loc["threads-1", "gap_gain_per_s"] == 0.0
+    rank = knob_ranking(df).set_index("knob")
+    assert rank.loc["threads", "verdict"] == "no gain" and rank.loc["threads", "gain_per_s"] == 0.0
+    assert rank.loc["precision", "verdict"] == "no gain"
+    assert rank.loc["threads", "gain_vs_base"] == pytest.approx(2e-6)  # the measured difference still shown
+    assert rank.loc["cameras", "verdict"] == "costs time"
+    assert rank.loc["cameras", "gain_per_s"] == pytest.approx(2 * GAP_TOLERANCE / 2.0)
+    assert knob_ranking(df)["knob"].tolist()[0] == "cameras"
+
+
 def test_recommendations_read_the_budget_off_the_points():
     rec = recommendations(summarize_points(_rows())).set_index("budget")
     assert rec.loc["fast", "point"] == "image-80x45"  # the fastest at >= 90 % at its last frame
@@ -150,6 +171,7 @@ def test_the_docs_page_reads_the_studys_csv_back(tmp_path):
 
     df = summarize_points([{**r, "particles": 1000 + i, "gap_best": r["gap_last"], "chamfer_last_dx": 0.8,
                             "peak_rss_mb": 500.0} for i, r in enumerate(_rows())])
+    df["gap_gain_per_s"] = 123.0  # a study summarised by earlier rules: the page works the gains out again
     for profile in ("default", "mid"):
         (tmp_path / "results" / profile / "tradeoff").mkdir(parents=True)
         df.to_csv(tmp_path / "results" / profile / "tradeoff" / "tradeoff.csv", index=False)
@@ -157,3 +179,4 @@ def test_the_docs_page_reads_the_studys_csv_back(tmp_path):
                               tmp_path / "docs" / "images" / "pareto.png").read_text()
     assert "# Profile `default` (1,000 particles at the base)" in page and "# Profile `mid`" in page
     assert "](images/pareto.png)" in page and (tmp_path / "docs" / "images" / "pareto.png").stat().st_size > 10_000
+    assert "123" not in page and "| grid_res-48 |" in page
