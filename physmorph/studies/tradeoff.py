@@ -80,10 +80,8 @@ def summarize_points(rows: list[dict]) -> pd.DataFrame:
 
 
 def _gain(gain):
-    """A gain in the share of the gap closed (a float or a Series), 0 where within GAP_TOLERANCE."""
-    if isinstance(gain, pd.Series):
-        return gain.where(gain.abs() > GAP_TOLERANCE, 0.0)
-    return 0.0 if abs(gain) <= GAP_TOLERANCE else float(gain)
+    """A gain in the share of the gap closed (a float or an array), 0 where within GAP_TOLERANCE."""
+    return np.where(np.abs(gain) > GAP_TOLERANCE, gain, 0.0)
 
 
 def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
@@ -96,7 +94,7 @@ def knob_ranking(df: pd.DataFrame) -> pd.DataFrame:
         best = g.loc[g["gap_last"].idxmax()]
         gain = best["gap_last"] - base["gap_last"]
         extra = best["time_s"] - base["time_s"]
-        bought = _gain(gain)
+        bought = float(_gain(gain))
         # a knob that is both faster and better has no cost to divide by: "free" ranks it first
         verdict = ("worse" if bought < 0 else "no gain" if bought == 0 else
                    "free (faster and better)" if extra <= 1e-9 else "costs time")
