@@ -54,10 +54,17 @@ def test_frames_commit_read_and_finish(tmp_path):
     np.testing.assert_allclose(m["alpha_mse"], [1.0, 0.5, 1 / 3])
     assert np.isnan(m["loss_dt"]).all() and m["alpha_mse_views"].shape == (3, V)
     assert "frames 0..2 committed" in describe_run(d)
+    with h5py.File(d / "frame_0001.h5") as f:  # the frame's arrays as stored: compressed chunks
+        stored = {name: (f[f"state/{name}"].chunks, f[f"state/{name}"].id.read_direct_chunk((0,) * f[f"state/{name}"].ndim))
+                  for name in f["state"]}
     log = []
     with RunWriter(out, KEY) as w:
         assert w.resume(log=log.append).frame == 2 and not log
         w.finish("complete", {"injection_scale": 1.0}, {"frames": 3})
+    with h5py.File(out) as f:  # the finished file holds them byte for byte, chunked as they were
+        assert {name: (f[f"states/frame_0001/{name}"].chunks,
+                       f[f"states/frame_0001/{name}"].id.read_direct_chunk((0,) * f[f"states/frame_0001/{name}"].ndim))
+                for name in f["states/frame_0001"]} == stored
     assert not d.exists()
     m = read_metrics(out)
     assert set(m) == set(SCALARS) | {"alpha_mse_views", "attrs"}
