@@ -4,7 +4,10 @@ mass loss, backward and a step on dFc per frame), as small objects acting on a s
 NormalizedGD (the default, DiffMPMLib3D's): dFc <- dFc - alpha g / rms(g), alpha halved until the
 objective decreases (MPMConfig.line_search_iters tries), with the step-volume projection and
 per-volume weights of the step (physmorph.mpm.step_kernels). Adam (the paper's): bias-corrected moments warm-started across
-frames. Both end with a forward of the updated dFc, so the solver's rollout() returns it.
+frames. Both end with a forward of the updated dFc, so the solver's rollout() returns it; with
+MPMConfig.frame_end "last_forward" the last iteration's step is taken without that forward (nor
+the line search's trial), the stored trajectory stays the one its gradient was taken on, and
+state_at(T) returns that rollout's end (the frame's state, as Algorithm 1 promotes it).
 """
 
 import numpy as np
@@ -52,7 +55,7 @@ class Adam:
                 losses.append(s.forward())
                 s.backward(grad_F_final, grad_x_final)
             self.step(learning_rate)
-        loss_final = s.forward()
+        loss_final = losses[-1] if s.cfg.frame_end == "last_forward" else s.forward()
         return frame_summary(losses[0], loss_final, losses, s.grad_norm, iters)
 
 
@@ -108,6 +111,13 @@ class NormalizedGD:
             rms = self.step_norm(volume_mode) / np.sqrt(cfg.n_control_slots * s.n * 9)
             if not rms > 0:
                 break
+            if j == iters - 1 and cfg.frame_end == "last_forward":
+                # the step for the next frame, untried: this frame ends where its rollout did
+                s.control_steps.normalized_step(s.control_field.ctrl_grad, alpha, 1.0 / rms, cfg.step_clip, volume_mode)
+                s.current.stale()
+                self.last_step = alpha
+                return frame_summary(loss_initial, s.physics_loss.last_loss, losses, s.grad_norm, accepted + 1,
+                                     step=alpha)
             found, obj, alpha = self.line_search(grad_F_final, grad_x_final, volume_mode, obj, alpha, rms)
             if not found:
                 s.control_field.restore_base()

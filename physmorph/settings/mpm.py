@@ -48,7 +48,7 @@ STEP_VOLUME_MODES = ("full", "particle")
 # kernel bakes them in, so a built solver takes new values without compiling again
 # (MPMSolver.configure, solver_for). tests/mpm/test_mpm_solver.py checks no kernel reads them.
 DRIVER_FIELDS = frozenset({"learning_rate", "step_scales_with_dx", "optimizer", "line_search_iters", "step_clip",
-                           "step_per_volume", "step_volume", "step_volume_share", "grad_iters",
+                           "step_per_volume", "step_volume", "step_volume_share", "grad_iters", "frame_end",
                            "log_mass_eps", "cfl", "cfl_warn_fraction", "volume_weight"})
 
 
@@ -187,6 +187,10 @@ class MPMConfig:
         "normalized_gd: halvings of the step tried before a step is undone", ge=1)] = 10
     grad_iters: Annotated[Int, setting(
         "optimiser iterations per frame (J); experiments set it with `grad_iters`", ge=1)] = 1
+    frame_end: Annotated[Literal["stepped", "last_forward"], setting(
+        "the state a frame ends in: stepped, the rollout of the frame's updated control (the line search's "
+        "accepted trial, Adam's last forward); last_forward, the end of the rollout its last gradient was "
+        "taken on, one forward fewer (Algorithm 1 as printed: the step acts from the next frame)")] = "stepped"
     adam_beta1: Annotated[Float, setting("Adam's first-moment decay", ge=0, lt=1)] = 0.9
     adam_beta2: Annotated[Float, setting("Adam's second-moment decay", ge=0, lt=1)] = 0.999
     adam_eps: Annotated[Float, setting("Adam's epsilon", gt=0)] = 1e-8

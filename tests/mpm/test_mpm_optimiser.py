@@ -82,6 +82,35 @@ def test_normalized_gd_step_clip_bounds_each_entry(state):
     np.testing.assert_allclose(step, -cfg.step_size * np.clip(g / rms, -1.5, 1.5), rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.parametrize("optimizer", ["normalized_gd", "adam"])
+def test_frame_end_last_forward_takes_the_same_step_one_forward_sooner(state, optimizer):
+    """frame_end "last_forward": the frame's one forward is the rollout its gradient is taken on,
+    and its end is the frame's state; the control then holds the same step as with "stepped"
+    (where the line search accepts its first try), which then runs a forward of it and ends there."""
+    runs = {}
+    for frame_end in ("stepped", "last_forward"):
+        cfg = cfg64(substeps=3, optimizer=optimizer, learning_rate=1e-4, frame_end=frame_end)
+        s = make(cfg, state, reuse=True)
+        s.set_target_grid_mass(stretched_target(state, cfg, stretch=(1.06, 0.97, 0.97)))
+        s.reset_control()
+        s.load_state(state)
+        before = s.current.rollout
+        stats = s.optimize_control(iters=1)
+        runs[frame_end] = (s.current.rollout - before, s.control(), s.state_at(cfg.substeps), stats)
+        if frame_end == "last_forward":
+            s.reset_control()
+            s.load_state(state)
+            unstepped = s.rollout()  # the zero control's rollout, which the frame ended at
+    forwards, control, end, stats = runs["last_forward"]
+    assert forwards == 1 and runs["stepped"][0] >= 2
+    np.testing.assert_array_equal(control, runs["stepped"][1])
+    assert np.abs(control).max() > 0
+    np.testing.assert_array_equal(end.x, unstepped.x)
+    np.testing.assert_array_equal(end.F, unstepped.F)
+    assert np.abs(runs["stepped"][2].x - end.x).max() > 0  # the stepped frame ends elsewhere
+    assert stats["loss_final"] == stats["loss_initial"] and stats["iters"] == 1
+
+
 @pytest.mark.parametrize("clip", [0.0, 1.5])
 def test_step_per_volume_is_the_gradient_per_unit_volume_normalised(state, clip):
     """With step_per_volume the step is -alpha clip(w g / rms(w g)), w_p = V_max / V_p: a particle of

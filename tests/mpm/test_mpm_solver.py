@@ -227,7 +227,7 @@ def test_reused_solver_computes_what_a_new_one_does(state):
     np.testing.assert_array_equal(v_b, v_a)
     # every driver field changed; the kernels compiled above (with cfg) are kept
     driver = dict(optimizer="normalized_gd", learning_rate=3e-3, line_search_iters=4, step_clip=2.0,
-                  grad_iters=2, log_mass_eps=0.05, cfl=0.6, cfl_warn_fraction=0.9,
+                  grad_iters=2, frame_end="last_forward", log_mass_eps=0.05, cfl=0.6, cfl_warn_fraction=0.9,
                   step_scales_with_dx=False, step_per_volume=True, step_volume="particle",
                   step_volume_share=0.5, volume_weight=0.5)
     from physmorph.settings.mpm import DRIVER_FIELDS
