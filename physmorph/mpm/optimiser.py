@@ -79,13 +79,13 @@ class NormalizedGD:
                 J += float((np.asarray(grad_x_final) * x).sum())
         return J
 
-    def step_norm(self, volume_mode: int) -> float:
+    def step_norm(self, volume_mode: int, start: int = 0) -> float:
         """|d| of the step's direction (ControlSteps._step_direction: the weighted gradient, less a share of its
-        change of volume where asked)."""
+        change of volume where asked, at substep ``start``'s F)."""
         s = self.solver
         if not (s.model.weighted_step or volume_mode):
             return s.grad_norm  # the backward's own |g|
-        s.control_steps.direction_norm_sq(s.control_field.ctrl_grad, volume_mode)
+        s.control_steps.direction_norm_sq(s.control_field.ctrl_grad, volume_mode, start)
         return float(np.sqrt(s.control_field.norm_acc[None]))
 
     def run(self, grad_F_final, grad_x_final, iters: int, gradient_ready: bool, learning_rate: float) -> dict:
@@ -108,12 +108,16 @@ class NormalizedGD:
             # the step's change of volume is taken at the iteration's control)
             s.control_field.save_base()
             s.control_field.step_volume_share[None] = cfg.step_volume_share
-            rms = self.step_norm(volume_mode) / np.sqrt(cfg.n_control_slots * s.n * 9)
+            # the last step with frame_end last_forward acts from the next frame, which starts at
+            # this rollout's end: its change of volume is taken there
+            untried = j == iters - 1 and cfg.frame_end == "last_forward"
+            start = cfg.substeps if untried else 0
+            rms = self.step_norm(volume_mode, start) / np.sqrt(cfg.n_control_slots * s.n * 9)
             if not rms > 0:
                 break
-            if j == iters - 1 and cfg.frame_end == "last_forward":
-                # the step for the next frame, untried: this frame ends where its rollout did
-                s.control_steps.normalized_step(s.control_field.ctrl_grad, alpha, 1.0 / rms, cfg.step_clip, volume_mode)
+            if untried:  # the step for the next frame: this frame ends where its rollout did
+                s.control_steps.normalized_step(s.control_field.ctrl_grad, alpha, 1.0 / rms, cfg.step_clip, volume_mode,
+                                                start)
                 s.current.stale()
                 self.last_step = alpha
                 return frame_summary(loss_initial, s.physics_loss.last_loss, losses, s.grad_norm, accepted + 1,
@@ -135,7 +139,7 @@ class NormalizedGD:
         """Steps of length alpha, halved until the objective falls below obj: (found, objective, alpha)."""
         s, cfg = self.solver, self.solver.cfg
         for _ in range(cfg.line_search_iters):
-            s.control_steps.normalized_step(s.control_field.ctrl_grad, alpha, 1.0 / rms, cfg.step_clip, volume_mode)
+            s.control_steps.normalized_step(s.control_field.ctrl_grad, alpha, 1.0 / rms, cfg.step_clip, volume_mode, 0)
             s.current.stale()
             try:
                 trial = self.objective(grad_F_final, grad_x_final)

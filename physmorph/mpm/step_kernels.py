@@ -20,38 +20,40 @@ class ControlSteps:
         self.dtype = model.dtype
 
     @ti.func
-    def _step_direction(self, direction: ti.template(), s, p, volume_mode: ti.template()):
+    def _step_direction(self, direction: ti.template(), s, p, volume_mode: ti.template(), start):
         """w_p d_sp (w the particle's step weight, 1 unless step_per_volume), less a share of its
-        first-order change of volume (MPMConfig.step_volume; A = F_0 + dFc with dFc the
-        iteration's base control and F_0 the frame's start, n = A^-T). volume_mode 1 ("particle"):
-        the share beta (step_volume_share) of each particle's, d - beta (<d, n> / <n, n>) n."""
+        first-order change of volume (MPMConfig.step_volume; A = F_start + dFc with dFc the
+        iteration's base control and F_start the F the step will act from: substep ``start`` of the
+        stored rollout, 0 the frame's start, T its end where the step acts from the next frame
+        (MPMConfig.frame_end), n = A^-T). volume_mode 1 ("particle"): the share beta
+        (step_volume_share) of each particle's, d - beta (<d, n> / <n, n>) n."""
         d = direction[s, p] * self.model.step_weight[p]
         # volume_mode is a compile-time constant: the full step's kernels carry no 3x3 inverse
         if ti.static(volume_mode != 0):
-            A = self.trajectory.F[0, p] + self.control.ctrl_base[s, p]
+            A = self.trajectory.F[start, p] + self.control.ctrl_base[s, p]
             n = A.inverse().transpose()
             d -= (ti.cast(self.control.step_volume_share[None], self.dtype) * (d * n).sum() / (n * n).sum()) * n
         return d
 
     @ti.kernel
     def normalized_step(self, direction: ti.template(), alpha: ti.f64, inv_rms: ti.f64, clip: ti.f64,
-                         volume_mode: ti.template()):
+                         volume_mode: ti.template(), start: ti.i32):
         """dFc = base - alpha clip(d / rms(d), -clip, clip) (clip <= 0: unclipped), d the step's
         direction (_step_direction: the weighted gradient w g, less a share of its change of volume
         where asked): the normalised gradient step of DiffMPMLib3D's optimiser, in place (tests:
         the NumPy formula, test_mpm_optimiser)."""
         for s, p in self.control.ctrl:
-            d = self._step_direction(direction, s, p, volume_mode) * ti.cast(inv_rms, self.dtype)
+            d = self._step_direction(direction, s, p, volume_mode, start) * ti.cast(inv_rms, self.dtype)
             if clip > 0:
                 d = ti.math.clamp(d, -ti.cast(clip, self.dtype), ti.cast(clip, self.dtype))
             self.control.ctrl[s, p] = self.control.ctrl_base[s, p] - ti.cast(alpha, self.dtype) * d
 
     @ti.kernel
-    def direction_norm_sq(self, direction: ti.template(), volume_mode: ti.template()):
+    def direction_norm_sq(self, direction: ti.template(), volume_mode: ti.template(), start: ti.i32):
         """norm_acc = sum_sp |d_sp|^2, d the step's direction (_step_direction)."""
         self.control.norm_acc[None] = 0.0
         for s, p in direction:
-            d = self._step_direction(direction, s, p, volume_mode)
+            d = self._step_direction(direction, s, p, volume_mode, start)
             self.control.norm_acc[None] += ti.cast((d * d).sum(), ti.f64)
 
     @ti.kernel

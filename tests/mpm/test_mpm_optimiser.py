@@ -174,6 +174,29 @@ def test_step_volume_removes_the_steps_first_order_volume_change(state):
         cfg64(step_volume_share=1.5)
 
 
+def test_frame_end_last_forward_takes_the_steps_change_of_volume_where_it_acts(state):
+    """With frame_end "last_forward" the step acts from the next frame, which starts at the
+    rollout's end: the volume projection is taken at that F (the NumPy projection at F_T), not at
+    the frame's start."""
+    cfg = cfg64(substeps=3, optimizer="normalized_gd", learning_rate=1e-4, step_clip=0.0, step_per_volume=False,
+                step_volume="particle", step_volume_share=1.0, frame_end="last_forward")
+    s = make(cfg, state, reuse=True)
+    s.reset_control()
+    s.load_state(state)
+    s.forward()
+    s.backward()
+    g = s.control_gradient()
+    s.optimize_control(iters=1)
+    C = np.zeros_like(g)
+    steps = {}
+    for at, F in (("end", s.state_at(cfg.substeps).F), ("start", state.F)):
+        d = _volume_projection(g, F, C)
+        steps[at] = -cfg.step_size * d / np.sqrt(np.mean(d * d))
+    np.testing.assert_allclose(s.control(), steps["end"], rtol=1e-7, atol=1e-14)
+    # three substeps move F a little, but the two projections differ far beyond that tolerance
+    assert np.abs(steps["end"] - steps["start"]).max() > 1e-5 * np.abs(steps["end"]).max()
+
+
 def test_scale_control_is_the_numpy_product(state):
     """The morph loop's leak scales dFc in place: the same numbers as set_control(f x control())."""
     cfg = cfg64(substeps=3)
