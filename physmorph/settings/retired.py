@@ -66,4 +66,5 @@ ADDED_METHOD_SETTINGS: dict[str, object] = {
     # read only by settle_objective physics_then_alpha, which did not exist before it: any value ran
     # as the shipped one does
     "settle_handover": 0.02,
+    "mpm.frame_end": "stepped",  # each frame ended at the rollout of its stepped control
 }
