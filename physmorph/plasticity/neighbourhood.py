@@ -17,8 +17,9 @@ references are plasticity.knn_smooth and plasticity.displacement_jacobian.
 The neighbourhoods K_i themselves (step 2's k nearest particles of the pool) come from
 :func:`k_nearest`: a uniform cell grid over the particles, cells about the k-th neighbour's radius.
 Most queries are settled by the 3x3x3 cells around them (a histogram of r2 finds the bin of the
-k-th nearest, a second scan writes the row); the rest scan rings of cells, keeping their k best in
-a max-heap, until the k-th distance is inside the rings scanned. Exact, as the KD tree it replaces
+k-th nearest, a second pass over the candidates the first scan kept writes the row); the rest scan
+rings of cells, keeping their k best in a max-heap and passing over cells farther than its largest,
+until the k-th distance is inside the rings scanned. Exact, as the KD tree it replaces
 (plasticity.nearest_neighbours, the reference), which took ~3 s of a paper-scale frame for the
 query and another ~2 s to gather and square its arrays; the grid takes 1.3-2.2 s.
 """
@@ -28,7 +29,13 @@ query and another ~2 s to gather and square its arrays; the grid takes 1.3-2.2 s
 import numpy as np
 import taichi as ti
 
-from physmorph.base.taichi_runtime import ensure_taichi
+from physmorph.base.taichi_runtime import ensure_taichi, taichi_state
+
+
+# How many candidates (points of the 3x3x3 block within its reach) a row keeps for its second
+# pass, at most (M in _k_nearest_block): a row has about a quarter of its block's points, ~100 at
+# the sampling's density; the scratch is chunk x M x 12 bytes (16 MB at k_nearest's chunk).
+BLOCK_CANDIDATES = 160
 
 
 @ti.kernel
@@ -151,6 +158,18 @@ def _cell_range(cell, dims: ti.template(), cell_start: ti.template()):
 
 
 @ti.func
+def _cell_gap2(xi, cell, lo: ti.template(), h):
+    """The squared distance from x_i to grid cell ``cell``'s box (0 inside it): no point of the
+    cell is nearer, so a cell farther than a search's bound holds none of its points."""
+    g2 = ti.f64(0.0)
+    for a in ti.static(range(3)):
+        below = lo[a] + cell[a] * h
+        g = ti.max(below - xi[a], xi[a] - (below + h), 0.0)
+        g2 += g * g
+    return g2
+
+
+@ti.func
 def _cell_of(xi, lo: ti.template(), dims: ti.template(), h):
     c = ti.Vector([0, 0, 0])
     for a in ti.static(range(3)):
@@ -201,13 +220,19 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                      row0: ti.i32,  # the first query of this chunk
                      nb: ti.types.ndarray(ndim=2),  # [N, k] out: neighbour indices
                      r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [R, k] out: squared distances of rows row0..
+                     cand_r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [R, M] scratch: the candidates' r2
+                     cand_at: ti.types.ndarray(ndim=2),  # [R, M] scratch: the candidates' sorted pool rows
                      settled: ti.types.ndarray(ndim=1)):  # [N] out: 1 where the row is written
     """K_i from the 3x3x3 cells around x_i's alone, where they settle it: the points of the block
     within R_b of x_i (R_b: the distance to the block's nearest face with cells beyond it, so no
     point outside is nearer) number at least k. A histogram of their r2 in k bins over [0, R_b^2] finds the
-    bin holding the k-th; a second scan writes every point below that bin and keeps the nearest
-    of that bin's in a max-heap over the row's remaining slots. The row is in no particular order."""
+    bin holding the k-th; a second pass writes every point below that bin and keeps the nearest
+    of that bin's in a max-heap over the row's remaining slots. The row is in no particular order.
+    The first scan keeps its candidates (the points within R_b, about a quarter of the block's) in
+    scan order where at most M, so the second pass reads them instead of scanning the block again
+    (the same row); a row with more scans again."""
     k = nb.shape[1]
+    cap_cand = cand_r2.shape[1]
     for r in range(ti.min(r2.shape[0], x.shape[0] - row0)):
         i = row0 + r
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
@@ -215,7 +240,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
         rb2 = _block_reach2(xi, c, lo, dims, h)
         to_bin = k / rb2
         # the histogram's k bins live in the row's index slots (a local array indexed at run time
-        # would be lowered to a chain of selects); the second scan overwrites them
+        # would be lowered to a chain of selects); the second pass overwrites them
         for b in range(k):
             nb[i, b] = 0
         n_in = 0
@@ -227,37 +252,53 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                 if d2 <= rb2:
                     b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
                     nb[i, b] = nb[i, b] + 1  # not +=: Taichi makes that an atomic add
+                    if n_in < cap_cand:
+                        cand_r2[r, n_in] = d2
+                        cand_at[r, n_in] = s
                     n_in += 1
         settled[i] = 0
         if n_in >= k:
             kb, m0 = _kth_bin(nb, i, k)
-            left = 0
-            held = 0
-            cap = k - m0
-            for o in range(27):
-                first, end = _cell_range(c + ti.Vector([o // 9 - 1, o // 3 % 3 - 1, o % 3 - 1]), dims, cell_start)
-                for s in range(first, end):
-                    e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
-                    d2 = e.dot(e)
-                    if d2 <= rb2:
-                        b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
-                        if b < kb:
-                            r2[r, left] = d2
-                            nb[i, left] = ids[s]
-                            left += 1
-                        elif b == kb:
-                            if held < cap:
-                                r2[r, m0 + held] = d2
-                                nb[i, m0 + held] = ids[s]
-                                held += 1
-                                if held == cap:
-                                    for q in range(cap // 2):
-                                        _sift_down(r2, nb, r, i, m0, cap // 2 - 1 - q, k)
-                            elif d2 < r2[r, m0]:
-                                r2[r, m0] = d2
-                                nb[i, m0] = ids[s]
-                                _sift_down(r2, nb, r, i, m0, 0, k)
+            placed = ti.Vector([0, 0])  # (left, held): rows written below the k-th bin, and in it
+            if n_in <= cap_cand:
+                for q in range(n_in):
+                    placed = _place(r2, nb, r, i, k, kb, m0, cand_r2[r, q], ids[cand_at[r, q]], to_bin, placed)
+            else:
+                for o in range(27):
+                    first, end = _cell_range(c + ti.Vector([o // 9 - 1, o // 3 % 3 - 1, o % 3 - 1]), dims, cell_start)
+                    for s in range(first, end):
+                        e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+                        d2 = e.dot(e)
+                        if d2 <= rb2:
+                            placed = _place(r2, nb, r, i, k, kb, m0, d2, ids[s], to_bin, placed)
             settled[i] = 1
+
+
+@ti.func
+def _place(r2: ti.template(), nb: ti.template(), r, i, k, kb, m0, d2, idx, to_bin, placed):
+    """Row i's second pass, one candidate (r2 d2, pool index idx) of the block: below the k-th's
+    bin it takes the next slot; in that bin it fills the heap of the row's last k - m0 slots, then
+    replaces its largest where nearer. Returns the updated (left, held)."""
+    left, held = placed[0], placed[1]
+    cap = k - m0
+    b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
+    if b < kb:
+        r2[r, left] = d2
+        nb[i, left] = idx
+        left += 1
+    elif b == kb:
+        if held < cap:
+            r2[r, m0 + held] = d2
+            nb[i, m0 + held] = idx
+            held += 1
+            if held == cap:
+                for q in range(cap // 2):
+                    _sift_down(r2, nb, r, i, m0, cap // 2 - 1 - q, k)
+        elif d2 < r2[r, m0]:
+            r2[r, m0] = d2
+            nb[i, m0] = idx
+            _sift_down(r2, nb, r, i, m0, 0, k)
+    return ti.Vector([left, held])
 
 
 @ti.kernel
@@ -288,7 +329,12 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
         while not done:
             for dz, dy, dx in ti.ndrange((-ring, ring + 1), (-ring, ring + 1), (-ring, ring + 1)):
                 if ti.max(ti.abs(dz), ti.abs(dy), ti.abs(dx)) == ring:
-                    first, end = _cell_range(c + ti.Vector([dz, dy, dx]), dims, cell_start)
+                    cell = c + ti.Vector([dz, dy, dx])
+                    first, end = _cell_range(cell, dims, cell_start)
+                    # a full heap takes no point of a cell farther than its largest r2: the heap
+                    # ends the same without scanning it
+                    if filled == k and _cell_gap2(xi, cell, lo, h) > r2[r, 0]:
+                        end = first
                     for s in range(first, end):
                         e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
                         d2 = e.dot(e)
@@ -327,13 +373,16 @@ def k_nearest(x: np.ndarray,  # [N, 3]
               k: int,
               cell_scale: float = 1.0,
               with_r2: bool = True,
-              chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray | None]:  # -> [N, k] indices, [N, k] r2
+              chunk: int = 1 << 13,
+              candidates: int = BLOCK_CANDIDATES) -> tuple[np.ndarray, np.ndarray | None]:  # -> [N, k] indices, [N, k] r2
     """Each particle's k nearest particles of ``source``, in no particular order, and their squared
     distances, 0 for the particle itself (module docstring; plasticity.nearest_neighbours is the
     KD-tree reference). Indices are int32 below 2^31 particles. ``cell_scale``: the cells' side in
     k-th-neighbour radii (estimated from the pool's density); any value gives the same answer.
     ``with_r2`` False: r2 is None, and the distances are kept for ``chunk`` rows at a time only
-    (displacement_jacobian_pairs recomputes them: 241 MB fewer at 471K particles, k = 64)."""
+    (displacement_jacobian_pairs recomputes them: 241 MB fewer at 471K particles, k = 64).
+    ``candidates``: how many of a row's block candidates the first scan keeps for the second
+    (a row with more scans its block again; any value gives the same answer)."""
     ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64)
     source = np.asarray(source)
@@ -364,11 +413,16 @@ def k_nearest(x: np.ndarray,  # [N, 3]
     grid = (np.ascontiguousarray(pts[order]), np.ascontiguousarray(source[order].astype(index)), cell_start, lo,
             dims.astype(np.int32), h)
     settled = np.empty(n, dtype=np.int32)
-    step = n if with_r2 else max(1, int(chunk))
-    scratch = r2 if with_r2 else np.empty((min(step, n), k))
+    # on a GPU each launch copies the NumPy arguments there and back: one launch, no kept candidates
+    on_device = taichi_state()["arch"] != "cpu"
+    step = n if on_device else max(1, int(chunk))
+    keep = 1 if on_device else max(1, int(candidates))
+    scratch = None if with_r2 else np.empty((min(step, n), k))
+    kept = (np.empty((min(step, n), keep)), np.empty((min(step, n), keep), dtype=index))
     for row0 in range(0, n, step):
-        _k_nearest_block(x, *grid, row0, nb, scratch, settled)
+        rows_r2 = r2[row0:row0 + step] if with_r2 else scratch  # a chunk's rows of r2 are contiguous
+        _k_nearest_block(x, *grid, row0, nb, rows_r2, *kept, settled)
         rest = np.flatnonzero(settled[row0:row0 + step] == 0).astype(index) + row0
         if len(rest):
-            _k_nearest_rings(x, rest, *grid, row0, nb, scratch)
+            _k_nearest_rings(x, rest, *grid, row0, nb, rows_r2)
     return nb, r2

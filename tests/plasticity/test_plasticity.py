@@ -125,6 +125,13 @@ def test_k_nearest_equals_a_brute_force_search(cell_scale):
         nb_c, none = k_nearest(x, source, k, cell_scale=cell_scale, with_r2=False, chunk=97)
         assert none is None
         np.testing.assert_array_equal(np.sort(nb_c, axis=1), np.sort(nb, axis=1))
+        # the block's second pass from its kept candidates (above) or, where a row has more than
+        # it keeps, by scanning its block again (with one or five kept, nearly every row): the
+        # same rows, in the same order
+        for kept in (1, 5):
+            nb_k, r2_k = k_nearest(x, source, k, cell_scale=cell_scale, chunk=97, candidates=kept)
+            np.testing.assert_array_equal(nb_k, nb)
+            np.testing.assert_array_equal(r2_k, r2)
     nb, r2 = k_nearest(x, source, len(source), cell_scale=cell_scale)  # k = the whole pool
     assert (np.sort(nb, axis=1) == source[None]).all()
     with pytest.raises(ValueError, match="k must be"):
