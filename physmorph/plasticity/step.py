@@ -70,6 +70,11 @@ def displacement_jacobian(x: np.ndarray,  # [N, 3]
     return np.einsum("nk,nki,nkj->nij", w, dd, e) / count
 
 
+# project_plastic leaves an Fp alone when inside its bounds by this relative margin, far above the
+# closed-form singular values' error (1e-8 relative)
+INSIDE_MARGIN = 1.0 - 1e-6
+
+
 def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:
     """Isochoric projection of Fp [N, 3, 3]: clamp its stretches' anisotropy and determinant.
 
@@ -79,17 +84,26 @@ def project_plastic(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotr
     only the particles the bounds act on pay for a batched SVD (the paper profile: 1.5 s a frame).
     """
     Fp = np.asarray(Fp, dtype=np.float64)
-    # inside with a margin well above the closed-form singular values' error (1e-8 relative)
+    return project_outside(Fp.copy(), inside_bounds(Fp, det_bounds, max_anisotropy), det_bounds, max_anisotropy)
+
+
+def inside_bounds(Fp: np.ndarray,  # [N, 3, 3]
+                  det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:  # [N] bool
+    """Whether each Fp is inside project_plastic's bounds by INSIDE_MARGIN (it would keep it)."""
     sv = singular_values(Fp)
     det = det3(Fp)
     g = np.cbrt(np.maximum(det, 0.0))
-    margin = 1.0 - 1e-6
-    inside = ((det > det_bounds[0] / margin) & (det < det_bounds[1] * margin)
-              & (sv[:, 0] < g * np.sqrt(max_anisotropy) * margin) & (sv[:, 2] * np.sqrt(max_anisotropy) * margin > g))
-    out = Fp.copy()
+    m = INSIDE_MARGIN
+    return ((det > det_bounds[0] / m) & (det < det_bounds[1] * m)
+            & (sv[:, 0] < g * np.sqrt(max_anisotropy) * m) & (sv[:, 2] * np.sqrt(max_anisotropy) * m > g))
+
+
+def project_outside(Fp: np.ndarray,  # [N, 3, 3], projected in place where not inside
+                    inside: np.ndarray,  # [N] bool
+                    det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:  # [N, 3, 3]
     if not inside.all():
-        out[~inside] = _project_plastic_svd(Fp[~inside], det_bounds, max_anisotropy)
-    return out
+        Fp[~inside] = _project_plastic_svd(Fp[~inside], det_bounds, max_anisotropy)
+    return Fp
 
 
 def _project_plastic_svd(Fp: np.ndarray, det_bounds: tuple[float, float], max_anisotropy: float) -> np.ndarray:
@@ -108,6 +122,20 @@ def _project_plastic_svd(Fp: np.ndarray, det_bounds: tuple[float, float], max_an
     det_c = np.clip(det, det_bounds[0], det_bounds[1])
     s = s * (det_c / det) ** (1.0 / 3.0)
     return np.einsum("nij,nj,njk->nik", U, s, Vt)
+
+
+def fp_update_reference(J: np.ndarray,  # [N, 3, 3]
+                        eta: np.ndarray,  # [N]
+                        Fp: np.ndarray,  # [N, 3, 3]
+                        damping: float, det_bounds: tuple[float, float], max_anisotropy: float,
+                        scale_from: float = 1.0) -> tuple[np.ndarray, np.ndarray]:  # -> [N, 3, 3], [N] bool
+    """Steps 4-5 and the projection's bounds test in NumPy: (Fp', inside) with
+    Fp' = (1 - d_p) (I + eta dFp) Fp / s_from + d_p I, dFp = (J + J^T) / 2 (the reference of
+    physmorph.plasticity.fp_update, which the update runs)."""
+    dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
+    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ (Fp if scale_from == 1.0 else Fp / scale_from)
+    Fp_new = (1.0 - damping) * Fp_new + damping * np.eye(3)
+    return Fp_new, inside_bounds(Fp_new, det_bounds, max_anisotropy)
 
 
 def rebase_control(
@@ -275,12 +303,14 @@ def chamfer_plasticity_step(
     The nearest target points, where neither ``destination`` nor ``nearest_index`` gives them, come
     from the KD tree, or with ``search_device`` from physmorph.plasticity.nearest on that torch device; the
     neighbourhoods, the smoothing and the Jacobian (physmorph.plasticity.neighbourhood) run on the Taichi
-    runtime's arch, the update itself in NumPy. ``rest_scale`` (s_from, s): Fp arrives holding the rest
+    runtime's arch, as does the update of Fp with the projection's bounds test (physmorph.plasticity.fp_update);
+    the SVD of the few Fp outside the bounds in NumPy. ``rest_scale`` (s_from, s): Fp arrives holding the rest
     volume ratio s_from³ (PlasticityConfig.rest_volume_ratio) and leaves holding s³; steps 4-6 act on
     the rest shape Fp / s_from, so the damping toward I and the det bounds keep that shape's volume."""
     from scipy.spatial import cKDTree
 
-    from physmorph.plasticity.neighbourhood import displacement_jacobian_pairs, k_nearest, smooth_displacement  # Taichi
+    from physmorph.plasticity.fp_update import fp_update  # Taichi
+    from physmorph.plasticity.neighbourhood import displacement_jacobian_pairs, k_nearest, smooth_displacement
 
     if destination is not None:
         d_raw = np.asarray(destination, dtype=np.float64) - x
@@ -297,14 +327,12 @@ def chamfer_plasticity_step(
     d = smooth_displacement(d_raw, neighbors, cfg.smooth_iters, sources=source)
     J = displacement_jacobian_pairs(x, d, neighbors, None)
     del neighbors
-    dFp = 0.5 * (J + np.transpose(J, (0, 2, 1)))
     mag = np.linalg.norm(d, axis=1)
     scale = np.median(mag)
     eta = cfg.eta * mag / (mag + scale) if scale > 0 else np.zeros(len(x))
     scale_from, scale = rest_scale
-    Fp_new = (np.eye(3) + eta[:, None, None] * dFp) @ (Fp if scale_from == 1.0 else Fp / scale_from)
-    Fp_new = (1.0 - cfg.damping) * Fp_new + cfg.damping * np.eye(3)
-    Fp_new = project_plastic(Fp_new, cfg.det_bounds, cfg.max_anisotropy)
+    Fp_new, inside = fp_update(J, eta, Fp, cfg.damping, cfg.det_bounds, cfg.max_anisotropy, INSIDE_MARGIN, scale_from)
+    Fp_new = project_outside(Fp_new, inside, cfg.det_bounds, cfg.max_anisotropy)
     if scale != 1.0:
         Fp_new = Fp_new * scale
     return PlasticityResult(Fp_new, d, eta, float(np.linalg.norm(d_raw, axis=1).mean()))

@@ -226,6 +226,35 @@ def test_projection_skips_only_what_its_svd_would_rebuild():
     assert (out == Fp).all(axis=(1, 2)).sum() >= 250  # most of the near-identity ones were skipped
 
 
+@pytest.mark.parametrize("scale_from", [1.0, 1.07])
+def test_fp_update_kernel_equals_its_numpy_reference(scale_from):
+    """plasticity.fp_update (steps 4-5 and the projection's bounds test in one Taichi pass)
+    against step.fp_update_reference: the same Fp' to round-off and the same rows inside the
+    bounds, on Fp near the identity, far outside, inverted, singular, and near the bounds' edges,
+    with the rest volume ratio's scale and without; the projection of
+    the rows outside then gives project_plastic's result."""
+    from physmorph.plasticity.fp_update import fp_update
+    from physmorph.plasticity.step import INSIDE_MARGIN, fp_update_reference, project_outside
+
+    rng = np.random.default_rng(5)
+    n = 600
+    Fp = np.eye(3) + 0.15 * rng.standard_normal((n, 3, 3))
+    Fp[:60] = 3.0 * rng.standard_normal((60, 3, 3))  # far outside, some inverted
+    Fp[60] = np.diag([1.0, 1.0, 0.0])  # singular
+    Fp[61:65] = np.diag([2.0, 1.0, 0.5]) * np.array([1.0, 1.0 + 1e-9, 1.0 - 1e-9, 1.0 + 1e-3])[:, None, None]
+    J = 0.3 * rng.standard_normal((n, 3, 3))
+    J[61:65] = 0.0
+    eta = rng.uniform(0.0, 0.05, n)
+    damping, bounds, aniso = 0.05, (0.5, 2.0), 4.0
+    out, inside = fp_update(J, eta, Fp, damping, bounds, aniso, INSIDE_MARGIN, scale_from)
+    ref, ref_inside = fp_update_reference(J, eta, Fp, damping, bounds, aniso, scale_from)
+    np.testing.assert_allclose(out, ref, rtol=1e-13, atol=1e-14)
+    np.testing.assert_array_equal(inside, ref_inside)
+    assert 0 < inside.sum() < n  # both kinds of row
+    np.testing.assert_allclose(project_outside(out, inside, bounds, aniso), project_plastic(ref, bounds, aniso),
+                               rtol=0, atol=1e-12)
+
+
 def test_config_validation():
     with pytest.raises(ValueError, match="det_bounds"):
         PlasticityConfig(det_bounds=(1.2, 2.0))
