@@ -132,7 +132,7 @@ class MorphRun:
         self.a0 = m["alpha_mse"]
         m["gap_closed"] = 0.0
         self.run.commit(0, m, per_view, asdict_state(st), [self.inputs.volume_note] if self.inputs.volume_note else [],
-                        fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()))
+                        fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(by_slots=True), self.monitor.state()))
         return fs
 
     # ---------------------------------------------------------------------------- the phases
@@ -295,7 +295,7 @@ class MorphRun:
         save = k % cfg.save_every == 0 or k == cfg.frames
         # the checkpoint's arrays are gathered only when it is due (physmorph.records.runfile)
         self.run.commit(k, scal, per_view, asdict_state(fs.state) if save else None, new_warnings,
-                        lambda: fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(), self.monitor.state()),
+                        lambda: fs.checkpoint(self.judge.gate.checkpoint(), self.solver.optimizer_state(by_slots=True), self.monitor.state()),
                         last=k == cfg.frames, motion={"x": fs.state.x, "F": fs.state.F})
 
     def progress(self, k: int, scal: dict, stats: dict, rejected: bool) -> None:

@@ -7,6 +7,7 @@ its in-place operations: zero, scale, mean, rebase, copy, without [Tc, N, 3, 3] 
 import numpy as np
 import taichi as ti
 
+from physmorph.records.runfile import ArrayBySlots
 from physmorph.settings.mpm import MPMStateError
 
 from .currency import Currency
@@ -166,12 +167,30 @@ class ControlField:
         g = self.ctrl_grad.to_numpy()
         return g if native else g.astype(np.float64)
 
-    def optimizer_state(self) -> dict:
+    @ti.kernel
+    def slot_to_array(self, src: ti.template(), s: ti.i32, out: ti.types.ndarray()):
+        """out = slot s of the [Tc, N] field src, [N, 3, 3]."""
+        for p in range(self.n):
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                out[p, a, b] = src[s, p][a, b]
+
+    def _by_slots(self, field) -> ArrayBySlots:
+        def slot(s: int) -> np.ndarray:  # [N, 3, 3]
+            out = np.empty((self.n, 3, 3), dtype=self.np_dtype)
+            self.slot_to_array(field, s, out)
+            return out
+
+        return ArrayBySlots((self.model.cfg.n_control_slots, self.n, 3, 3), np.dtype(self.np_dtype), slot)
+
+    def optimizer_state(self, by_slots: bool = False) -> dict:
         """dFc (in the solver's precision: exact), the Adam moments where Adam has run, and the
-        step count: everything needed to resume the optimization."""
-        out = {"control": self.ctrl.to_numpy(), "adam_step": int(self.adam_steps)}
-        if self.adam_m is not None:
-            out.update(adam_m=self.adam_m.to_numpy(), adam_v=self.adam_v.to_numpy())
+        step count: everything needed to resume the optimization. ``by_slots``: the arrays as
+        ArrayBySlots, which a checkpoint writes a slot at a time (no [Tc, N, 3, 3] copy in memory)."""
+        names = ("ctrl", "adam_m", "adam_v") if self.adam_m is not None else ("ctrl",)
+        arrays = {name: self._by_slots(getattr(self, name)) if by_slots else getattr(self, name).to_numpy()
+                  for name in names}
+        out = {"control": arrays.pop("ctrl"), "adam_step": int(self.adam_steps)}
+        out.update(arrays)
         return out
 
     def set_optimizer_state(self, state: dict) -> None:

@@ -33,12 +33,6 @@ class KeptControl:
             dst[s, p] = src[s, p]
 
     @ti.kernel
-    def _slot_to_array(self, src: ti.template(), s: ti.i32, out: ti.types.ndarray()):
-        for p in range(self.n):
-            for a, b in ti.static(ti.ndrange(3, 3)):
-                out[p, a, b] = src[s, p][a, b]
-
-    @ti.kernel
     def _array_to_slot(self, dst: ti.template(), s: ti.i32, arr: ti.types.ndarray()):
         for p in range(self.n):
             for a, b in ti.static(ti.ndrange(3, 3)):
@@ -66,7 +60,7 @@ class KeptControl:
             with open(spill, "wb") as f:
                 for name in names:
                     for s in range(self.control.model.cfg.n_control_slots):
-                        self._slot_to_array(getattr(self.control, name), s, slot)
+                        self.control.slot_to_array(getattr(self.control, name), s, slot)
                         slot.tofile(f)
             self.kept = spill
         self.adam_step = (int(self.control.adam_steps), self.control.adam_m is not None)

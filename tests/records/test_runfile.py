@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import physmorph.records.runfile as runfile
-from physmorph.records.runfile import (SCALARS, RunFileError, RunLockedError, RunWriter, describe_run, read_checkpoint,
-                               read_metrics)
+from physmorph.records.runfile import (SCALARS, ArrayBySlots, RunFileError, RunLockedError, RunWriter, describe_run,
+                               read_checkpoint, read_metrics)
 from physmorph.records.runkey import RunKey
 
 REPO = Path(__file__).resolve().parents[2]
@@ -83,6 +83,32 @@ def test_frames_commit_read_and_finish(tmp_path):
         f["metrics/alpha_mse"][1] = 0.0
     with pytest.raises(RunFileError, match=r"run\.h5: its metrics do not match their checksum"):
         read_metrics(out)
+
+
+def test_a_checkpoint_array_given_by_slots_is_stored_as_the_whole_array(tmp_path):
+    """A checkpoint's ArrayBySlots (the control, written a slot at a time) reads back as the array
+    its slots make, in its dtype and the whole array's layout, and the checkpoint verifies (its
+    checksum hashed from the file where the whole array is hashed from memory)."""
+    control = np.random.default_rng(4).normal(size=(4, N, 3, 3)).astype(np.float32)
+    slots_asked = []
+
+    def slot(s):
+        slots_asked.append(s)
+        return control[s].copy()
+
+    sums = {}
+    for how, value in (("whole", control), ("slots", ArrayBySlots(control.shape, control.dtype, slot))):
+        out = tmp_path / how / "run.h5"
+        with RunWriter(out, KEY) as w:
+            assert w.resume(log=lambda m: None) is None
+            w.commit(0, {"alpha_mse": 1.0}, np.ones(V), _state(0), [], {"x": _state(0)["x"], "control": value})
+        ck = read_checkpoint(runfile.partial_dir(out) / "checkpoint.h5")
+        assert ck.data["control"].dtype == np.float32
+        np.testing.assert_array_equal(ck.data["control"], control)
+        with h5py.File(runfile.partial_dir(out) / "checkpoint.h5") as f:
+            ds = f["control"]
+            sums[how] = (ds.shape, ds.dtype, ds.chunks, ds.compression)
+    assert slots_asked == [0, 1, 2, 3] and sums["whole"] == sums["slots"]
 
 
 def test_checkpoint_follows_at_its_wall_share_and_a_resume_recomputes_the_frames_after_it(tmp_path, monkeypatch):
