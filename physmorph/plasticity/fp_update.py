@@ -1,5 +1,5 @@
-"""Steps 4-6 of the Chamfer-guided plasticity (paper section 3.4, eq. 4; physmorph.plasticity.step)
-in one Taichi pass over the particles:
+"""Steps 4-5 of the Chamfer-guided plasticity (paper section 3.4, eq. 4; physmorph.plasticity.step)
+and step 6's test in one Taichi pass over the particles:
 
     Fp' = (1 - d_p) (I + eta_i dFp_i) Fp_i / s_from + d_p I,   dFp_i = (J_i + J_i^T) / 2,
 
@@ -8,8 +8,8 @@ its singular values' spread about their geometric mean within max_anisotropy, ea
 projection's relative margin), so that only the few outside need the projection's SVD.
 
 The reference is the NumPy form, physmorph.plasticity.step.fp_update_reference (tests compare the
-two). At the paper's scale (511K particles) the NumPy form took ~0.55 s of a frame on one core,
-its [N, 3, 3] temporaries and the closed-form singular values of the inside test included.
+two). At the paper's scale (511K particles) the NumPy form took 0.3-0.55 s of a frame on one
+core, its [N, 3, 3] temporaries and the closed-form singular values of the test included.
 """
 
 # No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
@@ -40,10 +40,9 @@ def _eigenvalues_sym(A):
 
 @ti.func
 def _inside_bounds(M, det_lo, det_hi, max_anisotropy, m):
-    """Whether M is inside the projection's bounds by the relative margin m (step.INSIDE_MARGIN,
-    step.project_plastic's test):
-    det within (det_lo, det_hi), the largest singular value under g sqrt(a) and the smallest over
-    g / sqrt(a), g = det^(1/3) and a = max_anisotropy."""
+    """Whether M is inside the projection's bounds by the relative margin m (step.INSIDE_MARGIN;
+    step.inside_bounds' test): det within (det_lo, det_hi), the largest singular value under
+    g sqrt(a) and the smallest over g / sqrt(a), g = det^(1/3) and a = max_anisotropy."""
     det = M.determinant()
     e1, e2, e3 = _eigenvalues_sym(M.transpose() @ M)
     s1 = ti.sqrt(ti.max(e1, 0.0))

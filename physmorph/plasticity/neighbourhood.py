@@ -37,6 +37,9 @@ from physmorph.base.taichi_runtime import ensure_taichi, taichi_state
 # pass, at most (M in _k_nearest_block): a row has about a quarter of its block's points, ~100 at
 # the sampling's density; the scratch is chunk x M x 12 bytes (16 MB at k_nearest's chunk).
 BLOCK_CANDIDATES = 160
+# A cell is passed over only where its box is farther than the heap's largest r2 by this relative
+# share: a point the floor of (x - lo) / h put in the cell may lie outside its box by round-off.
+_CELL_GAP_SLACK = 1e-9
 
 
 @ti.kernel
@@ -161,7 +164,7 @@ def _cell_range(cell, dims: ti.template(), cell_start: ti.template()):
 @ti.func
 def _cell_gap2(xi, cell, lo: ti.template(), h):
     """The squared distance from x_i to grid cell ``cell``'s box (0 inside it): no point of the
-    cell is nearer, so a cell farther than a search's bound holds none of its points."""
+    cell is nearer (to round-off: _CELL_GAP_SLACK)."""
     g2 = ti.f64(0.0)
     for a in ti.static(range(3)):
         below = lo[a] + cell[a] * h
@@ -334,7 +337,7 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                     first, end = _cell_range(cell, dims, cell_start)
                     # a full heap takes no point of a cell farther than its largest r2: the heap
                     # ends the same without scanning it
-                    if filled == k and _cell_gap2(xi, cell, lo, h) > r2[r, 0]:
+                    if filled == k and _cell_gap2(xi, cell, lo, h) > r2[r, 0] * ti.f64(1.0 + _CELL_GAP_SLACK):
                         end = first
                     for s in range(first, end):
                         e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
