@@ -96,7 +96,7 @@ def test_a_checkpoint_array_given_by_slots_is_stored_as_the_whole_array(tmp_path
         slots_asked.append(s)
         return control[s].copy()
 
-    sums = {}
+    layouts = {}
     for how, value in (("whole", control), ("slots", ArrayBySlots(control.shape, control.dtype, slot))):
         out = tmp_path / how / "run.h5"
         with RunWriter(out, KEY) as w:
@@ -107,8 +107,8 @@ def test_a_checkpoint_array_given_by_slots_is_stored_as_the_whole_array(tmp_path
         np.testing.assert_array_equal(ck.data["control"], control)
         with h5py.File(runfile.partial_dir(out) / "checkpoint.h5") as f:
             ds = f["control"]
-            sums[how] = (ds.shape, ds.dtype, ds.chunks, ds.compression)
-    assert slots_asked == [0, 1, 2, 3] and sums["whole"] == sums["slots"]
+            layouts[how] = (ds.shape, ds.dtype, ds.chunks, ds.compression)
+    assert slots_asked == [0, 1, 2, 3] and layouts["whole"] == layouts["slots"]
 
 
 def test_checkpoint_follows_at_its_wall_share_and_a_resume_recomputes_the_frames_after_it(tmp_path, monkeypatch):
