@@ -31,47 +31,8 @@ from physmorph.base.grid import Grid
 from physmorph.base.linalg3 import inverse3
 from physmorph.settings.mpm import MPMConfig
 from physmorph.mpm.state import volume_energy_density
+from physmorph.base.linalg3_funcs import det3, matrix_at, singular_values3
 from physmorph.base.taichi_runtime import ensure_taichi
-
-
-@ti.func
-def _det(M):
-    return (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1])
-            - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
-            + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
-
-
-@ti.func
-def _singular_values(M):
-    """Descending singular values of a 3x3 f64 matrix (linalg3.singular_values): with A = M^T M,
-    q = tr A / 3, p = sqrt(tr((A - q I)^2) / 6), phi = acos(det((A - q I) / p) / 2) / 3, the
-    eigenvalues are q + 2 p cos(phi + 2 pi k / 3); s3 = min(|det M| / (s1 s2), s2)."""
-    A = M.transpose() @ M
-    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
-    C = A - q * ti.Matrix.identity(ti.f64, 3)
-    p = ti.sqrt((C * C).sum() / 6.0)
-    safe = p if p > 0.0 else 1.0
-    r = ti.min(ti.max(_det(C / safe) / 2.0, -1.0), 1.0)
-    phi = ti.acos(r) / 3.0
-    e1 = q + 2.0 * p * ti.cos(phi)
-    # 2 pi / 3 from f64 operations: a Python float in a kernel is an f32 literal
-    e3 = q + 2.0 * p * ti.cos(phi + ti.acos(ti.cast(-0.5, ti.f64)))
-    e2 = 3.0 * q - e1 - e3
-    s1 = ti.sqrt(ti.max(e1, 0.0))
-    s2 = ti.sqrt(ti.max(e2, 0.0))
-    s3 = ti.sqrt(ti.max(e3, 0.0))
-    if s1 * s2 > 0.0:
-        s3 = ti.min(ti.abs(_det(M)) / (s1 * s2), s2)
-    return ti.Vector([s1, s2, s3])
-
-
-@ti.func
-def _matrix_at(a: ti.template(), p):
-    """Row p of an [N, 3, 3] f64 ndarray as a matrix."""
-    M = ti.Matrix.zero(ti.f64, 3, 3)
-    for i, j in ti.static(ti.ndrange(3, 3)):
-        M[i, j] = a[p, i, j]
-    return M
 
 
 @ti.kernel
@@ -82,16 +43,16 @@ def _deformation_kernel(F: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N, 3, 3]
                         det_plastic: ti.types.ndarray(dtype=ti.f64, ndim=1),  # [N] out
                         anisotropy_plastic: ti.types.ndarray(dtype=ti.f64, ndim=1)):  # [N] out
     for p in range(F.shape[0]):
-        Fm, P = _matrix_at(F, p), _matrix_at(Fp, p)
+        Fm, P = matrix_at(F, p), matrix_at(Fp, p)
         Fe = Fm @ P.inverse()
-        s = _singular_values(Fe)
-        J = _det(Fe)
+        s = singular_values3(Fe)
+        J = det3(Fe)
         if J < 0.0:
             s[2] = -s[2]
         shear[p] = ((s - 1.0) ** 2).sum()
         det_elastic[p] = J
-        det_plastic[p] = _det(P)
-        sp = _singular_values(P)
+        det_plastic[p] = det3(P)
+        sp = singular_values3(P)
         anisotropy_plastic[p] = sp[0] / ti.max(sp[2], 1e-12)
 
 
@@ -121,12 +82,12 @@ def _frame_strain_kernel(F_start: ti.types.ndarray(dtype=ti.f64, ndim=3),  # [N,
                          out: ti.types.ndarray(dtype=ti.f64, ndim=1)):  # [N] out; NaN where F_start is singular
     """out_p = |F_end F_start^-1 - I|_F (frame_strain)."""
     for p in range(F_start.shape[0]):
-        A = _matrix_at(F_start, p)
-        det = _det(A)
+        A = matrix_at(F_start, p)
+        det = det3(A)
         if det == 0.0 or not (ti.abs(det) < ti.math.inf):
             out[p] = ti.math.nan
         else:
-            D = _matrix_at(F_end, p) @ A.inverse() - ti.Matrix.identity(ti.f64, 3)
+            D = matrix_at(F_end, p) @ A.inverse() - ti.Matrix.identity(ti.f64, 3)
             out[p] = ti.sqrt((D * D).sum())
 
 

@@ -17,25 +17,8 @@ core, its [N, 3, 3] temporaries and the closed-form singular values of the test 
 import numpy as np
 import taichi as ti
 
+from physmorph.base.linalg3_funcs import det3, singular_values3
 from physmorph.base.taichi_runtime import ensure_taichi
-
-# Python float constants would enter a kernel as float32: those not exact there are typed in it
-_TWO_THIRDS_PI = 2.0 * np.pi / 3.0
-_ONE_THIRD = 1.0 / 3.0
-
-
-@ti.func
-def _eigenvalues_sym(A):
-    """Eigenvalues of the symmetric 3x3 A, descending (linalg3.symmetric_eigenvalues' formula)."""
-    q = A.trace() / 3.0
-    C = A - q * ti.Matrix.identity(ti.f64, 3)
-    p = ti.sqrt((C * C).sum() / 6.0)
-    safe = p if p > 0 else 1.0
-    r = ti.math.clamp((C / safe).determinant() / 2.0, -1.0, 1.0)
-    phi = ti.acos(r) / 3.0
-    e1 = q + 2.0 * p * ti.cos(phi)
-    e3 = q + 2.0 * p * ti.cos(phi + ti.f64(_TWO_THIRDS_PI))
-    return e1, 3.0 * q - e1 - e3, e3
 
 
 @ti.func
@@ -43,16 +26,11 @@ def _inside_bounds(M, det_lo, det_hi, max_anisotropy, m):
     """Whether M is inside the projection's bounds by the relative margin m (step.INSIDE_MARGIN;
     step.inside_bounds' test): det within (det_lo, det_hi), the largest singular value under
     g sqrt(a) and the smallest over g / sqrt(a), g = det^(1/3) and a = max_anisotropy."""
-    det = M.determinant()
-    e1, e2, e3 = _eigenvalues_sym(M.transpose() @ M)
-    s1 = ti.sqrt(ti.max(e1, 0.0))
-    s2 = ti.sqrt(ti.max(e2, 0.0))
-    s3 = ti.sqrt(ti.max(e3, 0.0))
-    if s1 * s2 > 0:  # the smallest from |det| = s1 s2 s3 (linalg3.singular_values)
-        s3 = ti.min(ti.abs(det) / (s1 * s2), s2)
-    g = ti.pow(ti.max(det, 0.0), ti.f64(_ONE_THIRD))
+    det = det3(M)
+    s = singular_values3(M)
+    g = ti.pow(ti.max(det, 0.0), ti.f64(1.0 / 3.0))  # typed: a Python float would enter as float32
     half = ti.sqrt(max_anisotropy)
-    return (det > det_lo / m) and (det < det_hi * m) and (s1 < g * half * m) and (s3 * half * m > g)
+    return (det > det_lo / m) and (det < det_hi * m) and (s[0] < g * half * m) and (s[2] * half * m > g)
 
 
 @ti.kernel
