@@ -127,7 +127,7 @@ class MPMSolver:
         for t in range(self.cfg.substeps):
             if atomic:
                 step.clear_grid()
-            step.p2g(t)
+            step.run_p2g(t)
             step.grid_update(t)
             step.g2p(t)
         self.current.stale()

@@ -25,10 +25,10 @@ from physmorph.base.taichi_runtime import init_taichi
 # dR bounded when two singular values of an inverted Fe cancel (guard of the singular case).
 _ROT_DENOM_FLOOR = 1e-6
 # polar_from falls back to the SVD below this smallest pair sum, relative to |S|
-_WARM_GAP_MIN = 0.05
+WARM_GAP_MIN = 0.05
 # Rodrigues' coefficients by their series to th^6 below this angle (rad): the next terms,
 # th^8 / 9! and th^8 / 10!, are below 1.1e-16 there
-_SERIES_ANGLE = 0.05
+SERIES_ANGLE = 0.05
 
 
 @ti.func
@@ -72,6 +72,12 @@ def pair_sums_exceed(S, c):
     return (a00 > 0.0) & (minor2 > 0.0) & (det > 0.0)
 
 
+def warm_start_steps(dtype) -> tuple[int, float]:
+    """polar_from's most Newton steps and the step angle below which it has converged (the
+    step's error is ~angle^2: below the float's precision there)."""
+    return (6, 1e-7) if dtype == ti.f64 else (4, 1e-4)
+
+
 def make_newton_funcs(dtype):
     """The pieces of a Newton step on the rotation of Fe, for one float type: skew_solve, axial,
     hat, and newton_step (R <- R exp(omega^)); the stress's differential shares the first three."""
@@ -101,12 +107,12 @@ def make_newton_funcs(dtype):
         om = skew_solve(S, gap, axial(S0))
         th2 = om.dot(om)
         th = ti.sqrt(th2)
-        # sin(th) / th and (1 - cos th) / th^2 by their series to th^6 below _SERIES_ANGLE (the
+        # sin(th) / th and (1 - cos th) / th^2 by their series to th^6 below SERIES_ANGLE (the
         # first term left out is below float64's round-off there), so the usual small step of a
         # warm start costs no sine and cosine
         a = 1.0 - th2 / 6.0 * (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0))
         b = 0.5 - th2 / 24.0 * (1.0 - th2 / 30.0 * (1.0 - th2 / 56.0))
-        if th > _SERIES_ANGLE:
+        if th > SERIES_ANGLE:
             a = ti.sin(th) / th
             b = (1.0 - ti.cos(th)) / th2
         K = hat(om)
@@ -122,9 +128,7 @@ def make_rotation_funcs(dtype):
     newton = make_newton_funcs(dtype)
     newton_step = newton.newton_step
     newton_steps = 2 if dtype == ti.f64 else 0
-    # polar_from: at most this many steps, converged when the step's angle is below warm_tol
-    warm_steps = 6 if dtype == ti.f64 else 4
-    warm_tol = 1e-7 if dtype == ti.f64 else 1e-4
+    warm_steps, warm_tol = warm_start_steps(dtype)
 
     @ti.func
     def polar(Fe):
@@ -148,7 +152,7 @@ def make_rotation_funcs(dtype):
         one or two steps reach float32 precision where the rotation moved little. Falls back to
         polar(Fe) (its SVD) where R0 is not a rotation (no earlier substep), where the steps have
         not converged after a few, or where the smallest pair sum of the signed singular values
-        (tr S - lambda_max(S)) is below _WARM_GAP_MIN |S| or negative: near an inversion, or a
+        (tr S - lambda_max(S)) is below WARM_GAP_MIN |S| or negative: near an inversion, or a
         step that found another stationary rotation (R flipped by pi about an axis of S, which
         negates two eigenvalues of S and makes it negative). The pair sums are only tested against
         that bound (pair_sums_exceed, no eigenvalue), and a warm rotation's gap is the bound
@@ -162,7 +166,7 @@ def make_rotation_funcs(dtype):
             for _ in range(warm_steps):
                 S0 = R.transpose() @ Fe
                 S = 0.5 * (S0 + S0.transpose())
-                bound = dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum())
+                bound = dtype(WARM_GAP_MIN) * ti.sqrt((S * S).sum())
                 if not pair_sums_exceed(S, bound):
                     break
                 # gap > bound, far above skew_solve's floor (1e-6 |S|): the bound stands in for it
@@ -173,7 +177,7 @@ def make_rotation_funcs(dtype):
         S = R.transpose() @ Fe
         S = 0.5 * (S + S.transpose())
         if converged:
-            gap = dtype(_WARM_GAP_MIN) * ti.sqrt((S * S).sum())
+            gap = dtype(WARM_GAP_MIN) * ti.sqrt((S * S).sum())
             converged = pair_sums_exceed(S, gap)
         if not converged:
             R, S, gap = polar(Fe)

@@ -15,13 +15,21 @@ G2P add into per-thread lanes of the grid (physmorph.mpm.lanes), not with atomic
 stores the rotation of Fe (as a unit quaternion) with its smallest pair sum and the P2G grid per
 substep; the adjoints (physmorph.mpm.transfer_adjoints) restore them instead of running P2G and its
 SVD again.
+
+On the CPU, P2G's polar decomposition and affine term run first on packs of particles
+(p2g_stress: physmorph.mpm.stress_packs, in the vector units), and P2G's particle loop reads them;
+the particles a pack marks go through the SVD there. On a GPU one kernel does both, a particle a
+thread; that kernel is also the CPU's reference (Transfers(..., packed=False)).
 """
 
 import taichi as ti
 
+from physmorph.settings.solver_memory import PACKED_STRESS_MIN_PARTICLES
+
 from .control import ControlField
 from .lanes import LANE_BLOCK
 from .model import MPMModel
+from .stress_packs import ENTRIES, PACK, make_pack_funcs
 from .trajectory import Trajectory
 
 
@@ -29,9 +37,26 @@ from .trajectory import Trajectory
 class Transfers:
     """P2G, the grid update and G2P of substep t: s_t and dFc_t -> s_(t+1)."""
 
-    def __init__(self, model: MPMModel, trajectory: Trajectory, control: ControlField):
+    def __init__(self, model: MPMModel, trajectory: Trajectory, control: ControlField, packed: bool | None = None):
         self.model, self.trajectory, self.control = model, trajectory, control
         self.n, self.dtype = model.n, model.dtype
+        # P2G's stress on packs first (the CPU, from PACKED_STRESS_MIN_PARTICLES on; module
+        # docstring): a compile-time constant
+        if packed is None:
+            packed = model.lanes.private and self.n >= PACKED_STRESS_MIN_PARTICLES
+        self.packed = bool(packed)
+        self.packs = (self.n + PACK - 1) // PACK
+        if self.packed:
+            cfg = model.cfg
+            self.pack = make_pack_funcs(self.dtype, cfg.mu, cfg.lam)
+            # the substep's A per particle, as p2g_stress leaves it for p2g
+            self.affine = ti.types.matrix(3, 3, self.dtype).field(shape=self.n)
+
+    def run_p2g(self, t: int) -> None:
+        """P2G of substep t into the lanes (or the grid): its stress pass first on the CPU."""
+        if self.packed:
+            self.p2g_stress(t)
+        self.p2g(t)
 
     @ti.kernel
     def clear_grid(self):
@@ -57,25 +82,77 @@ class Transfers:
                 self._p2g_particle(t, p, 0)
 
     @ti.func
-    def _p2g_particle(self, t, p, lane):
-        """Particle p's share of P2G, added into the grid's lane ``lane``."""
+    def _fe(self, t, p):
+        """Fe = (F + dFc_t) Fp^-1 of particle p at substep t."""
+        return (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
+
+    @ti.func
+    def _stress_scale(self, p):
+        """-dt V0 4/dx^2: A's factor on P(Fe) Fe^T."""
         kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
-        lanes = self.trajectory.lanes
-        xp = self.trajectory.x[t, p]
-        base, fx, w, dw = self.model.stencil(xp)
-        Fe = (self.trajectory.F[t, p] + self.control.ctrl[t, p]) @ self.model.Fp_inv[p]
+        return -self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq
+
+    @ti.func
+    def _affine(self, t, p, warm):
+        """A of particle p at substep t from its own polar decomposition (warm: from R_prev),
+        the rotation and its pair sum kept in R_prev and gap_t."""
+        Fe = self._fe(t, p)
         # warm start: the rotation one substep earlier. At the first substep the zero start
         # (no rotation) makes polar_from take the SVD, so a forward depends only on the loaded
         # state and the control; one call site, since each inlined SVD costs seconds of compile
         R0 = ti.Matrix.zero(self.dtype, 3, 3)
-        if t > 0:
+        if warm:
             R0 = self.trajectory.R_prev[p]
         R, S, gap = self.model.stress.polar_from(Fe, R0)
         self.trajectory.R_prev[p] = R
-        self.trajectory.R_q[t, p] = self.model.quaternion_of(R)
         self.trajectory.gap_t[t, p] = gap
         P = self.model.stress.stress_from_polar(Fe, R)
-        A = (-self.dtype(self.model.cfg.dt) * self.model.vol[p] * kq) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
+        return self._stress_scale(p) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
+
+    @ti.kernel
+    def p2g_stress(self, t: ti.i32):
+        """P2G's polar decomposition and A on packs of PACK particles (physmorph.mpm.stress_packs):
+        R, its pair sum and A into R_prev, gap_t and affine; a particle the pack hands to the SVD
+        gets gap_t -1, which p2g reads."""
+        for pack in range(self.packs):
+            self._stress_pack(t, pack)
+
+    @ti.func
+    def _stress_pack(self, t, pack):
+        tr, f = self.trajectory, self.dtype
+        # the pack's particles (the last pack repeats the last particle) and their inputs
+        ps = [ti.min(pack * PACK + lane, self.n - 1) for lane in ti.static(range(PACK))]
+        Fes = [self._fe(t, p) for p in ti.static(ps)]
+        mCs = [self.model.mass[p] * tr.C[t, p] for p in ti.static(ps)]
+        R0s = [ti.select(t > 0, tr.R_prev[p], ti.Matrix.zero(f, 3, 3)) for p in ti.static(ps)]
+        Fe = [ti.Vector([m[i, j] for m in ti.static(Fes)]) for i, j in ti.static(ENTRIES)]
+        R0 = [ti.Vector([m[i, j] for m in ti.static(R0s)]) for i, j in ti.static(ENTRIES)]
+        mC = [ti.Vector([m[i, j] for m in ti.static(mCs)]) for i, j in ti.static(ENTRIES)]
+        scale = ti.Vector([self._stress_scale(p) for p in ti.static(ps)])
+        R, gap, needs_svd = self.pack.polar_from(Fe, R0)
+        Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
+        A = self.pack.affine(Fe, Rr, scale, mC)
+        for lane in ti.static(range(PACK)):
+            p = pack * PACK + lane
+            if p < self.n:
+                tr.R_prev[p] = ti.Matrix([[Rr[3 * i + j][lane] for j in ti.static(range(3))] for i in ti.static(range(3))])
+                self.affine[p] = ti.Matrix([[A[3 * i + j, lane] for j in ti.static(range(3))] for i in ti.static(range(3))])
+                tr.gap_t[t, p] = ti.select(needs_svd[lane], -1.0, gap[lane])
+
+    @ti.func
+    def _p2g_particle(self, t, p, lane):
+        """Particle p's share of P2G, added into the grid's lane ``lane``."""
+        lanes = self.trajectory.lanes
+        xp = self.trajectory.x[t, p]
+        base, fx, w, dw = self.model.stencil(xp)
+        A = ti.Matrix.zero(self.dtype, 3, 3)
+        if ti.static(self.packed):
+            A = self.affine[p]
+            if self.trajectory.gap_t[t, p] < 0.0:  # the pack left it to the SVD
+                A = self._affine(t, p, False)
+        else:
+            A = self._affine(t, p, t > 0)
+        self.trajectory.R_q[t, p] = self.model.quaternion_of(self.trajectory.R_prev[p])
         mom = self.model.mass[p] * (1.0 - self.dtype(self.model.cfg.dt) * self.dtype(self.model.cfg.drag)) * self.trajectory.v[t, p]
         # x_I - x_p = (off - fx) dx: along a row of the stencil A (x_I - x_p) grows by dx A's
         # third column, so a node adds one vector rather than a 3x3 product

@@ -9,7 +9,9 @@ import os
 from dataclasses import dataclass
 
 from physmorph.settings.sections import SamplingConfig, ShapeSettings, TargetConfig
-from physmorph.settings.solver_memory import PAIR_MIN_PARTICLE_STEPS, bytes_per_particle_substep, grid_lane_bytes_per_node
+from physmorph.settings.solver_memory import (PACKED_STRESS_FLOATS_PER_PARTICLE, PACKED_STRESS_MIN_PARTICLES,
+                                              PAIR_MIN_PARTICLE_STEPS, bytes_per_particle_substep, float_bytes,
+                                              grid_lane_bytes_per_node)
 
 
 BASE_PROCESS_MB = 600.0  # python + numpy + torch + taichi runtime, measured ~500 MB
@@ -75,10 +77,12 @@ def morph_memory(source: ShapeSettings, sampling: SamplingConfig, target: Target
     # stored per substep: what the solver keeps for its backward (physmorph.settings.solver_memory); per
     # control slot dFc and its gradient (72 B in float32), and Adam's two moments when Adam runs (72 B)
     moments = 72 if mpm.optimizer == "adam" else 0
-    per_particle = (mpm.substeps * bytes_per_particle_substep(mpm) + slots * (72 + moments) * scale
+    lanes = 0 if getattr(mpm, "device", "cpu") == "cuda" else max(1, int(threads))
+    # what P2G's stress on packs leaves for its particle loop (CPU only)
+    packs = PACKED_STRESS_FLOATS_PER_PARTICLE * float_bytes(mpm.precision) if lanes and n >= PACKED_STRESS_MIN_PARTICLES else 0
+    per_particle = (mpm.substeps * bytes_per_particle_substep(mpm) + slots * (72 + moments) * scale + packs
                     + MORPH_BYTES_PER_PARTICLE)
     pixels = target.cameras * target.width * target.height
-    lanes = 0 if getattr(mpm, "device", "cpu") == "cuda" else max(1, int(threads))
     per_node = (64 + 16 * mpm.substeps) * scale + grid_lane_bytes_per_node(
         mpm.precision, lanes, n * mpm.substeps >= PAIR_MIN_PARTICLE_STEPS)  # the P2G grid kept per substep, the lanes
     grid = sampling.grid_res ** 3 * per_node

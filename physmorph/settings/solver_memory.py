@@ -15,6 +15,11 @@ FLOATS_PER_PARTICLE_SUBSTEP = 3 + 3 + 9 + 9 + 4 + 1  # x, v, C, F, the rotation'
 # the injection calibration's backward_pair from this many particle-substeps on (n x substeps;
 # below, its kernels' compilation costs more than it saves in a run: docs/performance.md)
 PAIR_MIN_PARTICLE_STEPS = 1_000_000
+# P2G's stress on packs of particles (physmorph.mpm.stress_packs) from this many particles on, on the
+# CPU: its kernel's compilation (~8 s) costs more than it saves in a run of fewer particles
+PACKED_STRESS_MIN_PARTICLES = 100_000
+# what the packs leave for P2G per particle: A, a 3x3 matrix
+PACKED_STRESS_FLOATS_PER_PARTICLE = 9
 # Per grid node and CPU thread, the lanes' copies of the grid (physmorph.mpm.lanes): P2G's (momentum,
 # mass) and the reverse of G2P's velocity adjoint; with backward_pair a second velocity adjoint
 LANE_FLOATS_PER_NODE = 4 + 3

@@ -244,11 +244,11 @@ def test_polar_from_a_nearby_rotation_is_the_svd_polar(precision):
     substep earlier) equals the SVD's polar factors: to round-off in float64, and in float32 at
     least as close to the exact rotation as the float32 SVD, from starts up to 2 rad away; inverted
     Fe included. Its gap is the SVD's smallest pair sum where it fell back to the SVD, and else a
-    lower bound of it no lower than _WARM_GAP_MIN |S| (all the rotation's derivative needs). A
+    lower bound of it no lower than WARM_GAP_MIN |S| (all the rotation's derivative needs). A
     start that is no rotation (before the first forward) takes the SVD itself."""
     from scipy.spatial.transform import Rotation
 
-    from physmorph.mpm.stress import _WARM_GAP_MIN, evaluate_polar
+    from physmorph.mpm.stress import WARM_GAP_MIN, evaluate_polar
 
     rng = np.random.default_rng(3)
     n = 3000
@@ -268,7 +268,7 @@ def test_polar_from_a_nearby_rotation_is_the_svd_polar(precision):
         else:
             assert np.abs(R - R64).max() <= max(np.abs(R_svd - R64).max(), 2e-6)
         slack = 1e-12 if tol else 1e-5 * np.abs(S64).max()
-        bound = _WARM_GAP_MIN * np.linalg.norm(S_w, axis=(1, 2))
+        bound = WARM_GAP_MIN * np.linalg.norm(S_w, axis=(1, 2))
         warm = np.abs(gap - bound) <= slack  # the warm rotations' gap is their bound
         assert 0 < warm.sum() < n  # both branches taken (the inverted Fe fall back to the SVD)
         np.testing.assert_allclose(gap[~warm], gap64[~warm], atol=slack)

@@ -1,0 +1,121 @@
+"""P2G's stress on packs of particles (physmorph.mpm.stress_packs, Transfers.p2g_stress): the packed
+forward is the one-particle-a-thread forward's to round-off, in float64 and float32, its control
+gradient matches central differences at the shipped defaults, and it hands to the SVD exactly the
+particles polar_from does."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+
+import numpy as np
+import pytest
+
+from physmorph.settings.mpm import MPMConfig
+from physmorph.mpm.stress import WARM_GAP_MIN, evaluate_polar
+from physmorph.mpm.stress_packs import PACK
+from physmorph.mpm.transfers import Transfers
+from mpm_cases import RES, ball_state, fd_check, make, random_control
+
+STORED = ("x", "v", "C", "F", "R_q", "gap_t", "grid_m_t", "grid_mv_t")
+
+
+def shipped(precision: str) -> MPMConfig:
+    """The shipped solver on the tests' small grid, 4 substeps."""
+    return dataclasses.replace(MPMConfig(), precision=precision, grid_res=RES, substeps=4)
+
+
+def generic_state():
+    """The ball (123 particles: the last pack is part full) with a few inverted F (the SVD's branch)."""
+    st = ball_state()
+    assert st.n % PACK != 0
+    st.F[:6, :, 2] *= -1.0
+    return st
+
+
+@contextlib.contextmanager
+def packed_transfers(s):
+    """s's transfers replaced by packed ones for the block (the small ball is under the size from
+    which the solver packs by itself)."""
+    kept = s.transfers
+    assert not kept.packed
+    s.transfers = Transfers(s.model, s.trajectory, s.control_field, packed=True)
+    try:
+        yield s.transfers
+    finally:
+        s.transfers = kept
+
+
+def stored(s) -> dict:
+    return {name: getattr(s.trajectory, name).to_numpy().astype(np.float64) for name in STORED}
+
+
+@pytest.mark.parametrize("precision,tol", [("float64", 1e-12), ("float32", 1e-5)])
+def test_packed_forward_and_gradient_are_the_scalar_ones(precision, tol):
+    """Every stored quantity of a forward (x, v, C, F, the rotations' quaternions and pair sums, the
+    P2G grids) and the control gradient of its backward, packed against one particle a thread,
+    within tol of each quantity's largest entry."""
+    cfg = shipped(precision)
+    st = generic_state()
+    s = make(cfg, st, reuse=True)
+    s.set_control(random_control(cfg, st.n, scale=0.02))
+    s.forward()
+    s.backward()
+    scalar, grad = stored(s), s.control_gradient()
+    with packed_transfers(s):
+        s.load_state(st)
+        s.forward()
+        s.backward()
+        packed, grad_packed = stored(s), s.control_gradient()
+    for name in STORED:
+        assert np.abs(packed[name] - scalar[name]).max() <= tol * np.abs(scalar[name]).max(), name
+    assert np.abs(grad_packed - grad).max() <= tol * np.abs(grad).max()
+
+
+def test_packed_gradients_at_the_shipped_defaults_match_fd():
+    """The control's and the initial state's gradients with the packed forward, float64, against
+    central differences (mpm_cases.fd_check), with the injected adjoints."""
+    cfg = shipped("float64")
+    st = generic_state()
+    s = make(cfg, st, reuse=True)
+    s.set_control(random_control(cfg, st.n, scale=0.02))
+    rng = np.random.default_rng(5)
+    with packed_transfers(s):
+        fd_check(s, st, gF=50.0 * rng.normal(size=(st.n, 3, 3)), gx=5.0 * rng.normal(size=(st.n, 3)),
+                 n_checks=6, seed=25, h=1e-5)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_packs_hand_to_the_svd_what_polar_from_does(precision):
+    """From warm rotations 0.01, 0.3 and 2 rad away (Rodrigues' series and its sines; the far
+    ones do not converge within polar_from's steps), the packs mark for the SVD exactly the
+    particles whose polar_from takes the SVD, and elsewhere give its rotation and pair-sum
+    bound; at the first substep (no warm rotation) they mark every particle."""
+    from scipy.spatial.transform import Rotation
+
+    cfg = shipped(precision)
+    st = generic_state()
+    s = make(cfg, st, reuse=True)
+    s.set_control(random_control(cfg, st.n, scale=0.02))
+    s.forward()
+    t = 2
+    x, v, F, C = s.trajectory.export_raw(t)
+    Fe = (F.astype(np.float64) + s.control()[t]) @ s.model.Fp_inv.to_numpy().astype(np.float64)
+    R_exact, _, _ = evaluate_polar(Fe, None, "float64")
+    rng = np.random.default_rng(7)
+    atol = 1e-12 if precision == "float64" else 5e-6
+    with packed_transfers(s) as packs:
+        for angle in (0.01, 0.3, 2.0):
+            R0 = R_exact @ Rotation.from_rotvec(angle * rng.standard_normal((st.n, 3)) / np.sqrt(3)).as_matrix()
+            R_scalar, S_scalar, gap_scalar = evaluate_polar(Fe, R0, precision)
+            svd = np.abs(gap_scalar - WARM_GAP_MIN * np.linalg.norm(S_scalar, axis=(1, 2))) > 1e-5 * np.abs(S_scalar).max()
+            assert 0 < svd.sum() < st.n
+            s.trajectory.R_prev.from_numpy(R0.astype(s.model.np_dtype))
+            packs.p2g_stress(t)
+            gap = s.trajectory.gap_t.to_numpy()[t]
+            np.testing.assert_array_equal(gap < 0, svd)
+            R = s.trajectory.R_prev.to_numpy()
+            np.testing.assert_allclose(R[~svd], R_scalar[~svd], atol=atol)
+            np.testing.assert_allclose(gap[~svd], gap_scalar[~svd], rtol=atol)
+        packs.p2g_stress(0)
+        assert (s.trajectory.gap_t.to_numpy()[0] < 0).all()
