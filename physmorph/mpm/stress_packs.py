@@ -110,6 +110,27 @@ def pack_exp(o0, o1, o2, th2, a, b) -> list:
             b * o2 * o0 - a * o1, b * o2 * o1 + a * o0, 1.0 + b * (o2 * o2 - th2)]
 
 
+def pack_quaternion(R: list) -> list:
+    """MPMModel.quaternion_of lane by lane: the unit quaternion (w, x, y, z) of the rotation R,
+    each lane's Shepperd branch picked by the same tests and its components selected, not branched
+    to. Returns its 4 components."""
+    trace = R[0] + R[4] + R[8]
+    first = trace > 0.0
+    second = ~first & (R[0] > R[4]) & (R[0] > R[8])
+    third = ~first & ~second & (R[4] > R[8])
+    arg = ti.select(first, 1.0 + trace, ti.select(second, 1.0 + R[0] - R[4] - R[8],
+                                                  ti.select(third, 1.0 + R[4] - R[0] - R[8], 1.0 + R[8] - R[0] - R[4])))
+    r = 2.0 * ti.sqrt(ti.max(arg, 0.0))
+    quarter, inv_r = 0.25 * r, 1.0 / r
+    # the branches' other components: differences and sums of R's off-diagonal pairs over r
+    wx, wy, wz = (R[7] - R[5]) * inv_r, (R[2] - R[6]) * inv_r, (R[3] - R[1]) * inv_r
+    xy, xz, yz = (R[1] + R[3]) * inv_r, (R[2] + R[6]) * inv_r, (R[5] + R[7]) * inv_r
+    return [ti.select(first, quarter, ti.select(second, wx, ti.select(third, wy, wz))),
+            ti.select(first, wx, ti.select(second, quarter, ti.select(third, xy, xz))),
+            ti.select(first, wy, ti.select(second, xy, ti.select(third, quarter, yz))),
+            ti.select(first, wz, ti.select(second, xz, ti.select(third, yz, quarter)))]
+
+
 def make_pack_funcs(dtype, mu: float, lam: float):
     """The pack's Taichi functions for one float type: polar_from(Fe, R0) -> (R, gap, needs_svd) and
     affine(Fe, R, stress_scale, mC) -> A, the matrices given as lists of rows and returned as

@@ -29,7 +29,7 @@ from physmorph.settings.solver_memory import PACKED_STRESS_MIN_PARTICLES
 from .control import ControlField
 from .lanes import LANE_BLOCK
 from .model import MPMModel
-from .stress_packs import ENTRIES, PACK, make_pack_funcs
+from .stress_packs import ENTRIES, PACK, make_pack_funcs, pack_quaternion
 from .trajectory import Trajectory
 
 
@@ -95,7 +95,7 @@ class Transfers:
     @ti.func
     def _affine(self, t, p, warm):
         """A of particle p at substep t from its own polar decomposition (warm: from R_prev),
-        the rotation and its pair sum kept in R_prev and gap_t."""
+        the rotation, its quaternion and its pair sum kept in R_prev, R_q and gap_t."""
         Fe = self._fe(t, p)
         # warm start: the rotation one substep earlier. At the first substep the zero start
         # (no rotation) makes polar_from take the SVD, so a forward depends only on the loaded
@@ -105,6 +105,7 @@ class Transfers:
             R0 = self.trajectory.R_prev[p]
         R, S, gap = self.model.stress.polar_from(Fe, R0)
         self.trajectory.R_prev[p] = R
+        self.trajectory.R_q[t, p] = self.model.quaternion_of(R)
         self.trajectory.gap_t[t, p] = gap
         P = self.model.stress.stress_from_polar(Fe, R)
         return self._stress_scale(p) * (P @ Fe.transpose()) + self.model.mass[p] * self.trajectory.C[t, p]
@@ -112,7 +113,7 @@ class Transfers:
     @ti.kernel
     def p2g_stress(self, t: ti.i32):
         """P2G's polar decomposition and A on packs of PACK particles (physmorph.mpm.stress_packs):
-        R, its pair sum and A into R_prev, gap_t and affine; a particle the pack hands to the SVD
+        R, its quaternion, its pair sum and A into R_prev, R_q, gap_t and affine; a particle the pack hands to the SVD
         gets gap_t -1, which p2g reads."""
         for pack in range(self.packs):
             self._stress_pack(t, pack)
@@ -132,10 +133,12 @@ class Transfers:
         R, gap, needs_svd = self.pack.polar_from(Fe, R0)
         Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
         A = self.pack.affine(Fe, Rr, scale, mC)
+        q = pack_quaternion(Rr)
         for lane in ti.static(range(PACK)):
             p = pack * PACK + lane
             if p < self.n:
                 tr.R_prev[p] = ti.Matrix([[Rr[3 * i + j][lane] for j in ti.static(range(3))] for i in ti.static(range(3))])
+                tr.R_q[t, p] = ti.Vector([q[c][lane] for c in ti.static(range(4))])
                 self.affine[p] = ti.Matrix([[A[3 * i + j, lane] for j in ti.static(range(3))] for i in ti.static(range(3))])
                 tr.gap_t[t, p] = ti.select(needs_svd[lane], -1.0, gap[lane])
 
@@ -152,7 +155,6 @@ class Transfers:
                 A = self._affine(t, p, False)
         else:
             A = self._affine(t, p, t > 0)
-        self.trajectory.R_q[t, p] = self.model.quaternion_of(self.trajectory.R_prev[p])
         mom = self.model.mass[p] * (1.0 - self.dtype(self.model.cfg.dt) * self.dtype(self.model.cfg.drag)) * self.trajectory.v[t, p]
         # x_I - x_p = (off - fx) dx: along a row of the stencil A (x_I - x_p) grows by dx A's
         # third column, so a node adds one vector rather than a 3x3 product

@@ -119,3 +119,38 @@ def test_packs_hand_to_the_svd_what_polar_from_does(precision):
             np.testing.assert_allclose(gap[~svd], gap_scalar[~svd], rtol=atol)
         packs.p2g_stress(0)
         assert (s.trajectory.gap_t.to_numpy()[0] < 0).all()
+
+
+def test_pack_quaternion_is_shepperds():
+    """pack_quaternion gives MPMModel.quaternion_of's quaternion (the same branch, so the same
+    sign) for random rotations, half turns about random axes and the axes (w = 0: every one of
+    Shepperd's branches) and the identity, float64."""
+    import taichi as ti
+    from scipy.spatial.transform import Rotation
+
+    from physmorph.mpm.stress_packs import ENTRIES, pack_quaternion
+
+    s = make(shipped("float64"), generic_state(), reuse=True)
+    rng = np.random.default_rng(8)
+    axes = rng.normal(size=(60, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    half_turns = Rotation.from_rotvec(np.pi * np.vstack([axes, np.eye(3)])).as_matrix()
+    rots = np.concatenate([Rotation.random(400, random_state=5).as_matrix(), half_turns, np.eye(3)[None]])
+    assert len(rots) % PACK == 0
+    r_in = ti.Matrix.field(3, 3, ti.f64, shape=len(rots))
+    q_scalar = ti.Vector.field(4, ti.f64, shape=len(rots))
+    q_packed = ti.Vector.field(4, ti.f64, shape=len(rots))
+    r_in.from_numpy(rots)
+
+    @ti.kernel
+    def quaternions():
+        for pack in range(len(rots) // PACK):
+            R = [ti.Vector([r_in[pack * PACK + lane][i, j] for lane in ti.static(range(PACK))]) for i, j in ti.static(ENTRIES)]
+            q = pack_quaternion(R)
+            for lane in ti.static(range(PACK)):
+                p = pack * PACK + lane
+                q_packed[p] = ti.Vector([q[c][lane] for c in ti.static(range(4))])
+                q_scalar[p] = s.model.quaternion_of(r_in[p])
+
+    quaternions()
+    np.testing.assert_allclose(q_packed.to_numpy(), q_scalar.to_numpy(), rtol=0, atol=1e-15)
