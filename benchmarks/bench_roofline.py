@@ -215,6 +215,10 @@ def kernel_rows(times: dict, n: int, nodes: int, limits: dict, lanes: int) -> li
     by_kernel: dict = {}
     for name, (count, seconds) in times.items():
         short = name.rsplit("_c", 1)[0]  # Taichi appends _c<k>_<id> to each compiled kernel's name
+        if short == "p2g_stress":
+            # P2G's stress on packs (the CPU from 100K particles): the models are P2G's as one
+            # step, so its time counts as P2G's, its launches as the same launches
+            short, count = "p2g", 0
         launches, spent = by_kernel.get(short, (0, 0.0))
         by_kernel[short] = (launches + count, spent + seconds)
     rows = []
