@@ -12,8 +12,8 @@ PACK lanes, entry (i, j) at 3 i + j, and every operation is written row by row.
 
 The row-wise helpers are plain Python functions that build the expressions while Taichi compiles
 (no Taichi function: inlining [9, PACK] matrices through Taichi functions, whose arguments and
-results are local variables, made Taichi's compile passes ten times slower). Only the Newton
-loop's rotation is a Taichi variable.
+results are local variables, made the polar decomposition's kernel compile 13 times slower). Only
+the Newton loop's rotation is a Taichi variable.
 
 The arithmetic per lane is polar_from's (physmorph.mpm.stress): the same Newton steps
 R <- R exp(omega^), (tr S - S) omega = axial(S0 - S0^T), from the rotation one substep earlier,

@@ -16,10 +16,11 @@ stores the rotation of Fe (as a unit quaternion) with its smallest pair sum and 
 substep; the adjoints (physmorph.mpm.transfer_adjoints) restore them instead of running P2G and its
 SVD again.
 
-On the CPU, P2G's polar decomposition and affine term run first on packs of particles
-(p2g_stress: physmorph.mpm.stress_packs, in the vector units), and P2G's particle loop reads them;
-the particles a pack marks go through the SVD there. On a GPU one kernel does both, a particle a
-thread; that kernel is also the CPU's reference (Transfers(..., packed=False)).
+On the CPU from PACKED_STRESS_MIN_PARTICLES on, P2G's polar decomposition (with its quaternion
+and pair sum) and affine term run first on packs of particles (p2g_stress:
+physmorph.mpm.stress_packs, in the vector units), and P2G's particle loop reads A; the particles a
+pack marks go through the SVD there. Below that size and on a GPU one kernel does both, a
+particle an iteration; it is also the packs' reference (Transfers(..., packed=False)).
 """
 
 import taichi as ti
