@@ -12,8 +12,17 @@ PACK lanes, entry (i, j) at 3 i + j, and every operation is written row by row.
 
 The row-wise helpers are plain Python functions that build the expressions while Taichi compiles
 (no Taichi function: inlining [9, PACK] matrices through Taichi functions, whose arguments and
-results are local variables, made the polar decomposition's kernel compile 13 times slower). Only
-the Newton loop's rotation is a Taichi variable.
+results are local variables, made the polar decomposition's kernel compile 13 times slower). What
+a helper returns for later rows to use is made Taichi variables (pack_values): Taichi compiles an
+expression tree once per use, so trees nested through several helpers would compile
+exponentially often.
+
+The vectoriser needs a start: LLVM's SLP pass begins at stores to consecutive addresses or at
+bundles of loop-carried values. Here it starts at the Newton loop's rotation (72 values carried
+round the loop); a pack's stores go to its particles' own matrices, 36 B apart. Kernels without
+such a loop vectorise only where their results are stored a row of lanes at a time (a field of
+PACK-lane vectors; a scalar field's index arithmetic in 32-bit integers hides that its lanes
+are consecutive).
 
 The arithmetic per lane is polar_from's (physmorph.mpm.stress): the same Newton steps
 R <- R exp(omega^), (tr S - S) omega = axial(S0 - S0^T), from the rotation one substep earlier,
@@ -29,6 +38,7 @@ import warnings
 from types import SimpleNamespace
 
 import taichi as ti
+from taichi.lang.impl import expr_init
 
 from .stress import SERIES_ANGLE, WARM_GAP_MIN, warm_start_steps
 
@@ -40,6 +50,15 @@ ENTRIES = [(i, j) for i in range(3) for j in range(3)]  # a pack's rows: entry (
 warnings.filterwarnings("ignore", message=r'.*Calling non-taichi function "[\w.]*pack_', category=SyntaxWarning)
 
 
+def pack_values(rows: list) -> list:
+    """The rows as Taichi local variables. An expression a helper builds is a tree, and Taichi
+    compiles a tree once for every place that uses it: a row used by several later rows, whose
+    results are used several times again, would be compiled a number of times that grows
+    exponentially with the helpers' nesting (a chain of 8 steps each using the one before twice
+    took 20 s to compile, 0.1 s with a variable at each step). A variable is compiled once."""
+    return [expr_init(row) for row in rows]
+
+
 def pack_product(A: list, B: list, transpose_a: bool = False, transpose_b: bool = False) -> list:
     """A B (or with A^T, B^T) lane by lane."""
     def a(i, k):
@@ -48,11 +67,11 @@ def pack_product(A: list, B: list, transpose_a: bool = False, transpose_b: bool 
     def b(k, j):
         return B[3 * j + k] if transpose_b else B[3 * k + j]
 
-    return [a(i, 0) * b(0, j) + a(i, 1) * b(1, j) + a(i, 2) * b(2, j) for i, j in ENTRIES]
+    return pack_values([a(i, 0) * b(0, j) + a(i, 1) * b(1, j) + a(i, 2) * b(2, j) for i, j in ENTRIES])
 
 
 def pack_symmetric(A: list) -> list:
-    return [0.5 * (A[3 * i + j] + A[3 * j + i]) for i, j in ENTRIES]
+    return pack_values([0.5 * (A[3 * i + j] + A[3 * j + i]) for i, j in ENTRIES])
 
 
 def pack_frobenius(A: list):
@@ -73,7 +92,7 @@ def pack_cofactor(F: list) -> list:
         a, b, s, t = (c + 1) % 3, (c + 2) % 3, (r + 1) % 3, (r + 2) % 3
         return F[3 * s + a] * F[3 * t + b] - F[3 * t + a] * F[3 * s + b]
 
-    return [entry(r, c) for r, c in ENTRIES]
+    return pack_values([entry(r, c) for r, c in ENTRIES])
 
 
 def pack_pair_sums_exceed(S: list, c):
@@ -92,22 +111,21 @@ def pack_rotation_step(S0: list, S: list):
     t = S[0] + S[4] + S[8]
     m00, m11, m22 = t - S[0], t - S[4], t - S[8]
     m01, m02, m12 = -S[1], -S[2], -S[5]
-    c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m11 * m02
-    c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
+    c00, c01, c02, c11, c12, c22 = pack_values([m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m11 * m02,
+                                                m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01])
     inv_det = 1.0 / (m00 * c00 + m01 * c01 + m02 * c02)
     r0, r1, r2 = S0[7] - S0[5], S0[2] - S0[6], S0[3] - S0[1]
-    o0 = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
-    o1 = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
-    o2 = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
+    o0, o1, o2 = pack_values([(c00 * r0 + c01 * r1 + c02 * r2) * inv_det, (c01 * r0 + c11 * r1 + c12 * r2) * inv_det,
+                              (c02 * r0 + c12 * r1 + c22 * r2) * inv_det])
     return o0, o1, o2, o0 * o0 + o1 * o1 + o2 * o2
 
 
 def pack_exp(o0, o1, o2, th2, a, b) -> list:
     """exp(omega^) = I + a K + b K^2 (K = omega^, K^2 = omega omega^T - th^2 I), a and b
     Rodrigues' coefficients, lane by lane."""
-    return [1.0 + b * (o0 * o0 - th2), b * o0 * o1 - a * o2, b * o0 * o2 + a * o1,
-            b * o1 * o0 + a * o2, 1.0 + b * (o1 * o1 - th2), b * o1 * o2 - a * o0,
-            b * o2 * o0 - a * o1, b * o2 * o1 + a * o0, 1.0 + b * (o2 * o2 - th2)]
+    return pack_values([1.0 + b * (o0 * o0 - th2), b * o0 * o1 - a * o2, b * o0 * o2 + a * o1,
+                        b * o1 * o0 + a * o2, 1.0 + b * (o1 * o1 - th2), b * o1 * o2 - a * o0,
+                        b * o2 * o0 - a * o1, b * o2 * o1 + a * o0, 1.0 + b * (o2 * o2 - th2)])
 
 
 def pack_quaternion(R: list) -> list:

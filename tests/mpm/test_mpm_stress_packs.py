@@ -160,3 +160,40 @@ def test_pack_quaternion_is_shepperds():
 
     quaternions()
     np.testing.assert_allclose(q_packed.to_numpy(), q_scalar.to_numpy(), rtol=0, atol=1e-15)
+
+
+def test_pack_helpers_return_variables():
+    """The helpers whose rows later rows use return Taichi variables, not expression trees: a tree
+    is compiled once per use, so nested helpers' trees would compile exponentially slowly
+    (stress_packs.pack_values). Checked while the kernel compiles; the nested product's value
+    against NumPy."""
+    import taichi as ti
+
+    from physmorph.mpm.stress_packs import pack_cofactor, pack_product, pack_symmetric
+
+    make(shipped("float64"), generic_state(), reuse=True)  # Taichi initialised as the solver does
+    rng = np.random.default_rng(9)
+    mats = np.eye(3) + 0.3 * rng.normal(size=(PACK, 3, 3))
+    a_in = ti.field(ti.f64, shape=(9, PACK))
+    a_in.from_numpy(mats.reshape(PACK, 9).T.copy())
+    out = ti.field(ti.f64, shape=(9, PACK))
+    kinds = []
+
+    def record_pack_kinds(rows: list) -> None:  # at compile time: is each row a variable?
+        kinds.append([row.ptr.is_lvalue() for row in rows])
+
+    @ti.kernel
+    def nested():
+        A = [ti.Vector([a_in[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
+        for rows in ti.static([pack_product(A, A), pack_symmetric(A), pack_cofactor(A)]):
+            record_pack_kinds(rows)
+        B = pack_product(pack_product(A, A, transpose_a=True), pack_cofactor(A))
+        for r in ti.static(range(9)):
+            for lane in ti.static(range(PACK)):
+                out[r, lane] = B[r][lane]
+
+    nested()
+    assert len(kinds) == 3 and all(all(k) for k in kinds)
+    cof = np.linalg.det(mats)[:, None, None] * np.linalg.inv(mats).transpose(0, 2, 1)
+    expected = np.transpose(mats, (0, 2, 1)) @ mats @ cof  # [PACK, 3, 3]
+    np.testing.assert_allclose(out.to_numpy().T.reshape(PACK, 3, 3), expected, rtol=1e-12, atol=1e-12)
