@@ -43,6 +43,10 @@ from taichi.lang.impl import expr_init
 from .stress import SERIES_ANGLE, WARM_GAP_MIN, warm_start_steps
 
 PACK = 8  # particles a pack: a 256-bit vector register of float32
+# polar_start's most steps, and per float type the relative move below which a lane has
+# converged (the iteration converges quadratically: the error left is about its square)
+POLAR_START_STEPS = 12
+POLAR_START_TOL = {"f64": 1e-10, "f32": 1e-5}
 ENTRIES = [(i, j) for i in range(3) for j in range(3)]  # a pack's rows: entry (i, j) at 3 i + j
 
 # Taichi warns at every call of a plain Python function inside a kernel; the pack's helpers are
@@ -150,17 +154,48 @@ def pack_quaternion(R: list) -> list:
 
 
 def make_pack_funcs(dtype, mu: float, lam: float):
-    """The pack's Taichi functions for one float type: polar_from(Fe, R0) -> (R, gap, needs_svd) and
+    """The pack's Taichi functions for one float type: polar_from(Fe, R0, fresh) -> (R, gap, needs_svd) and
     affine(Fe, R, stress_scale, mC) -> A, the matrices given as lists of rows and returned as
     [9, PACK] Taichi matrices (module docstring)."""
     steps, tol = warm_start_steps(dtype)
+    start_tol = POLAR_START_TOL["f64" if dtype == ti.f64 else "f32"]
 
     @ti.func
-    def polar_from(Fe: ti.template(), R0: ti.template()):
+    def polar_start(Fe: ti.template()):
+        """A rotation near Fe's polar one where no warm one is kept (the first substep): Higham's
+        scaled Newton iteration X <- (z X + X^-T / z) / 2, z = (|X^-1|_F / |X|_F)^(1/2), from
+        X = Fe, converging to the orthogonal polar factor of any nonsingular Fe (det -1 where det Fe
+        < 0). Stops once every lane moves less than POLAR_START_TOL (relative); polar_from's Newton
+        steps then check it, and a lane they cannot take (an inverted or singular Fe: its X has
+        det -1 or is 0; no convergence) goes to the SVD as before."""
+        X = ti.Matrix.rows(Fe)
+        for _ in range(POLAR_START_STEPS):
+            Xr = pack_values([ti.Vector([X[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))])
+            cof = pack_cofactor(Xr)  # det(X) X^-T
+            det = Xr[0] * cof[0] + Xr[1] * cof[1] + Xr[2] * cof[2]
+            norm = pack_frobenius(Xr)
+            regular = ti.abs(det) > dtype(1e-12) * norm * norm * norm
+            inv_det = ti.select(regular, 1.0 / ti.select(regular, det, 1.0), 0.0)
+            z = ti.sqrt(pack_frobenius(cof) * ti.abs(inv_det) / ti.select(regular, norm, 1.0))
+            inv_z_det = ti.select(regular, inv_det / ti.select(regular, z, 1.0), 0.0)
+            X_next = pack_values([0.5 * (z * Xr[r] + inv_z_det * cof[r]) for r in ti.static(range(9))])
+            moved = pack_frobenius([X_next[r] - Xr[r] for r in ti.static(range(9))])
+            X = ti.Matrix.rows([ti.select(regular, X_next[r], 0.0) for r in ti.static(range(9))])
+            if not (regular & (moved > dtype(start_tol) * norm)).any():
+                break
+        return X
+
+    @ti.func
+    def polar_from(Fe: ti.template(), R0: ti.template(), fresh):
         """stress.polar_from lane by lane without its SVD: (R as a [9, PACK] matrix, gap,
-        needs_svd), needs_svd 1 on the lanes polar_from would hand to polar (module docstring)."""
+        needs_svd), needs_svd 1 on the lanes polar_from would hand to polar (module docstring).
+        ``fresh`` (every lane alike): no warm rotation is kept, R0 is ignored and polar_start
+        gives the Newton steps theirs."""
         R = ti.Matrix.rows(R0)
-        active = ti.abs(pack_determinant(R0) - 1.0) < dtype(1e-3)
+        if fresh:
+            R = polar_start(Fe)
+        active = ti.abs(pack_determinant([ti.Vector([R[r, lane] for lane in ti.static(range(PACK))])
+                                          for r in ti.static(range(9))]) - 1.0) < dtype(1e-3)
         converged = active & False
         for _ in range(steps):
             Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]

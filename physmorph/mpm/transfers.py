@@ -131,7 +131,7 @@ class Transfers:
         R0 = [ti.Vector([m[i, j] for m in ti.static(R0s)]) for i, j in ti.static(ENTRIES)]
         mC = [ti.Vector([m[i, j] for m in ti.static(mCs)]) for i, j in ti.static(ENTRIES)]
         scale = ti.Vector([self._stress_scale(p) for p in ti.static(ps)])
-        R, gap, needs_svd = self.pack.polar_from(Fe, R0)
+        R, gap, needs_svd = self.pack.polar_from(Fe, R0, t == 0)
         Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
         A = self.pack.affine(Fe, Rr, scale, mC)
         q = pack_quaternion(Rr)

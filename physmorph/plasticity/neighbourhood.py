@@ -162,6 +162,19 @@ def _cell_range(cell, dims: ti.template(), cell_start: ti.template()):
 
 
 @ti.func
+def _row_range(c, o, dims: ti.template(), cell_start: ti.template()):
+    """The sorted pool points [first, end) of row ``o`` (0..8: dz, dy in -1..1) of the 3x3x3 block
+    around cell c: the cells c + (dz, dy, -1..1) within the grid, contiguous in the cell order (x
+    last), so one range in the order the cells would be scanned one by one."""
+    z, y = c[0] + o // 3 - 1, c[1] + o % 3 - 1
+    first, end = 0, 0
+    if 0 <= z < dims[0] and 0 <= y < dims[1]:
+        row = (z * dims[1] + y) * dims[2]
+        first, end = cell_start[row + ti.max(c[2] - 1, 0)], cell_start[row + ti.min(c[2] + 1, dims[2] - 1) + 1]
+    return first, end
+
+
+@ti.func
 def _cell_gap2(xi, cell, lo: ti.template(), h):
     """The squared distance from x_i to grid cell ``cell``'s box (0 inside it): no point of the
     cell is nearer (to round-off: _CELL_GAP_SLACK)."""
@@ -248,8 +261,8 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
         for b in range(k):
             nb[i, b] = 0
         n_in = 0
-        for o in range(27):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
-            first, end = _cell_range(c + ti.Vector([o // 9 - 1, o // 3 % 3 - 1, o % 3 - 1]), dims, cell_start)
+        for o in range(9):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
+            first, end = _row_range(c, o, dims, cell_start)
             for s in range(first, end):
                 e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
                 d2 = e.dot(e)
@@ -268,8 +281,8 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                 for q in range(n_in):
                     placed = _place(r2, nb, r, i, k, kb, m0, cand_r2[r, q], ids[cand_at[r, q]], to_bin, placed)
             else:
-                for o in range(27):
-                    first, end = _cell_range(c + ti.Vector([o // 9 - 1, o // 3 % 3 - 1, o % 3 - 1]), dims, cell_start)
+                for o in range(9):
+                    first, end = _row_range(c, o, dims, cell_start)
                     for s in range(first, end):
                         e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
                         d2 = e.dot(e)
