@@ -27,11 +27,15 @@ are consecutive).
 The arithmetic per lane is polar_from's (physmorph.mpm.stress): the same Newton steps
 R <- R exp(omega^), (tr S - S) omega = axial(S0 - S0^T), from the rotation one substep earlier,
 each lane stopping where polar_from stops. A branch cannot differ between lanes, so a lane that
-is done keeps its R while the others step, and the steps end when every lane is done. A lane
-that polar_from would hand to the SVD (no warm rotation: the first substep; pair sums below the
-bound: near an inversion; no convergence within its steps) is marked, and P2G takes it through
-polar (the SVD) itself (physmorph.mpm.transfers). The results are polar_from's to the float's
-round-off (the operations' order differs); tests/mpm/test_mpm_stress_packs.py compares them.
+is done keeps its R while the others step, and the steps end when every lane is done. At the
+first substep, where polar_from has no warm rotation and takes the SVD, the packs start the steps
+from Higham's scaled Newton iteration instead (polar_start: a few vector steps where the SVD cost a
+tenth of a forward's P2G). A lane that polar_from would hand to the SVD (pair sums below the
+bound: near an inversion; no convergence within its steps; at the first substep, an inverted or
+singular Fe) is marked, and P2G takes it through polar (the SVD) itself
+(physmorph.mpm.transfers). The results are polar_from's, or at the first substep the SVD's, to
+the float's round-off (the operations' order differs); tests/mpm/test_mpm_stress_packs.py
+compares them.
 """
 
 import warnings

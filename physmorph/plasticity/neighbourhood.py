@@ -15,14 +15,13 @@ pair sums here are summed directly (no expansion of the products, so no cancella
 references are plasticity.knn_smooth and plasticity.displacement_jacobian.
 
 The neighbourhoods K_i themselves (step 2's k nearest particles of the pool) come from
-:func:`k_nearest`: a uniform cell grid over the particles, cells about the k-th neighbour's radius.
-Most queries are settled by the 3x3x3 cells around them (a histogram of r2 finds the bin of the
-k-th nearest, a second pass over the candidates the first scan kept writes the row); the rest scan
+:func:`k_nearest`: a uniform cell grid over the particles, cells 0.75 of the k-th neighbour's
+radius. Most queries are settled by a block of 4x4x4 cells around them (a histogram of r2 finds the
+bin of the k-th nearest, a second pass over the candidates the first scan kept writes the row); the rest scan
 rings of cells, keeping their k best in a max-heap and passing over cells farther than its largest,
 until the k-th distance is inside the rings scanned. Exact, as the KD tree it replaces
 (plasticity.nearest_neighbours, the reference), which took ~3 s of a paper-scale frame for the
-query and another ~2 s to gather and square its arrays; the grid takes 1.1-1.4 s (511K queries,
-k = 64, 2 threads).
+query and another ~2 s to gather and square its arrays.
 """
 
 # No "from __future__ import annotations": Taichi needs the kernel annotations as objects.
@@ -33,10 +32,18 @@ import taichi as ti
 from physmorph.base.taichi_runtime import ensure_taichi, taichi_state
 
 
-# How many candidates (points of the 3x3x3 block within its reach) a row keeps for its second
-# pass, at most (M in _k_nearest_block): a row has about a quarter of its block's points, ~100 at
-# the sampling's density; the scratch is chunk x M x 12 bytes (16 MB at k_nearest's chunk).
-BLOCK_CANDIDATES = 160
+# The cells per axis of the block a query scans first (_k_nearest_block) and the cells' side in
+# k-th-neighbour radii (k_nearest's cell_scale). Most queries lie within two cells of the surface,
+# where the k-th neighbour is ~1.2 radii away: a block of 3^3 cells of one radius (its reach 1-1.5
+# radii) left a tenth of the queries to the rings; 4^3 cells of 0.75 radii (the query in the
+# middle two cells on each axis: its reach at least 1.125 radii) scan about as many points and
+# leave fewer (docs/study/performance_history.md, the k-nearest block of 4^3 cells).
+BLOCK_CELLS = 4
+CELL_SCALE = 0.75
+# How many candidates (points of the block within its reach) a row keeps for its second pass, at
+# most (M in _k_nearest_block): ~100-250 at the sampling's density; a row with more scans its
+# block again. The scratch is chunk x M x 12 bytes (25 MB at k_nearest's chunk).
+BLOCK_CANDIDATES = 256
 # A cell is passed over only where its box is farther than the heap's largest r2 by this relative
 # share: a point the floor of (x - lo) / h put in the cell may lie outside its box by round-off.
 _CELL_GAP_SLACK = 1e-9
@@ -162,15 +169,16 @@ def _cell_range(cell, dims: ti.template(), cell_start: ti.template()):
 
 
 @ti.func
-def _row_range(c, o, dims: ti.template(), cell_start: ti.template()):
-    """The sorted pool points [first, end) of row ``o`` (0..8: dz, dy in -1..1) of the 3x3x3 block
-    around cell c: the cells c + (dz, dy, -1..1) within the grid, contiguous in the cell order (x
+def _row_range(corner, o, block: ti.template(), dims: ti.template(), cell_start: ti.template()):
+    """The sorted pool points [first, end) of row ``o`` (0 .. block^2 - 1) of the block of
+    block^3 cells from cell ``corner``: its cells within the grid, contiguous in the cell order (x
     last), so one range in the order the cells would be scanned one by one."""
-    z, y = c[0] + o // 3 - 1, c[1] + o % 3 - 1
+    z, y = corner[0] + o // block, corner[1] + o % block
     first, end = 0, 0
     if 0 <= z < dims[0] and 0 <= y < dims[1]:
         row = (z * dims[1] + y) * dims[2]
-        first, end = cell_start[row + ti.max(c[2] - 1, 0)], cell_start[row + ti.min(c[2] + 1, dims[2] - 1) + 1]
+        first = cell_start[row + ti.max(corner[2], 0)]
+        end = cell_start[row + ti.min(corner[2] + block - 1, dims[2] - 1) + 1]
     return first, end
 
 
@@ -195,19 +203,32 @@ def _cell_of(xi, lo: ti.template(), dims: ti.template(), h):
 
 
 @ti.func
-def _block_reach2(xi, c, lo: ti.template(), dims: ti.template(), h):
-    """R_b^2 of x_i's 3x3x3 block around cell c: the squared distance to the block's nearest face
-    with cells beyond it (no point outside the block is nearer), at most the block's farthest
-    corner's (every point of the block is within it)."""
+def _block_corner(xi, c, lo: ti.template(), h, block: ti.template()):
+    """The first cell of x_i's block of block^3 cells: centred on its cell c (block odd), or with c
+    among the middle two on each axis, on the side of the half of c that holds x_i (block even:
+    x_i then lies at least block / 2 - 1/2 cells inside each face)."""
+    corner = c - block // 2
+    if ti.static(block % 2 == 0):
+        for a in ti.static(range(3)):
+            if xi[a] - (lo[a] + c[a] * h) >= 0.5 * h:
+                corner[a] += 1
+    return corner
+
+
+@ti.func
+def _block_reach2(xi, corner, lo: ti.template(), dims: ti.template(), h, block: ti.template()):
+    """R_b^2 of x_i's block of block^3 cells from cell ``corner``: the squared distance to the
+    block's nearest face with cells beyond it (no point outside the block is nearer), at most the
+    block's farthest corner's (every point of the block is within it)."""
     bound = ti.f64(1e300)
     far = ti.f64(0.0)
     for a in ti.static(range(3)):
-        below = xi[a] - (lo[a] + (c[a] - 1) * h)
-        above = lo[a] + (c[a] + 2) * h - xi[a]
+        below = xi[a] - (lo[a] + corner[a] * h)
+        above = lo[a] + (corner[a] + block) * h - xi[a]
         far += ti.max(below, above) ** 2
-        if c[a] > 1:
+        if corner[a] > 0:
             bound = ti.min(bound, below)
-        if c[a] < dims[a] - 2:
+        if corner[a] + block < dims[a]:
             bound = ti.min(bound, above)
     return ti.min(bound * bound, far) if bound < 1e300 else far
 
@@ -239,8 +260,9 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                      r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [R, k] out: squared distances of rows row0..
                      cand_r2: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [R, M] scratch: the candidates' r2
                      cand_at: ti.types.ndarray(ndim=2),  # [R, M] scratch: the candidates' sorted pool rows
-                     settled: ti.types.ndarray(ndim=1)):  # [N] out: 1 where the row is written
-    """K_i from the 3x3x3 cells around x_i's alone, where they settle it: the points of the block
+                     settled: ti.types.ndarray(ndim=1),  # [N] out: 1 where the row is written
+                     block: ti.template()):  # cells per axis of a query's block (BLOCK_CELLS)
+    """K_i from x_i's block of block^3 cells alone (_block_corner), where it settles it: the points of the block
     within R_b of x_i (R_b: the distance to the block's nearest face with cells beyond it, so no
     point outside is nearer) number at least k. A histogram of their r2 in k bins over [0, R_b^2] finds the
     bin holding the k-th; a second pass writes every point below that bin and keeps the nearest
@@ -253,16 +275,16 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
     for r in range(ti.min(r2.shape[0], x.shape[0] - row0)):
         i = row0 + r
         xi = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
-        c = _cell_of(xi, lo, dims, h)
-        rb2 = _block_reach2(xi, c, lo, dims, h)
+        corner = _block_corner(xi, _cell_of(xi, lo, dims, h), lo, h, block)
+        rb2 = _block_reach2(xi, corner, lo, dims, h, block)
         to_bin = k / rb2
         # the histogram's k bins live in the row's index slots (a local array indexed at run time
         # would be lowered to a chain of selects); the second pass overwrites them
         for b in range(k):
             nb[i, b] = 0
         n_in = 0
-        for o in range(9):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
-            first, end = _row_range(c, o, dims, cell_start)
+        for o in range(block * block):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
+            first, end = _row_range(corner, o, block, dims, cell_start)
             for s in range(first, end):
                 e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
                 d2 = e.dot(e)
@@ -281,8 +303,8 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                 for q in range(n_in):
                     placed = _place(r2, nb, r, i, k, kb, m0, cand_r2[r, q], ids[cand_at[r, q]], to_bin, placed)
             else:
-                for o in range(9):
-                    first, end = _row_range(c, o, dims, cell_start)
+                for o in range(block * block):
+                    first, end = _row_range(corner, o, block, dims, cell_start)
                     for s in range(first, end):
                         e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
                         d2 = e.dot(e)
@@ -388,10 +410,11 @@ def _k_nearest_rings(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
 def k_nearest(x: np.ndarray,  # [N, 3]
               source: np.ndarray,  # [P] indices into x the neighbours are drawn from
               k: int,
-              cell_scale: float = 1.0,
+              cell_scale: float = CELL_SCALE,
               with_r2: bool = True,
               chunk: int = 1 << 13,
-              candidates: int = BLOCK_CANDIDATES) -> tuple[np.ndarray, np.ndarray | None]:  # -> [N, k] indices, [N, k] r2
+              candidates: int = BLOCK_CANDIDATES,
+              block: int = BLOCK_CELLS) -> tuple[np.ndarray, np.ndarray | None]:  # -> [N, k] indices, [N, k] r2
     """Each particle's k nearest particles of ``source``, in no particular order, and their squared
     distances, 0 for the particle itself (module docstring; plasticity.nearest_neighbours is the
     KD-tree reference). Indices are int32 below 2^31 particles. ``cell_scale``: the cells' side in
@@ -399,7 +422,8 @@ def k_nearest(x: np.ndarray,  # [N, 3]
     ``with_r2`` False: r2 is None, and the distances are kept for ``chunk`` rows at a time only
     (displacement_jacobian_pairs recomputes them: 241 MB fewer at 471K particles, k = 64).
     ``candidates``: how many of a row's block candidates the first scan keeps for the second
-    (a row with more scans its block again; any value gives the same answer)."""
+    (a row with more scans its block again; any value gives the same answer). ``block``: the
+    cells per axis of the block a query scans first (any value gives the same answer)."""
     ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64)
     source = np.asarray(source)
@@ -438,7 +462,7 @@ def k_nearest(x: np.ndarray,  # [N, 3]
     kept = (np.empty((min(step, n), keep)), np.empty((min(step, n), keep), dtype=index))
     for row0 in range(0, n, step):
         rows_r2 = r2[row0:row0 + step] if with_r2 else scratch  # a chunk's rows of r2 are contiguous
-        _k_nearest_block(x, *grid, row0, nb, rows_r2, *kept, settled)
+        _k_nearest_block(x, *grid, row0, nb, rows_r2, *kept, settled, int(block))
         rest = np.flatnonzero(settled[row0:row0 + step] == 0).astype(index) + row0
         if len(rest):
             _k_nearest_rings(x, rest, *grid, row0, nb, rows_r2)

@@ -96,11 +96,13 @@ def _by_distance(nb, r2):
     return np.take_along_axis(nb, order, axis=1), np.take_along_axis(r2, order, axis=1)
 
 
+@pytest.mark.parametrize("block", [3, 4])
 @pytest.mark.parametrize("cell_scale", [0.25, 1.0, 4.0, 100.0])
-def test_k_nearest_equals_a_brute_force_search(cell_scale):
+def test_k_nearest_equals_a_brute_force_search(cell_scale, block):
     """neighbourhood.k_nearest (the cell grid the chamfer step uses) against sorting every
-    pairwise distance, whatever the cells' size: small cells send most queries to the ring search,
-    large ones settle them in the 3x3x3 block, one cell covers the grid. A clustered cloud with a
+    pairwise distance, whatever the cells' size and the block's (centred on the query's cell, or
+    of an even number of cells on the side of its half): small cells send most queries to the ring
+    search, large ones settle them in the block, one cell covers the grid. A clustered cloud with a
     far outlier, a coincident pair and a flat sheet; the same neighbour sets and r2 (0 for the
     particle itself), in any order."""
     rng = np.random.default_rng(11)
@@ -110,7 +112,7 @@ def test_k_nearest_equals_a_brute_force_search(cell_scale):
     source = np.sort(rng.choice(len(x), 240, replace=False))
     source = np.union1d(source, [5, 17, 600])
     for k in (1, 9, 64):
-        nb, r2 = k_nearest(x, source, k, cell_scale=cell_scale)
+        nb, r2 = k_nearest(x, source, k, cell_scale=cell_scale, block=block)
         assert nb.dtype == np.int32 and nb.shape == r2.shape == (len(x), k)
         ref_nb, ref_r2 = _brute_knn(x, source, k)
         np.testing.assert_allclose(np.sort(r2, axis=1), ref_r2, rtol=0, atol=1e-12)
@@ -122,17 +124,17 @@ def test_k_nearest_equals_a_brute_force_search(cell_scale):
         mine = np.isin(np.arange(len(x)), source)
         assert (r2[mine] == 0).any(axis=1).all()  # a source particle is among its own neighbours at r2 = 0
         # by chunks of rows, without the distances: the same rows
-        nb_c, none = k_nearest(x, source, k, cell_scale=cell_scale, with_r2=False, chunk=97)
+        nb_c, none = k_nearest(x, source, k, cell_scale=cell_scale, block=block, with_r2=False, chunk=97)
         assert none is None
         np.testing.assert_array_equal(np.sort(nb_c, axis=1), np.sort(nb, axis=1))
         # the block's second pass from its kept candidates (above) or, where a row has more than
         # it keeps, by scanning its block again (with one or five kept, nearly every row): the
         # same rows, in the same order
         for kept in (1, 5):
-            nb_k, r2_k = k_nearest(x, source, k, cell_scale=cell_scale, chunk=97, candidates=kept)
+            nb_k, r2_k = k_nearest(x, source, k, cell_scale=cell_scale, block=block, chunk=97, candidates=kept)
             np.testing.assert_array_equal(nb_k, nb)
             np.testing.assert_array_equal(r2_k, r2)
-    nb, r2 = k_nearest(x, source, len(source), cell_scale=cell_scale)  # k = the whole pool
+    nb, r2 = k_nearest(x, source, len(source), cell_scale=cell_scale, block=block)  # k = the whole pool
     assert (np.sort(nb, axis=1) == source[None]).all()
     with pytest.raises(ValueError, match="k must be"):
         k_nearest(x, source, len(source) + 1)
