@@ -33,11 +33,11 @@ from physmorph.base.taichi_runtime import ensure_taichi, taichi_state
 
 
 # The cells per axis of the block a query scans first (_k_nearest_block) and the cells' side in
-# k-th-neighbour radii (k_nearest's cell_scale). Most queries lie within two cells of the surface,
-# where the k-th neighbour is ~1.2 radii away: a block of 3^3 cells of one radius (its reach 1-1.5
-# radii) left a tenth of the queries to the rings; 4^3 cells of 0.75 radii (the query in the
-# middle two cells on each axis: its reach at least 1.125 radii) scan about as many points and
-# leave fewer (docs/study/performance_history.md, the k-nearest block of 4^3 cells).
+# k-th-neighbour radii (k_nearest's cell_scale). The k-th neighbour lies at 0.9-1.1 estimated
+# radii: a block of 3^3 cells of one radius (its reach 1-1.5 radii) left a tenth of the queries to
+# the rings; 4^3 cells of 0.75 radii (the query in the middle two cells on each axis: its reach at
+# least 1.125 radii) scan about as many points and leave a hundredth
+# (docs/study/performance_history.md, the k-nearest block of 4x4x4 cells).
 BLOCK_CELLS = 4
 CELL_SCALE = 0.75
 # How many candidates (points of the block within its reach) a row keeps for its second pass, at

@@ -166,14 +166,15 @@ def test_tile_rasterizer_matches_dense_forward_and_backward(dtype, tol, kernel):
                                    atol=50 * tol)
 
 
-def test_tile_bins_equal_a_per_pair_reference():
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])  # float32: the radix depth order
+def test_tile_bins_equal_a_per_pair_reference(dtype):
     """bin_gaussians (view by view) against listing every (view, Gaussian, tile) pair and sorting
     each tile's list by depth, ties by index: the same list, the same ranges, empty views included."""
     rng = np.random.default_rng(11)
     V, N, W, H, tile = 3, 60, 50, 37, 8
     means = torch.as_tensor(rng.uniform(-10, 60, (V, N, 2)))
     half = torch.as_tensor(rng.uniform(0, 12, (V, N, 2)))
-    depth = torch.as_tensor(rng.integers(0, 5, (V, N)).astype(float))  # ties
+    depth = torch.as_tensor(rng.integers(0, 5, (V, N)).astype(float)).to(dtype)  # ties
     visible = torch.as_tensor(rng.random((V, N)) < 0.7)
     visible[1] = False  # a view with nothing in it
     bins = bin_gaussians(means, half, depth, visible, W, H, tile)
