@@ -157,11 +157,8 @@ def pack_quaternion(R: list) -> list:
             ti.select(first, wz, ti.select(second, xz, ti.select(third, yz, quarter)))]
 
 
-def make_pack_funcs(dtype, mu: float, lam: float):
-    """The pack's Taichi functions for one float type: polar_from(Fe, R0, fresh) -> (R, gap, needs_svd) and
-    affine(Fe, R, stress_scale, mC) -> A, the matrices given as lists of rows and returned as
-    [9, PACK] Taichi matrices (module docstring)."""
-    steps, tol = warm_start_steps(dtype)
+def make_polar_start(dtype):
+    """polar_start(Fe) for one float type (make_pack_funcs' polar_from starts from it)."""
     start_tol = POLAR_START_TOL["f64" if dtype == ti.f64 else "f32"]
 
     @ti.func
@@ -188,6 +185,16 @@ def make_pack_funcs(dtype, mu: float, lam: float):
             if not (regular & (moved > dtype(start_tol) * norm)).any():
                 break
         return X
+
+    return polar_start
+
+
+def make_pack_funcs(dtype, mu: float, lam: float):
+    """The pack's Taichi functions for one float type: polar_from(Fe, R0, fresh) -> (R, gap, needs_svd) and
+    affine(Fe, R, stress_scale, mC) -> A, the matrices given as lists of rows and returned as
+    [9, PACK] Taichi matrices (module docstring)."""
+    steps, tol = warm_start_steps(dtype)
+    polar_start = make_polar_start(dtype)
 
     @ti.func
     def polar_from(Fe: ti.template(), R0: ti.template(), fresh):
