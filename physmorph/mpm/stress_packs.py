@@ -42,6 +42,7 @@ import warnings
 from types import SimpleNamespace
 
 import taichi as ti
+from taichi.lang import impl
 from taichi.lang.impl import expr_init
 
 from .stress import SERIES_ANGLE, WARM_GAP_MIN, warm_start_steps
@@ -65,6 +66,12 @@ def pack_values(rows: list) -> list:
     exponentially with the helpers' nesting (a chain of 8 steps each using the one before twice
     took 20 s to compile, 0.1 s with a variable at each step). A variable is compiled once."""
     return [expr_init(row) for row in rows]
+
+
+def pack_rows(M) -> list:
+    """The rows of a [9, PACK] Taichi matrix as a list of PACK-lane vectors (expressions). A plain
+    Python helper indexes through impl.subscript: M[r, lane] is translated only in Taichi's scope."""
+    return [ti.Vector([impl.subscript(None, M, r, lane) for lane in range(PACK)]) for r in range(9)]
 
 
 def pack_product(A: list, B: list, transpose_a: bool = False, transpose_b: bool = False) -> list:
@@ -171,7 +178,7 @@ def make_polar_start(dtype):
         det -1 or is 0; no convergence) goes to the SVD as before."""
         X = ti.Matrix.rows(Fe)
         for _ in range(POLAR_START_STEPS):
-            Xr = pack_values([ti.Vector([X[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))])
+            Xr = pack_values(pack_rows(X))
             cof = pack_cofactor(Xr)  # det(X) X^-T
             det = Xr[0] * cof[0] + Xr[1] * cof[1] + Xr[2] * cof[2]
             norm = pack_frobenius(Xr)
@@ -205,11 +212,10 @@ def make_pack_funcs(dtype, mu: float, lam: float):
         R = ti.Matrix.rows(R0)
         if fresh:
             R = polar_start(Fe)
-        active = ti.abs(pack_determinant([ti.Vector([R[r, lane] for lane in ti.static(range(PACK))])
-                                          for r in ti.static(range(9))]) - 1.0) < dtype(1e-3)
+        active = ti.abs(pack_determinant(pack_rows(R)) - 1.0) < dtype(1e-3)
         converged = active & False
         for _ in range(steps):
-            Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
+            Rr = pack_rows(R)
             S0 = pack_product(Rr, Fe, transpose_a=True)
             S = pack_symmetric(S0)
             active &= pack_pair_sums_exceed(S, dtype(WARM_GAP_MIN) * pack_frobenius(S))
@@ -231,7 +237,7 @@ def make_pack_funcs(dtype, mu: float, lam: float):
             active &= ~done
             if not active.any():
                 break
-        Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
+        Rr = pack_rows(R)
         S = pack_symmetric(pack_product(Rr, Fe, transpose_a=True))
         gap = dtype(WARM_GAP_MIN) * pack_frobenius(S)
         converged &= pack_pair_sums_exceed(S, gap)

@@ -30,7 +30,7 @@ from physmorph.settings.solver_memory import PACKED_STRESS_MIN_PARTICLES
 from .control import ControlField
 from .lanes import LANE_BLOCK
 from .model import MPMModel
-from .stress_packs import ENTRIES, PACK, make_pack_funcs, pack_quaternion
+from .stress_packs import ENTRIES, PACK, make_pack_funcs, pack_quaternion, pack_rows
 from .trajectory import Trajectory
 
 
@@ -132,7 +132,7 @@ class Transfers:
         mC = [ti.Vector([m[i, j] for m in ti.static(mCs)]) for i, j in ti.static(ENTRIES)]
         scale = ti.Vector([self._stress_scale(p) for p in ti.static(ps)])
         R, gap, needs_svd = self.pack.polar_from(Fe, R0, t == 0)
-        Rr = [ti.Vector([R[r, lane] for lane in ti.static(range(PACK))]) for r in ti.static(range(9))]
+        Rr = pack_rows(R)
         A = self.pack.affine(Fe, Rr, scale, mC)
         q = pack_quaternion(Rr)
         for lane in ti.static(range(PACK)):
