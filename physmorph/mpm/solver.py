@@ -79,7 +79,8 @@ class MPMSolver:
         self.adjoint = Adjoint(self.model)
         self.physics_loss = MassLoss(self.model, self.trajectory, self.adjoint, self.current)
         self.transfers = Transfers(self.model, self.trajectory, self.control_field)
-        self.transfer_adjoints = TransferAdjoints(self.model, self.trajectory, self.control_field, self.adjoint)
+        self.transfer_adjoints = TransferAdjoints(self.model, self.trajectory, self.control_field, self.adjoint,
+                                                  unrolled=self.transfers.unrolled)
         self.control_steps = ControlSteps(self.model, self.trajectory, self.control_field)
         self.reset()
 

@@ -11,7 +11,7 @@ import taichi as ti
 
 from .adjoint import Adjoint
 from .control import ControlField
-from .lanes import LANE_BLOCK
+from .g2p_adjoint import G2PAdjoint
 from .model import MPMModel
 from .trajectory import Trajectory
 
@@ -38,9 +38,14 @@ class TransferAdjoints:
     """Reverse of G2P, the grid update and P2G of substep t: adjoints of s_(t+1) -> adjoints of s_t
     and the control gradient of slot t."""
 
-    def __init__(self, model: MPMModel, trajectory: Trajectory, control: ControlField, adjoint: Adjoint):
+    def __init__(self, model: MPMModel, trajectory: Trajectory, control: ControlField, adjoint: Adjoint,
+                 unrolled: bool = False):
         self.model, self.trajectory, self.control, self.adjoint = model, trajectory, control, adjoint
         self.n, self.dtype = model.n, model.dtype
+        # the reverse of G2P's node loop unrolled over the stencil's rows (the transfers' choice:
+        # physmorph.mpm.transfers' docstring), a compile-time constant
+        self.unrolled = bool(unrolled)
+        self.g2p = G2PAdjoint(model, trajectory, adjoint, self.unrolled)
 
     @ti.kernel
     def clear_grid_adjoint(self, pair: ti.template()):
@@ -169,111 +174,7 @@ class TransferAdjoints:
                 vb2 = self.model.lanes.collect(a.grid_v_adj2_lanes, a.grid_v_adj2, I)
                 a.grid_mv_adj2[I], a.grid_m_adj2[I] = grid_node_adjoint(m, vfree, vc, vb2)
 
-    @ti.kernel
-    def g2p_backward(self, t: ti.i32, pair: ti.template()):
-        """Reverse of Transfers.g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of state t
-        (pair: also the second set's, sharing the stencil and the node loop's grid loads)."""
-        lanes = self.model.lanes
-        if ti.static(lanes.private):
-            ti.loop_config(block_dim=LANE_BLOCK)
-            for c in range(lanes.blocks):
-                for p in range(lanes.first(c), lanes.first(c + 1)):
-                    self._g2p_backward_particle(t, p, c // LANE_BLOCK, pair)
-        else:
-            for p in range(self.n):
-                self._g2p_backward_particle(t, p, 0, pair)
-
-    @ti.func
-    def _g2p_backward_particle(self, t, p, lane, pair: ti.template()):
-        """Particle p's share of g2p_backward, its grid adjoints added into lane ``lane``."""
-        kq = 4.0 * self.dtype(self.model.inv_dx) * self.dtype(self.model.inv_dx)
-        lanes = self.model.lanes
-        xp = self.trajectory.x[t, p]
-        base, fx, w, dw = self.model.stencil(xp)
-        xbar, vbar, Cbar = ti.Vector.zero(self.dtype, 3), ti.Vector.zero(self.dtype, 3), ti.Matrix.zero(self.dtype, 3, 3)
-        xbar2, vbar2, Cbar2 = xbar, vbar, Cbar  # set in the loop below
-        # one call site of the particle part for both sets (a loop over the sets)
-        for which in range(2 if ti.static(pair) else 1):
-            xa, va, Ca, Fa = self.adjoint.x_adj[p], self.adjoint.v_adj[p], self.adjoint.C_adj[p], self.adjoint.F_adj[p]
-            if ti.static(pair):
-                if which == 1:
-                    xa, va, Ca, Fa = self.adjoint.x_adj2[p], self.adjoint.v_adj2[p], self.adjoint.C_adj2[p], self.adjoint.F_adj2[p]
-            xb, vb, Cb, Fb = self._g2p_particle_adjoint(t, p, xa, va, Ca, Fa)
-            if which == 0:
-                xbar, vbar, Cbar = xb, vb, Cb
-                self._set_F_adjoint(p, Fb, self.adjoint.v_adj, self.adjoint.C_adj, self.adjoint.F_adj)
-            if ti.static(pair):
-                if which == 1:
-                    xbar2, vbar2, Cbar2 = xb, vb, Cb
-                    self._set_F_adjoint(p, Fb, self.adjoint.v_adj2, self.adjoint.C_adj2, self.adjoint.F_adj2)
-        # node I receives w q_I, q_I = v_bar + kq C_bar (x_I - x_p), and x_bar gains
-        # grad w (v_I . q_I) - w kq C_bar^T v_I. Along a row of the stencil q grows by a column of
-        # kq dx C_bar, and sum_I w v_I is the forward's v' (stored): the nodes add vectors only
-        Ck = (kq * self.dtype(self.model.dx)) * Cbar
-        Ck2 = (kq * self.dtype(self.model.dx)) * Cbar2
-        step_k = ti.Vector([Ck[0, 2], Ck[1, 2], Ck[2, 2]])  # q's change along a row
-        step_k2 = ti.Vector([Ck2[0, 2], Ck2[1, 2], Ck2[2, 2]])
-        for i, j in ti.ndrange(3, 3):
-            wij, dwi, dwj = w[i, 0] * w[j, 1], dw[i, 0] * w[j, 1], w[i, 0] * dw[j, 1]
-            q = vbar + Ck @ (ti.Vector([i, j, 0], self.dtype) - fx)
-            q2 = vbar2 + Ck2 @ (ti.Vector([i, j, 0], self.dtype) - fx)
-            for k in range(3):
-                node = base + ti.Vector([i, j, k])
-                gv = self.trajectory.grid_v[node]
-                gw = ti.Vector([dwi * w[k, 2], dwj * w[k, 2], wij * dw[k, 2]])
-                lanes.add(self.adjoint.grid_v_adj_lanes, self.adjoint.grid_v_adj, lane, node, (wij * w[k, 2]) * q)
-                xbar += gv.dot(q) * gw
-                q += step_k
-                if ti.static(pair):
-                    lanes.add(self.adjoint.grid_v_adj2_lanes, self.adjoint.grid_v_adj2, lane, node, (wij * w[k, 2]) * q2)
-                    xbar2 += gv.dot(q2) * gw
-                    q2 += step_k2
-        v_new = self.trajectory.v[t + 1, p]
-        self.adjoint.x_adj[p] = xbar - kq * (Cbar.transpose() @ v_new)
-        if ti.static(pair):
-            self.adjoint.x_adj2[p] = xbar2 - kq * (Cbar2.transpose() @ v_new)
-
-    @ti.func
-    def _g2p_particle_adjoint(self, t, p, xbar_n, vbar_n, Cbar_n, Fbar_n):
-        """The particle part of g2p's reverse for one adjoint set: the adjoints of x, v, C, F of
-        state t+1 -> F's of state t and the (x_bar, v_bar, C_bar) that the node loop scatters."""
-        s = self.dtype(self.model.cfg.smoothing)
-        dt = self.dtype(self.model.cfg.dt)
-        xn = self.trajectory.x[t + 1, p]
-        for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
-            if xn[a] <= self.dtype(self.model.x_min) or xn[a] >= self.dtype(self.model.x_max):
-                xbar_n[a] = 0.0
-        Fh = self.trajectory.F[t, p]
-        Cn = self.trajectory.C[t + 1, p]
-        Fbar_new = (1.0 - s) * Fbar_n
-        Fbar = s * Fbar_n
-        if ti.static(self.model.cfg.smoothing_mode == "isochoric"):
-            # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
-            # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs> (0 where the floor
-            # J_min holds det F' instead of det Fn)
-            Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
-            Fs = (1.0 - s) * Fn + s * self.trajectory.F[t, p]
-            r = self.model.volume_scale(Fn, Fs)
-            Fs_bar = r * Fbar_n
-            Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
-            Jt = self.model.volume_target(Fn)
-            if (Jt / Fs.determinant()) > 0:
-                k3 = r * (Fbar_n * Fs).sum() / 3.0
-                Fs_bar -= k3 * Fs.inverse().transpose()
-                if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor)
-                    Fbar_new = k3 * Fn.inverse().transpose()
-            Fbar_new += (1.0 - s) * Fs_bar
-            Fbar = s * Fs_bar
-        Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
-        Fbar += Fh_bar
-        Cbar = Cbar_n + dt * Fbar_new @ Fh.transpose()
-        vbar = vbar_n + dt * xbar_n
-        return xbar_n, vbar, Cbar, Fbar
-
-    @ti.func
-    def _set_F_adjoint(self, p, Fbar, va: ti.template(), Ca: ti.template(), Fa: ti.template()):
-        """One set's adjoints of state t after g2p's particle part: F's written, v's and C's
-        consumed (zeroed)."""
-        Fa[p] = Fbar
-        va[p] = ti.Vector.zero(self.dtype, 3)
-        Ca[p] = ti.Matrix.zero(self.dtype, 3, 3)
+    def g2p_backward(self, t: int, pair: bool) -> None:
+        """Reverse of Transfers.g2p (physmorph.mpm.g2p_adjoint): adjoints of state t+1 ->
+        grid_v_adj and the (x, F) adjoints of state t (pair: also the second set's)."""
+        self.g2p.backward(t, pair)

@@ -1,7 +1,8 @@
-"""P2G's stress on packs of particles (physmorph.mpm.stress_packs, Transfers.p2g_stress): the packed
-forward is the one-particle-a-thread forward's to round-off, in float64 and float32, its control
-gradient matches central differences at the shipped defaults, and it hands to the SVD exactly the
-particles polar_from does."""
+"""P2G's stress on packs of particles (physmorph.mpm.stress_packs, Transfers.p2g_stress), with the
+node loops unrolled as the solver runs them at that scale: the packed forward is the
+one-particle-a-thread forward's to round-off, in float64 and float32, its control gradient (and the
+paired reverse's) matches central differences at the shipped defaults, and it hands to the SVD
+exactly the particles polar_from does."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 from physmorph.settings.mpm import MPMConfig
 from physmorph.mpm.stress import WARM_GAP_MIN, evaluate_polar
 from physmorph.mpm.stress_packs import PACK
+from physmorph.mpm.transfer_adjoints import TransferAdjoints
 from physmorph.mpm.transfers import Transfers
 from mpm_cases import RES, ball_state, fd_check, make, random_control
 
@@ -39,17 +41,19 @@ _packed: dict = {}
 
 @contextlib.contextmanager
 def packed_transfers(s):
-    """s's transfers replaced by packed ones for the block (the small ball is under the size from
-    which the solver packs by itself)."""
-    kept = s.transfers
-    assert not kept.packed
+    """s's transfers replaced by packed ones for the block, and its transfers' adjoints by unrolled
+    ones (the small ball is under the size from which the solver packs and unrolls by itself)."""
+    kept = s.transfers, s.transfer_adjoints
+    assert not kept[0].packed and not kept[1].unrolled
     if id(s) not in _packed:
-        _packed[id(s)] = (s, Transfers(s.model, s.trajectory, s.control_field, packed=True))
-    s.transfers = _packed[id(s)][1]
+        packed = Transfers(s.model, s.trajectory, s.control_field, packed=True)
+        assert packed.unrolled
+        _packed[id(s)] = (s, packed, TransferAdjoints(s.model, s.trajectory, s.control_field, s.adjoint, unrolled=True))
+    s.transfers, s.transfer_adjoints = _packed[id(s)][1:]
     try:
         yield s.transfers
     finally:
-        s.transfers = kept
+        s.transfers, s.transfer_adjoints = kept
 
 
 def stored(s) -> dict:
@@ -83,6 +87,25 @@ def test_packed_forward_and_gradient_are_the_scalar_ones(precision, tol):
     rest = packed["gap_t"][0, 6:]
     assert (rest > 0).all() and (rest < scalar["gap_t"][0, 6:]).all()
     assert np.abs(grad_packed - grad).max() <= tol * np.abs(grad).max()
+
+
+def test_unrolled_paired_reverse_is_the_scalar_one():
+    """backward_pair's two gradients (the mass loss's and an injected adjoint's) with the packed
+    forward and the unrolled reverse, float64, against the same from one particle a thread."""
+    cfg = shipped("float64")
+    st = generic_state()
+    s = make(cfg, st, reuse=True)
+    s.set_control(random_control(cfg, st.n, scale=0.02))
+    gx = np.random.default_rng(6).normal(size=(st.n, 3))
+    results = []
+    for unrolled in (False, True):
+        with packed_transfers(s) if unrolled else contextlib.nullcontext():
+            s.load_state(st)
+            s.forward()
+            n_mass, n_inj = s.backward_pair(None, gx)
+            results.append((n_mass, n_inj, s.control_gradient().copy(), s.initial_state_gradients()["x"]))
+    for scalar, unrolled in zip(*results):
+        np.testing.assert_allclose(unrolled, scalar, rtol=1e-10, atol=1e-12)
 
 
 def test_packed_gradients_at_the_shipped_defaults_match_fd():
