@@ -95,8 +95,8 @@ class G2PAdjoint:
             a.x_adj2[p] = xbar2 - kq * (Cbar2.transpose() @ v_new)
 
     @ti.func
-    def _row(self, base, fx: ti.template(), w: ti.template(), dw: ti.template(), i, j, vbar, Ck, vbar2,
-                          Ck2, xbar, xbar2, lane, pair: ti.template()):
+    def _row(self, base, fx: ti.template(), w: ti.template(), dw: ti.template(), i, j, vbar, Ck, vbar2, Ck2, xbar,
+             xbar2, lane, pair: ti.template()):
         """Row (i, j) of a particle's node loop (_nodes_particle): its w q_I added into lane
         ``lane``; returns x_bar (and the second set's) with the row's terms added."""
         lanes, a = self.model.lanes, self.adjoint
