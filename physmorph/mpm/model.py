@@ -13,6 +13,7 @@ from physmorph.base.grid import BOUNDARY_CELLS, Grid
 from physmorph.base.linalg3 import inverse3
 from physmorph.base.taichi_runtime import init_taichi
 from physmorph.settings.mpm import MPMConfig, MPMStateError
+from physmorph.settings.solver_memory import PACKED_STRESS_MIN_PARTICLES
 
 from .lanes import ScatterLanes
 from .state import ParticleState
@@ -54,6 +55,9 @@ class MPMModel:
         self.x_max = cfg.domain_lo + (cfg.grid_res - 2.0) * cfg.dx
         # the particle loops that add into the grid, split over the CPU threads (physmorph.mpm.lanes)
         self.lanes = ScatterLanes(self.n, on_cpu=self.arch == "cpu")
+        # the CPU at scale (from PACKED_STRESS_MIN_PARTICLES on): P2G's stress on packs and the node
+        # loops unrolled over the stencil (physmorph.mpm.transfers' docstring), compile-time constants
+        self.at_scale = self.lanes.private and self.n >= PACKED_STRESS_MIN_PARTICLES
         f, N, R = self.dtype, self.n, cfg.grid_res
         self.Fp_inv = ti.types.matrix(3, 3, f).field(shape=N)
         self.mass = ti.field(f, shape=N)
@@ -96,17 +100,9 @@ class MPMModel:
         return base, fx, w, dw
 
     @ti.func
-    def node(self, fx: ti.template(), w: ti.template(), i, j, k):
-        """Node (i, j, k) of the stencil: offset from base, x_I - x_p and weight w_Ip.
-        fx and w are taken by reference (ti.template()): passed by value they were copied for
-        every node, which made P2G's backward ~50 % and G2P ~25 % slower (kernel profiler)."""
-        off = ti.Vector([i, j, k])
-        dpos = (ti.cast(off, self.dtype) - fx) * self.dtype(self.dx)
-        return off, dpos, w[i, 0] * w[j, 1] * w[k, 2]
-
-    @ti.func
     def node_grad(self, w: ti.template(), dw: ti.template(), i, j, k):
-        """grad_x w_Ip of node (i, j, k) (only the reverse kernels need it)."""
+        """grad_x w_Ip of node (i, j, k) (only the reverse kernels need it). w and dw are taken by
+        reference (ti.template()): passed by value they were copied for every node."""
         return ti.Vector([dw[i, 0] * w[j, 1] * w[k, 2], w[i, 0] * dw[j, 1] * w[k, 2], w[i, 0] * w[j, 1] * dw[k, 2]])
 
     @ti.func

@@ -195,11 +195,18 @@ class MassLoss:
         for p in range(self.n):
             base, fx, w, dw = self.model.stencil(self.trajectory.x[T, p])
             g = ti.Vector.zero(self.dtype, 3)
-            for i, j, k in ti.ndrange(3, 3, 3):
-                off, dpos, wt = self.model.node(fx, w, i, j, k)
-                gw = self.model.node_grad(w, dw, i, j, k)
-                g += gw * (self.model.mass[p] * self.adjoint.grid_m_adj[base + off])
+            if ti.static(self.model.at_scale):  # unrolled (physmorph.mpm.transfers' docstring)
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    g += self._node_gradient(base, w, dw, i, j, k, p)
+            else:
+                for i, j, k in ti.ndrange(3, 3, 3):
+                    g += self._node_gradient(base, w, dw, i, j, k, p)
             xa[p] += g
+
+    @ti.func
+    def _node_gradient(self, base, w: ti.template(), dw: ti.template(), i, j, k, p):
+        """grad(w_Ip) m_p dL/dm_I of node (i, j, k) of particle p's stencil."""
+        return self.model.node_grad(w, dw, i, j, k) * (self.model.mass[p] * self.adjoint.grid_m_adj[base + ti.Vector([i, j, k])])
 
     def set_target_grid_mass(self, m: np.ndarray) -> None:  # m: [res, res, res]
         """Target grid mass (physmorph.base.grid.splat_mass convention)."""
@@ -292,15 +299,25 @@ class GridMassSplat:
     @ti.func
     def _splat_particle(self, t, p, lane):
         """Particle p's w_Ip m_p added into the grid's lane ``lane``."""
-        lanes = self.trajectory.lanes
         base, fx, w, dw = self.model.stencil(self.trajectory.x[t, p])
-        for i, j, k in ti.ndrange(3, 3, 3):
-            off, dpos, wt = self.model.node(fx, w, i, j, k)
-            if ti.static(lanes.private):  # the packed lanes of P2G, with no momentum
-                lanes.add_mass_momentum(self.trajectory.grid_mvm_lanes, self.trajectory.grid_mv, self.trajectory.grid_m,
-                                        lane, base + off, ti.Vector.zero(self.model.dtype, 3), wt * self.model.mass[p])
-            else:
-                self.trajectory.grid_m[base + off] += wt * self.model.mass[p]
+        if ti.static(self.model.at_scale):  # unrolled (physmorph.mpm.transfers' docstring)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                self._splat_node(base, w, i, j, k, p, lane)
+        else:
+            for i, j, k in ti.ndrange(3, 3, 3):
+                self._splat_node(base, w, i, j, k, p, lane)
+
+    @ti.func
+    def _splat_node(self, base, w: ti.template(), i, j, k, p, lane):
+        """w_Ip m_p added into node (i, j, k) of particle p's stencil, in lane ``lane``."""
+        lanes, tr = self.trajectory.lanes, self.trajectory
+        node = base + ti.Vector([i, j, k])
+        wt = w[i, 0] * w[j, 1] * w[k, 2]
+        if ti.static(lanes.private):  # the packed lanes of P2G, with no momentum
+            lanes.add_mass_momentum(tr.grid_mvm_lanes, tr.grid_mv, tr.grid_m, lane, node, ti.Vector.zero(self.model.dtype, 3),
+                                    wt * self.model.mass[p])
+        else:
+            tr.grid_m[node] += wt * self.model.mass[p]
 
 
 @ti.data_oriented

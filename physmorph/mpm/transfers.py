@@ -29,8 +29,6 @@ solvers of the tests and the default profile do not pay).
 
 import taichi as ti
 
-from physmorph.settings.solver_memory import PACKED_STRESS_MIN_PARTICLES
-
 from .control import ControlField
 from .lanes import LANE_BLOCK
 from .model import MPMModel
@@ -48,7 +46,7 @@ class Transfers:
         # P2G's stress on packs first (the CPU, from PACKED_STRESS_MIN_PARTICLES on; module
         # docstring): a compile-time constant
         if packed is None:
-            packed = model.lanes.private and self.n >= PACKED_STRESS_MIN_PARTICLES
+            packed = model.at_scale
         self.packed = bool(packed)
         # at the same scale P2G's and G2P's rows of the stencil are unrolled (module docstring)
         self.unrolled = self.packed

@@ -108,6 +108,33 @@ def test_unrolled_paired_reverse_is_the_scalar_one():
         np.testing.assert_allclose(unrolled, scalar, rtol=1e-10, atol=1e-12)
 
 
+def test_the_solver_at_scale_is_the_scalar_one(monkeypatch):
+    """A solver built as at the paper's scale (MPMModel.at_scale: P2G's stress on packs, every node
+    loop unrolled, the mass loss's splat and its reverse included), float64, against the same
+    solver a particle an iteration with its loops: the loss, the control gradient and the initial
+    state's gradients, mass loss and injected adjoints."""
+    import physmorph.mpm.model as model_module
+
+    cfg = shipped("float64")
+    st = generic_state()
+    control = random_control(cfg, st.n, scale=0.02)
+    rng = np.random.default_rng(8)
+    gF, gx = 50.0 * rng.normal(size=(st.n, 3, 3)), 5.0 * rng.normal(size=(st.n, 3))
+    results = []
+    for at_scale in (False, True):
+        if at_scale:
+            monkeypatch.setattr(model_module, "PACKED_STRESS_MIN_PARTICLES", 0)
+        s = make(cfg, st)
+        assert s.model.at_scale == at_scale and s.transfers.unrolled == at_scale
+        s.set_control(control)
+        loss = s.forward()
+        s.backward(gF, gx)
+        grads = s.initial_state_gradients()
+        results.append((loss, s.control_gradient().copy(), grads["x"], grads["F"]))
+    for scalar, scaled in zip(*results):
+        np.testing.assert_allclose(scaled, scalar, rtol=1e-10, atol=1e-12 * np.abs(scalar).max())
+
+
 def test_packed_gradients_at_the_shipped_defaults_match_fd():
     """The control's and the initial state's gradients with the packed forward, float64, against
     central differences (mpm_cases.fd_check), with the injected adjoints."""
