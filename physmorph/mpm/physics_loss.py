@@ -206,7 +206,8 @@ class MassLoss:
     @ti.func
     def _node_gradient(self, base, w: ti.template(), dw: ti.template(), i, j, k, p):
         """grad(w_Ip) m_p dL/dm_I of node (i, j, k) of particle p's stencil."""
-        return self.model.node_grad(w, dw, i, j, k) * (self.model.mass[p] * self.adjoint.grid_m_adj[base + ti.Vector([i, j, k])])
+        m_bar = self.adjoint.grid_m_adj[base + ti.Vector([i, j, k])]
+        return self.model.node_grad(w, dw, i, j, k) * (self.model.mass[p] * m_bar)
 
     def set_target_grid_mass(self, m: np.ndarray) -> None:  # m: [res, res, res]
         """Target grid mass (physmorph.base.grid.splat_mass convention)."""
@@ -314,8 +315,8 @@ class GridMassSplat:
         node = base + ti.Vector([i, j, k])
         wt = w[i, 0] * w[j, 1] * w[k, 2]
         if ti.static(lanes.private):  # the packed lanes of P2G, with no momentum
-            lanes.add_mass_momentum(tr.grid_mvm_lanes, tr.grid_mv, tr.grid_m, lane, node, ti.Vector.zero(self.model.dtype, 3),
-                                    wt * self.model.mass[p])
+            lanes.add_mass_momentum(tr.grid_mvm_lanes, tr.grid_mv, tr.grid_m, lane, node,
+                                    ti.Vector.zero(self.model.dtype, 3), wt * self.model.mass[p])
         else:
             tr.grid_m[node] += wt * self.model.mass[p]
 
