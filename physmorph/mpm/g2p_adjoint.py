@@ -29,11 +29,11 @@ class G2PAdjoint:
         """Reverse of Transfers.g2p: adjoints of state t+1 -> grid_v_adj and the (x, F) adjoints of
         state t (pair: also the second set's). Two passes: each particle's part first, then the
         node loop, which alone keeps few enough values live to run unrolled."""
-        self._particles(t, pair)
-        self._nodes(t, pair)
+        self.g2p_backward_particles(t, pair)
+        self.g2p_backward_nodes(t, pair)
 
     @ti.kernel
-    def _particles(self, t: ti.i32, pair: ti.template()):
+    def g2p_backward_particles(self, t: ti.i32, pair: ti.template()):
         """The particle part of g2p's reverse for every particle (_particle_adjoint): F's adjoint
         of state t written, and the (x_bar, v_bar, C_bar) the node loop scatters left in x_adj,
         v_adj and C_adj, which that loop consumes."""
@@ -53,7 +53,7 @@ class G2PAdjoint:
                         a.x_adj2[p], a.v_adj2[p], a.C_adj2[p], a.F_adj2[p] = xb, vb, Cb, Fb
 
     @ti.kernel
-    def _nodes(self, t: ti.i32, pair: ti.template()):
+    def g2p_backward_nodes(self, t: ti.i32, pair: ti.template()):
         """The node loop of g2p's reverse: each particle's (x_bar, v_bar, C_bar) scattered to
         grid_v_adj, into per-thread lanes on the CPU."""
         lanes = self.model.lanes
