@@ -58,8 +58,15 @@ class Cameras:
 
     def project(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates [V, N, 2] and depths [V, N] of world points x: [N, 3]."""
-        xc = np.einsum("vij,nj->vni", self.rotation, np.asarray(x, dtype=np.float64))
-        xc = xc + self.translation[:, None, :]
+        return self.project_camera(self.rotate(x) + self.translation[:, None, :])
+
+    def rotate(self, x: np.ndarray) -> np.ndarray:  # [V, N, 3]
+        """R_v x of world points x: [N, 3] in every view (the camera frame less its translation;
+        a matrix product: einsum's loop took 60 ms for 8 views of 35K points)."""
+        return np.matmul(np.asarray(x, dtype=np.float64)[None], self.rotation.transpose(0, 2, 1))
+
+    def project_camera(self, xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates [V, N, 2] and depths [V, N] of points xc: [V, N, 3] in each view's camera frame."""
         z = xc[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = self.intrinsics[:, None, 0] * xc[..., 0] / z + self.intrinsics[:, None, 2]

@@ -235,9 +235,11 @@ def largest_size_in_views(unit: trimesh.Trimesh, cameras, upper: float, iteratio
     from its edges (and in front of it). Perspective makes the test non-linear in s, so it is bisected; it is monotone because the
     cameras look at the origin, which the scaled mesh grows from."""
     m = VIEW_MARGIN_PX
+    rotated = cameras.rotate(unit.vertices)  # [V, N, 3]: the camera frame of the scaled mesh is s R x + t
+    shift = cameras.translation[:, None, :]
 
     def inside(size: float) -> bool:
-        uv, z = cameras.project(unit.vertices * size)
+        uv, z = cameras.project_camera(size * rotated + shift)
         return bool(np.all(z > 0) and np.all((uv[..., 0] >= m) & (uv[..., 0] <= cameras.width - m)
                                               & (uv[..., 1] >= m) & (uv[..., 1] <= cameras.height - m)))
 
