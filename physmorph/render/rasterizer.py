@@ -156,13 +156,15 @@ def _composite_forward_tiles(
     t_final: ti.types.ndarray(),  # [V, H, W] out
     depth_acc: ti.types.ndarray(),  # [V, H, W] out
     last: ti.types.ndarray(),  # [V, H, W] out
-    tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32,
+    tile: ti.template(), tiles_x: ti.i32, tiles_y: ti.i32,
     opacity: ti.f64, alpha_min: ti.f64, alpha_max: ti.f64, power_min: ti.f64, t_min: ti.f64,
     dtype: ti.template(),
 ):
     """Same compositing as _composite_forward, Gaussian-major inside a tile (CPU): one thread
     per tile walks the tile's list front to back and only visits the pixels inside each
-    Gaussian's cutoff box, keeping per-pixel T and D in the output arrays."""
+    Gaussian's cutoff box, keeping per-pixel T and D in the output arrays. Each row of the tile
+    counts its pixels not yet terminated: a row with none is passed over (in an opaque body most
+    of the pixels a Gaussian's box holds have terminated before it comes)."""
     n_views, height, width = t_final.shape[0], t_final.shape[1], t_final.shape[2]
     for v, t in ti.ndrange(n_views, tiles_x * tiles_y):
         ty = t // tiles_x
@@ -179,6 +181,9 @@ def _composite_forward_tiles(
             depth_acc[v, py, px] = ti.cast(0.0, dtype)
             last[v, py, px] = start
         remaining = (x1 - x0 + 1) * (y1 - y0 + 1)  # pixels not yet terminated
+        alive = ti.Vector.zero(ti.i32, tile)  # per row of the tile
+        for r in range(y1 - y0 + 1):
+            alive[r] = x1 - x0 + 1
         for k in range(start, end):
             if remaining == 0:
                 break
@@ -192,6 +197,8 @@ def _composite_forward_tiles(
             u_first, u_last = _box_range(mu_u, half[g, 0], x0, x1, dtype)
             v_first, v_last = _box_range(mu_v, half[g, 1], y0, y1, dtype)
             for py in range(v_first, v_last + 1):
+                if alive[py - y0] == 0:
+                    continue
                 dv = mu_v - (ti.cast(py, dtype) + ti.cast(0.5, dtype))
                 for px in range(u_first, u_last + 1):
                     trans = t_final[v, py, px]
@@ -201,12 +208,14 @@ def _composite_forward_tiles(
                         if power >= ti.cast(power_min, dtype):
                             a = ti.min(ti.cast(alpha_max, dtype), ti.cast(opacity, dtype) * ti.exp(power))
                             if a >= ti.cast(alpha_min, dtype):
-                                depth_acc[v, py, px] += a * trans * z
+                                # the tile is this thread's alone: a plain store, not the atomic add += makes
+                                depth_acc[v, py, px] = depth_acc[v, py, px] + a * trans * z
                                 trans *= ti.cast(1.0, dtype) - a
                                 t_final[v, py, px] = trans
                                 last[v, py, px] = k + 1
                                 if trans < ti.cast(t_min, dtype):
                                     remaining -= 1
+                                    alive[py - y0] -= 1
 
 
 @ti.kernel
