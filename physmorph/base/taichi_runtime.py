@@ -138,9 +138,10 @@ def use_fast_class_test() -> bool:
     1.18-1.39 s in a process with torch loaded, 0.96-1.28 s with this, paid by every workflow job
     and again at each solver build for the functions made then. A class body's frame is told here
     by what Python puts in every class body (``__qualname__`` among its names, in a frame that is
-    not a function's): the frame below the one Taichi reads, which runs the class statement. The same answers for every definition of the library (tests/base). Installed
-    when this module is imported: the packages that define kernels import it first. Returns False,
-    changing nothing, where the Taichi version lacks the function this replaces."""
+    not a function's): the frame below the one Taichi reads, which runs the class statement. The
+    same answers for every definition of the library (tests/base). Installed when this module is
+    imported: every module that defines kernels imports it before them. Returns False, changing
+    nothing, where the Taichi version lacks the function this replaces."""
     try:
         from taichi.lang import kernel_impl
     except ImportError:  # pragma: no cover - another Taichi layout

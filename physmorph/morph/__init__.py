@@ -8,6 +8,3 @@ share of the reachable gap (``quality``) and the target images (``targets``).
 May import the solver (physmorph.mpm), the renderer (physmorph.render), the plasticity and every
 foundation (meshes, records, settings, base).
 """
-
-# Taichi's fast test of a class body before this package's kernels are defined (use_fast_class_test)
-import physmorph.base.taichi_runtime  # noqa: F401,E402

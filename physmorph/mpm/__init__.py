@@ -35,6 +35,3 @@ Design decisions (documented here and in the docstrings they refer to):
 
 May import physmorph.settings and physmorph.base; not the renderer, the plasticity or the morph loop.
 """
-
-# Taichi's fast test of a class body before this package's kernels are defined (use_fast_class_test)
-import physmorph.base.taichi_runtime  # noqa: F401,E402

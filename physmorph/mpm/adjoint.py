@@ -7,6 +7,7 @@ needs them, from the forward's records (no SVD, nothing stored).
 
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from .model import MPMModel
 
 

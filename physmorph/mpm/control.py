@@ -7,6 +7,7 @@ its in-place operations: zero, scale, mean, rebase, copy, without [Tc, N, 3, 3] 
 import numpy as np
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from physmorph.records.runfile import ArrayBySlots
 from physmorph.settings.mpm import MPMStateError
 

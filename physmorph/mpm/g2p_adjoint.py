@@ -10,6 +10,7 @@ rows at the transfers' scale (``unrolled``); fused with the particle part it ran
 
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from .adjoint import Adjoint
 from .lanes import LANE_BLOCK
 from .model import MPMModel

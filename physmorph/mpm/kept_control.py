@@ -8,6 +8,7 @@ import os
 import numpy as np
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from physmorph.settings.mpm import MPMStateError
 
 from .control import ControlField

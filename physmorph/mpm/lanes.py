@@ -22,6 +22,8 @@ keep their atomic adds (fast there), one lane.
 import taichi as ti
 from taichi.lang import impl
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
+
 # iterations of a Taichi CPU range-for task for a range of 512 x threads (see above)
 LANE_BLOCK = 512
 

@@ -11,6 +11,7 @@ the stored end state and the adjoint; the loss's own settings (weights, anchors)
 import numpy as np
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from physmorph.base.grid import blur_weights
 from physmorph.settings.mpm import MPMConfigError, MPMStateError
 

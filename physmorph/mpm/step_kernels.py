@@ -6,6 +6,7 @@ physmorph.mpm.optimiser drive them.
 
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from .control import ControlField
 from .model import MPMModel
 from .trajectory import Trajectory

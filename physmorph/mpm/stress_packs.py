@@ -45,6 +45,7 @@ import taichi as ti
 from taichi.lang import impl
 from taichi.lang.impl import expr_init
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from .stress import SERIES_ANGLE, WARM_GAP_MIN, warm_start_steps
 
 PACK = 8  # particles a pack: a 256-bit vector register of float32

@@ -7,6 +7,7 @@ substep being run works on (momentum, mass, velocity).
 import numpy as np
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from physmorph.settings.mpm import MPMDivergenceError
 
 from .model import MPMModel

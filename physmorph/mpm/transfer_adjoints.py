@@ -9,6 +9,7 @@ reverse kernel carries a second adjoint set, sharing the stencil, A and the node
 
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from .adjoint import Adjoint
 from .control import ControlField
 from .g2p_adjoint import G2PAdjoint

@@ -29,6 +29,7 @@ solvers of the tests and the default profile do not pay).
 
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from .control import ControlField
 from .lanes import LANE_BLOCK
 from .model import MPMModel

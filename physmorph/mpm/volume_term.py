@@ -15,6 +15,7 @@ share would. Its adjoint on the end state's F, d det F / dF = cof F:
 import numpy as np
 import taichi as ti
 
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the kernels below)
 from physmorph.base.linalg3 import det3
 
 from .model import MPMModel

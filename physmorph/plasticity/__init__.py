@@ -5,6 +5,3 @@ optimal-transport correspondences (``transport``) and nearest-point queries on a
 
 May import physmorph.base and physmorph.settings; not the solver, the renderer or the morph loop.
 """
-
-# Taichi's fast test of a class body before this package's kernels are defined (use_fast_class_test)
-import physmorph.base.taichi_runtime  # noqa: F401,E402

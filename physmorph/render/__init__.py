@@ -21,6 +21,3 @@ with the MPM solver through :func:`physmorph.base.taichi_runtime.init_taichi` (o
 
 May import physmorph.settings and physmorph.base; not the solver, the plasticity or the morph loop.
 """
-
-# Taichi's fast test of a class body before this package's kernels are defined (use_fast_class_test)
-import physmorph.base.taichi_runtime  # noqa: F401,E402

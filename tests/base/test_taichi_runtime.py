@@ -53,7 +53,7 @@ def test_the_fast_class_test_is_installed_and_answers_as_taichi_for_every_librar
     """Every library file with a kernel or a Taichi function run again in a namespace of its own
     (its classes and kernels defined anew, nothing compiled): at each definition the replaced test
     and Taichi's agree, methods and plain functions among them."""
-    import physmorph.mpm  # noqa: F401  (a package that installs it first)
+    import physmorph.mpm.lanes  # noqa: F401  (a module with kernels: it installs the test first)
 
     assert getattr(kernel_impl._inside_class, "fast_class_test", False) and use_fast_class_test()
     root = Path(physmorph.__file__).parent
@@ -93,3 +93,21 @@ def test_the_fast_class_test_tells_a_method_from_a_function_and_a_nested_class()
 
     method, local = definitions()
     assert method._is_classkernel and not local._is_classkernel
+
+
+
+def test_every_module_with_kernels_installs_the_fast_class_test_before_them():
+    """Each library module that defines a kernel or a Taichi function imports taichi_runtime (which
+    installs the fast test) before its first definition, whatever was imported before it."""
+    root = Path(physmorph.__file__).parent
+    checked = 0
+    for f in sorted(root.rglob("*.py")):
+        text = f.read_text()
+        first = re.search(r"^\s*@ti\.(kernel|func|data_oriented)", text, re.M)
+        if first is None or f.name == "taichi_runtime.py":
+            continue
+        head = text[:first.start()]
+        assert re.search(r"^(from physmorph\.base\.taichi_runtime import|import physmorph\.base\.taichi_runtime|"
+                         r"from physmorph\.base import taichi_runtime)", head, re.M), f
+        checked += 1
+    assert checked >= 20
