@@ -63,14 +63,12 @@ def _count_pairs(means2d: ti.types.ndarray(), half: ti.types.ndarray(),  # [V, N
                  visible: ti.types.ndarray(),  # [V, N] uint8
                  per_tile: ti.types.ndarray(),  # [V * tiles_y * tiles_x] int32, zeroed, added to
                  tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32):
-    for v in range(visible.shape[0]):  # the views in parallel: a view's tiles are one thread's
-        for n in range(visible.shape[1]):
-            if visible[v, n] != 0:
-                x0, x1, y0, y1 = _tile_box(means2d, half, v, n, tile, tiles_x, tiles_y)
-                for y in range(y0, y1 + 1):
-                    for x in range(x0, x1 + 1):
-                        t = (v * tiles_y + y) * tiles_x + x
-                        per_tile[t] = per_tile[t] + 1  # not +=: Taichi makes that an atomic add
+    for v, n in ti.ndrange(visible.shape[0], visible.shape[1]):
+        if visible[v, n] != 0:
+            x0, x1, y0, y1 = _tile_box(means2d, half, v, n, tile, tiles_x, tiles_y)
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    ti.atomic_add(per_tile[(v * tiles_y + y) * tiles_x + x], 1)
 
 
 @ti.kernel
