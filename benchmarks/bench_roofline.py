@@ -211,12 +211,17 @@ def p2g_stress_seconds(solver, reps: int = 5) -> float:
     return best / T
 
 
+def short_name(name: str) -> str:
+    """A kernel's name less the _c<k>_<id> Taichi appends to each compiled kernel's."""
+    return name.rsplit("_c", 1)[0]
+
+
 def p2g_stress_time(times: dict, solver) -> tuple[float, str]:
     """P2G's stress, seconds a launch, and how it was timed: p2g_stress's own launches in the
     rollout where the solver runs it on packs, else the kernel timed apart (p2g_stress_seconds)."""
     if not solver.transfers.packed:
         return p2g_stress_seconds(solver), "timed apart"
-    count, seconds = next(v for name, v in times.items() if name.rsplit("_c", 1)[0] == "p2g_stress")
+    count, seconds = next(v for name, v in times.items() if short_name(name) == "p2g_stress")
     return seconds / count, "p2g_stress on packs, in the rollout"
 
 
@@ -229,7 +234,7 @@ def kernel_rows(times: dict, n: int, nodes: int, limits: dict, lanes: int, packe
     total = sum(t for _, t in times.values())
     by_kernel: dict = {}
     for name, (count, seconds) in times.items():
-        short = name.rsplit("_c", 1)[0]  # Taichi appends _c<k>_<id> to each compiled kernel's name
+        short = short_name(name)
         if short == "p2g_stress":
             # P2G's stress on packs (the CPU from 100K particles): the models are P2G's as one
             # step, so its time counts as P2G's, its launches as the same launches

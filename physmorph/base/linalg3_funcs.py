@@ -5,7 +5,7 @@ physmorph.base.linalg3 (its NumPy functions are their references)."""
 
 import taichi as ti
 
-import physmorph.base.taichi_runtime  # noqa: F401  (Taichi's fast class test, before the functions below)
+from physmorph.base import taichi_runtime  # noqa: F401  (Taichi's fast class test, before the functions below)
 
 
 @ti.func
