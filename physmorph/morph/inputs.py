@@ -18,7 +18,7 @@ from physmorph.morph.targets import load_target
 from physmorph.mpm.solver import solver_for
 from physmorph.mpm.state import ParticleState, kinetic_energy, total_volume
 from physmorph.plasticity.surface_walk import WALK_MIN_QUERIES, build_in_background
-from physmorph.render.api import render_views
+from physmorph.render.api import coverage_behind, render_views
 from physmorph.render.containers import RenderTarget
 from physmorph.settings.morph import MorphConfig
 
@@ -108,10 +108,11 @@ class MorphInputs:
         if alpha is None and masked_alpha is not None and cfg.metric_all_particles:
             # The loss rendered the masked particles from every view; coverage composes, 1 - alpha =
             # T_mask T_rest (to within the compositing's early stop, transmittance_min), so only the
-            # particles outside the mask (~10 % at the paper's scale) are rendered again.
+            # particles outside the mask (~10 % at the paper's scale) are rendered again, behind the
+            # mask's transmittance (inside the body's outline nearly every pixel is opaque already).
             rest = ~mask
-            alpha = masked_alpha if not rest.any() else 1.0 - (1.0 - masked_alpha) * (
-                1.0 - render_views(st.x[rest], st.F[rest], self.parts.sigma0, target.cameras, cfg.render)[0])
+            alpha = masked_alpha if not rest.any() else coverage_behind(
+                st.x[rest], st.F[rest], self.parts.sigma0, target.cameras, 1.0 - masked_alpha, cfg.render)
         if alpha is None:
             alpha, _ = render_views(st.x[sel], st.F[sel], self.parts.sigma0, target.cameras, cfg.render)
         per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))

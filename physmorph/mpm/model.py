@@ -71,16 +71,15 @@ class MPMModel:
         """The frame's particle constants (Fp^-1, m, V0, the step's weights) from a validated state."""
         if st.n != self.n:
             raise MPMStateError(f"state has {st.n} particles, solver was built for {self.n}")
-        bad = ((st.x < self.x_min) | (st.x > self.x_max)).any(axis=1)
-        if bad.any():
-            p = int(np.argmax(bad))
+        if st.x.min() < self.x_min or st.x.max() > self.x_max:  # the particle is found only when one is outside
+            p = int(np.argmax(((st.x < self.x_min) | (st.x > self.x_max)).any(axis=1)))
             raise MPMStateError(
                 f"x of particle {p} = {st.x[p].tolist()} is outside the usable domain "
                 f"[{self.x_min}, {self.x_max}] (the B-spline stencil would leave the grid)")
         dt_ = self.np_dtype
-        self.Fp_inv.from_numpy(inverse3(st.Fp).astype(dt_))
-        self.mass.from_numpy(st.mass.astype(dt_))
-        self.vol.from_numpy(st.volume.astype(dt_))
+        self.Fp_inv.from_numpy(inverse3(st.Fp).astype(dt_, copy=False))
+        self.mass.from_numpy(st.mass.astype(dt_, copy=False))
+        self.vol.from_numpy(st.volume.astype(dt_, copy=False))
         weight = st.volume.max() / st.volume if self.cfg.step_per_volume else np.ones(self.n)
         self.step_weight.from_numpy(weight.astype(dt_))
         self.weighted_step = bool(self.cfg.step_per_volume and (weight != 1.0).any())

@@ -52,8 +52,8 @@ class ParticleState:
             a = np.ascontiguousarray(np.asarray(getattr(self, name), dtype=np.float64))
             if a.shape != (n, *tail):
                 raise MPMStateError(f"{name} must have shape {(n, *tail)}, got {a.shape}")
-            bad = ~np.isfinite(a.reshape(n, -1)).all(axis=1)
-            if bad.any():
+            if not np.isfinite(a).all():  # one pass; the row is found only when there is one
+                bad = ~np.isfinite(a.reshape(n, -1)).all(axis=1)
                 raise MPMStateError(f"{name} is not finite (NaN/Inf) at particle {int(np.argmax(bad))}")
             out[name] = a
         if (out["mass"] <= 0).any():

@@ -116,6 +116,23 @@ def render_views(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras,
     return alpha.double().cpu().numpy(), depth.double().cpu().numpy()
 
 
+def coverage_behind(x: np.ndarray,  # [N, 3]
+                    F: np.ndarray,  # [N, 3, 3]
+                    sigma0, cameras: Cameras,
+                    transmittance: np.ndarray,  # [V, H, W] what Gaussians in front of these left
+                    cfg: RenderConfig = RenderConfig()) -> np.ndarray:  # [V, H, W]
+    """Forward only: the alpha of everything, these particles composited behind ``transmittance``,
+    1 - T T_these to within the compositing's early stop (a pixel already opaque in front costs
+    nothing: the metrics' particles outside the surface mask, behind the loss's render of it)."""
+    x, F, s = _check_inputs(x, F, sigma0)
+    xt, Ft, st, cams = _to_tensors(x, F, s, cameras, cfg)
+    with torch.no_grad():
+        sp = splat(xt, Ft, st, cams, cfg)
+        t_final, _, _ = composite_forward(sp.params, sp.bins, cams.count, cams.height, cams.width, cfg,
+                                          behind=torch.as_tensor(transmittance))
+    return (1.0 - t_final).double().cpu().numpy()
+
+
 def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, target: RenderTarget,
                     cfg: RenderConfig = RenderConfig(), want_grad_x: bool = False) -> RenderResult:
     """Render the (surface-masked) particles, evaluate the losses and dL_render/dF (and dL/dx).

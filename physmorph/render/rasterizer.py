@@ -42,6 +42,7 @@ def _composite_forward(
     tile: ti.i32, tiles_x: ti.i32, tiles_y: ti.i32,
     opacity: ti.f64, alpha_min: ti.f64, alpha_max: ti.f64, power_min: ti.f64, t_min: ti.f64,
     dtype: ti.template(),
+    behind: ti.template(),  # True: t_final holds the transmittance the Gaussians are composited behind
 ):
     n_views, height, width = t_final.shape[0], t_final.shape[1], t_final.shape[2]
     for v, t, p in ti.ndrange(n_views, tiles_x * tiles_y, tile * tile):
@@ -56,6 +57,8 @@ def _composite_forward(
             cu = ti.cast(px, dtype) + ti.cast(0.5, dtype)
             cv = ti.cast(py, dtype) + ti.cast(0.5, dtype)
             trans = ti.cast(1.0, dtype)
+            if ti.static(behind):
+                trans = t_final[v, py, px]
             dacc = ti.cast(0.0, dtype)
             stop = start
             for k in range(start, end):
@@ -159,6 +162,7 @@ def _composite_forward_tiles(
     tile: ti.template(), tiles_x: ti.i32, tiles_y: ti.i32,
     opacity: ti.f64, alpha_min: ti.f64, alpha_max: ti.f64, power_min: ti.f64, t_min: ti.f64,
     dtype: ti.template(),
+    behind: ti.template(),  # True: t_final holds the transmittance the Gaussians are composited behind
 ):
     """Same compositing as _composite_forward, Gaussian-major inside a tile (CPU): one thread
     per tile walks the tile's list front to back and only visits the pixels inside each
@@ -177,13 +181,22 @@ def _composite_forward_tiles(
         start = tile_ranges[gid, 0]
         end = tile_ranges[gid, 1]
         for py, px in ti.ndrange((y0, y1 + 1), (x0, x1 + 1)):
-            t_final[v, py, px] = ti.cast(1.0, dtype)
+            if ti.static(not behind):
+                t_final[v, py, px] = ti.cast(1.0, dtype)
             depth_acc[v, py, px] = ti.cast(0.0, dtype)
             last[v, py, px] = start
         remaining = (x1 - x0 + 1) * (y1 - y0 + 1)  # pixels not yet terminated
         alive = ti.Vector.zero(ti.i32, tile)  # per row of the tile
         for r in range(y1 - y0 + 1):
             alive[r] = x1 - x0 + 1
+        if ti.static(behind):  # a pixel terminated in front of these Gaussians is not visited
+            remaining = 0
+            for r in range(y1 - y0 + 1):
+                alive[r] = 0
+                for px in range(x0, x1 + 1):
+                    if t_final[v, y0 + r, px] >= ti.cast(t_min, dtype):
+                        alive[r] += 1
+                remaining += alive[r]
         for k in range(start, end):
             if remaining == 0:
                 break
@@ -324,13 +337,20 @@ def use_tile_kernels(cfg: RenderConfig) -> bool:
 
 
 def composite_forward(params: torch.Tensor, bins: TileBins, n_views: int, height: int, width: int,
-                      cfg: RenderConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                      cfg: RenderConfig,
+                      behind: torch.Tensor | None = None,  # [V, H, W] transmittance in front of the Gaussians
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """params: [V*N, 6] (detached). Returns final transmittance, accumulated depth D [V, H, W]
-    and the per-pixel end of the contributing list [V, H, W] (int32)."""
+    and the per-pixel end of the contributing list [V, H, W] (int32). With ``behind`` the Gaussians
+    are composited behind that transmittance (what other Gaussians in front left): the final
+    transmittance is the product of both, to within the early stop (a pixel stops once the product
+    is under transmittance_min, so pixels already opaque cost nothing), and D the Gaussians' own
+    contributions, each weighted by the transmittance in front of it."""
     ensure_runtime(cfg)
     params = params.detach().contiguous()
     opts = dict(dtype=params.dtype, device=params.device)
-    t_final = torch.ones(n_views, height, width, **opts)
+    t_final = (torch.ones(n_views, height, width, **opts) if behind is None
+               else behind.to(**opts).contiguous().clone())
     depth_acc = torch.zeros(n_views, height, width, **opts)
     last = torch.zeros(n_views, height, width, dtype=torch.int32, device=params.device)
     if bins.pair_count > 0:
@@ -339,11 +359,12 @@ def composite_forward(params: torch.Tensor, bins: TileBins, n_views: int, height
             _composite_forward_tiles(params, bins.half_extent, bins.point_list, bins.tile_ranges, t_final, depth_acc,
                                      last, bins.tile_size, bins.tiles_x, bins.tiles_y, c["opacity"], c["alpha_min"],
                                      c["alpha_max"], c["power_min"], float(cfg.transmittance_min),
-                                     _ti_dtype(params.dtype))
+                                     _ti_dtype(params.dtype), behind is not None)
             return t_final, depth_acc, last
         _composite_forward(params, bins.point_list, bins.tile_ranges, t_final, depth_acc, last,
                            bins.tile_size, bins.tiles_x, bins.tiles_y, c["opacity"], c["alpha_min"],
-                           c["alpha_max"], c["power_min"], float(cfg.transmittance_min), _ti_dtype(params.dtype))
+                           c["alpha_max"], c["power_min"], float(cfg.transmittance_min), _ti_dtype(params.dtype),
+                           behind is not None)
     return t_final, depth_acc, last
 
 

@@ -120,3 +120,33 @@ def test_right_stretch_matches_the_svd():
     R = F[pos] @ np.linalg.inv(U[pos])
     np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-10)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-10)
+
+
+def test_row_blocks_give_the_values_of_the_whole_array():
+    """Past ROW_BLOCK matrices each function works block by block: the same bits as one pass over
+    the whole array (every operation is per matrix), in the caller's dtype, and a singular matrix
+    is named by its index in the whole array."""
+    from physmorph.base import linalg3
+
+    rng = np.random.default_rng(3)
+    n = 2 * linalg3.ROW_BLOCK + 17
+    M = np.concatenate([np.tile(_cases(), (n // len(_cases()) + 1, 1, 1))[:n // 2],
+                        np.eye(3) + 0.3 * rng.normal(size=(n - n // 2, 3, 3))])
+    S = M @ M.transpose(0, 2, 1)
+    whole = {"det3": linalg3._det3(M), "symmetric_eigenvalues": linalg3._symmetric_eigenvalues(S),
+             "singular_values": linalg3._singular_values(M, M.transpose(0, 2, 1) @ M),
+             "right_stretch": linalg3._right_stretch(M[n // 2:])}
+    assert np.array_equal(det3(M), whole["det3"])
+    assert np.array_equal(symmetric_eigenvalues(S), whole["symmetric_eigenvalues"])
+    assert np.array_equal(singular_values(M), whole["singular_values"])
+    assert np.array_equal(right_stretch(M[n // 2:]), whole["right_stretch"])
+    signed = whole["singular_values"].copy()
+    signed[whole["det3"] < 0, 2] *= -1.0
+    assert np.array_equal(signed_singular_values(M), signed)
+    G = M[n // 2:]
+    assert np.array_equal(inverse3(G), linalg3._inverse3(G, 0, len(G)))
+    assert det3(G.astype(np.float32)).dtype == np.float32
+    G = G.copy()
+    G[linalg3.ROW_BLOCK + 5] = 0.0
+    with pytest.raises(np.linalg.LinAlgError, match=f"matrix {linalg3.ROW_BLOCK + 5} of {len(G)} "):
+        inverse3(G)

@@ -14,7 +14,7 @@ from physmorph.render.rasterizer import composite
 from physmorph.render.projection import covariance_from_F
 from physmorph.render.dense import dense_composite
 from physmorph.render.losses import match_gradients
-from physmorph.render.api import render_and_grad, render_views, shade
+from physmorph.render.api import coverage_behind, render_and_grad, render_views, shade
 from physmorph.render.api import splat
 from physmorph.render.losses import alpha_mse, dt_loss, soft_iou_loss
 from physmorph.render.projection import CameraTensors, project_gaussians
@@ -456,6 +456,28 @@ def test_coverage_of_two_subsets_composes(t_min):
     composed = 1.0 - (1.0 - a) * (1.0 - b)
     assert (whole > 0.999).mean() > 0.05
     np.testing.assert_allclose(composed, whole, rtol=0, atol=1e-6 if t_min == 0 else t_min)  # float32 compositing
+
+
+@pytest.mark.parametrize("kernel", ["tile", "pixel"])
+@pytest.mark.parametrize("t_min", [0.0, 1e-4])
+def test_coverage_behind_a_transmittance_is_the_composed_coverage(t_min, kernel):
+    """coverage_behind(B, T_A) = 1 - T_A T_B, what the morph loop's metric takes for the particles
+    outside the mask behind the masked render: to float32 round-off without the early stop, within
+    transmittance_min with it (of the two subsets composed and of all particles rendered at once);
+    pixels already opaque in front keep their transmittance."""
+    cams = small_cameras(2)
+    x, F = random_scene(400, 5, spread=0.6)
+    cfg = RenderConfig(tile_size=8, transmittance_min=t_min, kernel=kernel)
+    part = np.random.default_rng(1).random(len(x)) < 0.8
+    whole = render_views(x, F, 0.35, cams, cfg)[0]
+    a, b = (render_views(x[s], F[s], 0.35, cams, cfg)[0] for s in (part, ~part))
+    behind = coverage_behind(x[~part], F[~part], 0.35, cams, 1.0 - a, cfg)
+    tol = 1e-6 if t_min == 0 else t_min
+    np.testing.assert_allclose(behind, 1.0 - (1.0 - a) * (1.0 - b), rtol=0, atol=tol)
+    np.testing.assert_allclose(behind, whole, rtol=0, atol=tol)
+    opaque = (1.0 - a) < t_min
+    assert opaque.mean() > 0.02 or t_min == 0
+    np.testing.assert_array_equal(behind[opaque], a[opaque].astype(np.float32).astype(np.float64))
 
 
 def test_descending_the_render_gradient_reduces_the_dt_loss():
