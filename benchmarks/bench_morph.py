@@ -9,7 +9,8 @@
 
 Prepares the source particles and the target in --workdir (reused on later calls), then runs the
 experiment for --frames frames with plasticity active from the first frame (so every stage is
-timed, no release frames) and prints the mean seconds per stage over the frames after the ones
+timed, no release frames; the updates that commit the shape to Fp are those of the profile's whole
+run, by default its last frame, not the bench's) and prints the mean seconds per stage over the frames after the ones
 that compile Taichi kernels, and the peak RSS: frame 1 compiles the solver's and the renderer's
 kernels, and with an injection gain to measure (f_inject, full) frame 2 compiles the calibration's
 (MPMSolver.backward_pair), so those methods are timed from frame 3. The stages' sum (t_frame) leaves
@@ -71,8 +72,13 @@ def bench(cfg, experiment: str, workdir: Path, frames: int, mesh_dir: str | Path
         raise SystemExit(f"data preparation in {wd} failed (exit code {child.exitcode}); its error is above")
     prep = time.time() - t_prep
     mc = morph_config(cfg, experiment)
+    # the updates that commit the shape to Fp (absorb_start_frame) as in the profile's whole run: counted
+    # from its end (the last update by default), none of the frames timed here is one of them
+    absorb_from = mc.plasticity.absorb_start_frame
+    if absorb_from is not None and absorb_from < 0:
+        absorb_from = mc.frames + 1 + absorb_from
     mc = dataclasses.replace(mc, frames=frames, save_every=frames, release_frames=0,
-                             plasticity=dataclasses.replace(mc.plasticity, start_frame=1))
+                             plasticity=dataclasses.replace(mc.plasticity, start_frame=1, absorb_start_frame=absorb_from))
     out = wd / "run.h5"
     out.unlink(missing_ok=True)
     shutil.rmtree(partial_dir(out), ignore_errors=True)  # a partial run of an earlier call
