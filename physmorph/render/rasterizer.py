@@ -250,7 +250,8 @@ def _composite_backward_tiles(
 ):
     """Same backward as _composite_backward, Gaussian-major inside a tile (CPU): the tile's list
     is walked back to front once; each entry's gradient is summed over the tile's pixels in
-    registers and added to the Gaussian once per tile (one atomic per entry, not per pixel)."""
+    registers and added to the Gaussian once per tile (atomic adds per entry, not per pixel), where
+    the entry composited any of them."""
     n_views, height, width = t_final.shape[0], t_final.shape[1], t_final.shape[2]
     for v, t in ti.ndrange(n_views, tiles_x * tiles_y):
         ty = t // tiles_x
@@ -276,6 +277,7 @@ def _composite_backward_tiles(
             qc = gauss[g, 4]
             z = gauss[g, 5]
             acc = ti.Matrix.zero(dtype, n_channels, 6)
+            touched = 0  # the tile's pixels this entry composited
             u_first, u_last = _box_range(mu_u, half[g, 0], x0, x1, dtype)
             v_first, v_last = _box_range(mu_v, half[g, 1], y0, y1, dtype)
             for py in range(v_first, v_last + 1):
@@ -309,9 +311,13 @@ def _composite_backward_tiles(
                                     acc[c, 5] += gd * dz_depth
                                 trans_scratch[v, py, px] = trans
                                 suffix_scratch[v, py, px] = suffix + a * trans * z
-            for c in ti.static(range(n_channels)):
-                for j in ti.static(range(6)):
-                    grad_gauss[c, g, j] += acc[c, j]
+                                touched += 1
+            # an entry that composited none of the tile's pixels (half of those a tile walks, in an
+            # opaque body) adds zeros: its 18 atomic adds are passed over
+            if touched > 0:
+                for c in ti.static(range(n_channels)):
+                    for j in ti.static(range(6)):
+                        grad_gauss[c, g, j] += acc[c, j]
 
 
 def _ti_dtype(dtype: torch.dtype):
