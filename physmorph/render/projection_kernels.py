@@ -151,43 +151,50 @@ def _project_backward_add(x: ti.types.ndarray(), F: ti.types.ndarray(), s2: ti.t
             for l, k in ti.static(ti.ndrange(n_losses, 3)):
                 gx[l, k] = grad_x[l, n, k]
         for v in range(n_views):
-            z, z_safe, tx, ty, u, vv, m0, m1, r2, in_front, free_x, free_y, fx, fy = _camera_terms(
-                xn, rot, trans, intr, v, width, height, near, margin, dtype)
-            s_m0 = Sigma @ m0
-            s_m1 = Sigma @ m1
-            lp = ti.cast(low_pass, dtype)
-            a = m0.dot(s_m0) + lp
-            b = m0.dot(s_m1)
-            c = m1.dot(s_m1) + lp
-            det_raw = a * c - b * b
-            floor = ti.cast(det_floor, dtype)
-            inv = 1 / ti.max(det_raw, floor)
-            for l in ti.static(range(n_losses)):
-                gu = grad_params[l, v, n, 0]
-                gv = grad_params[l, v, n, 1]
-                gA = grad_params[l, v, n, 2]
-                gB = grad_params[l, v, n, 3]
-                gC = grad_params[l, v, n, 4]
-                gz = grad_params[l, v, n, 5]
-                det_bar = (-gA * c + gB * b - gC * a) * (inv * inv) if det_raw >= floor else ti.cast(0.0, dtype)
-                a_bar = gC * inv + det_bar * c
-                c_bar = gA * inv + det_bar * a
-                b_bar = -gB * inv - (2 * b) * det_bar
-                for k, i, j in ti.static(_SYM):
-                    G[l, k] += (a_bar * m0[i] * m0[j] + c_bar * m1[i] * m1[j]
-                                + b_bar * ti.cast(0.5, dtype) * (m0[i] * m1[j] + m1[i] * m0[j]))
-                if ti.static(want_x):
-                    m0_bar = 2 * a_bar * s_m0 + b_bar * s_m1
-                    m1_bar = b_bar * s_m0 + 2 * c_bar * s_m1
-                    zs_bar = -(m0_bar.dot(m0) + m1_bar.dot(m1)) / z_safe
-                    tx_bar = fx * gu - (fx / z_safe if free_x else ti.cast(0.0, dtype)) * m0_bar.dot(r2)
-                    ty_bar = fy * gv - (fy / z_safe if free_y else ti.cast(0.0, dtype)) * m1_bar.dot(r2)
-                    zs_bar = zs_bar - (tx_bar * tx + ty_bar * ty) / z_safe
-                    xc_bar = ti.Vector([tx_bar / z_safe, ty_bar / z_safe,
-                                        gz + (zs_bar if in_front else ti.cast(0.0, dtype))])
-                    for kk in ti.static(range(3)):  # x_c = R x + t: x_bar = R^T x_c_bar
-                        gx[l, kk] += (xc_bar[0] * rot[v, 0, kk] + xc_bar[1] * rot[v, 1, kk]
-                                      + xc_bar[2] * rot[v, 2, kk])
+            # a view where the Gaussian has no gradient (occluded, off screen: most of an opaque
+            # body's) adds zeros: it is passed over
+            seen = False
+            for l, k in ti.static(ti.ndrange(n_losses, 6)):
+                if grad_params[l, v, n, k] != 0:
+                    seen = True
+            if seen:
+                z, z_safe, tx, ty, u, vv, m0, m1, r2, in_front, free_x, free_y, fx, fy = _camera_terms(
+                    xn, rot, trans, intr, v, width, height, near, margin, dtype)
+                s_m0 = Sigma @ m0
+                s_m1 = Sigma @ m1
+                lp = ti.cast(low_pass, dtype)
+                a = m0.dot(s_m0) + lp
+                b = m0.dot(s_m1)
+                c = m1.dot(s_m1) + lp
+                det_raw = a * c - b * b
+                floor = ti.cast(det_floor, dtype)
+                inv = 1 / ti.max(det_raw, floor)
+                for l in ti.static(range(n_losses)):
+                    gu = grad_params[l, v, n, 0]
+                    gv = grad_params[l, v, n, 1]
+                    gA = grad_params[l, v, n, 2]
+                    gB = grad_params[l, v, n, 3]
+                    gC = grad_params[l, v, n, 4]
+                    gz = grad_params[l, v, n, 5]
+                    det_bar = (-gA * c + gB * b - gC * a) * (inv * inv) if det_raw >= floor else ti.cast(0.0, dtype)
+                    a_bar = gC * inv + det_bar * c
+                    c_bar = gA * inv + det_bar * a
+                    b_bar = -gB * inv - (2 * b) * det_bar
+                    for k, i, j in ti.static(_SYM):
+                        G[l, k] += (a_bar * m0[i] * m0[j] + c_bar * m1[i] * m1[j]
+                                    + b_bar * ti.cast(0.5, dtype) * (m0[i] * m1[j] + m1[i] * m0[j]))
+                    if ti.static(want_x):
+                        m0_bar = 2 * a_bar * s_m0 + b_bar * s_m1
+                        m1_bar = b_bar * s_m0 + 2 * c_bar * s_m1
+                        zs_bar = -(m0_bar.dot(m0) + m1_bar.dot(m1)) / z_safe
+                        tx_bar = fx * gu - (fx / z_safe if free_x else ti.cast(0.0, dtype)) * m0_bar.dot(r2)
+                        ty_bar = fy * gv - (fy / z_safe if free_y else ti.cast(0.0, dtype)) * m1_bar.dot(r2)
+                        zs_bar = zs_bar - (tx_bar * tx + ty_bar * ty) / z_safe
+                        xc_bar = ti.Vector([tx_bar / z_safe, ty_bar / z_safe,
+                                            gz + (zs_bar if in_front else ti.cast(0.0, dtype))])
+                        for kk in ti.static(range(3)):  # x_c = R x + t: x_bar = R^T x_c_bar
+                            gx[l, kk] += (xc_bar[0] * rot[v, 0, kk] + xc_bar[1] * rot[v, 1, kk]
+                                          + xc_bar[2] * rot[v, 2, kk])
         for l, k in ti.static(ti.ndrange(n_losses, 6)):
             sigma_bar[l, n, k] = G[l, k]
         if ti.static(want_x):

@@ -88,7 +88,9 @@ def test_projection_kernels_equal_the_torch_projection_and_autograd(dtype, tol):
     """The Taichi projection render_and_grad uses, forward against project_gaussians and its
     reverse (three upstream gradients at once) against autograd through project_gaussians and
     covariance_from_F, on a scene with entries behind the camera, off screen (the Jacobian's
-    clamp acting), per-Gaussian sigma0 and low_pass 0."""
+    clamp acting), per-Gaussian sigma0 and low_pass 0; the upstream gradients zero for some
+    Gaussians in some views (as for the occluded ones, which the reverse passes over) and in one
+    loss only for others."""
     cams = ring_cameras(3, width=32, height=24, distance=4.0, fov_y_deg=40.0)
     rng = np.random.default_rng(11)
     x, F = random_scene(40, 3, spread=5.0, aniso=0.4)  # a spread past the cameras' distance
@@ -107,6 +109,8 @@ def test_projection_kernels_equal_the_torch_projection_and_autograd(dtype, tol):
             scale = ref.abs().amax(dim=(0, 1))
             assert ((got - ref).abs().amax(dim=(0, 1)) <= tol * scale).all()
         g = torch.tensor(rng.normal(size=(3,) + tuple(proj.params.shape)), dtype=dtype)
+        g[:, torch.as_tensor(rng.random(size=proj.params.shape[:2]) < 0.5)] = 0.0  # [V, N] pairs without a gradient
+        g[1, torch.as_tensor(rng.random(size=proj.params.shape[:2]) < 0.3)] = 0.0  # one loss's only
         ref_x, ref_F = [], []
         for c in range(3):
             gx, gF = torch.autograd.grad(proj.params, (xt, Ft), grad_outputs=g[c], retain_graph=True)
