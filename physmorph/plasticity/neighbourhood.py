@@ -300,9 +300,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
             for b in range(k):
                 nb[i, b] = 0
             if n_in <= cap_cand:
-                for q in range(n_in):
-                    b = ti.min(ti.cast(cand_r2[r, q] * to_bin, ti.i32), k - 1)
-                    nb[i, b] = nb[i, b] + 1  # not +=: Taichi makes that an atomic add
+                _kept_histogram(nb, cand_r2, r, i, k, n_in, to_bin)
             else:
                 for o in range(block * block):
                     first, end = _row_range(corner, o, block, dims, cell_start)
@@ -313,23 +311,10 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                             b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
                             nb[i, b] = nb[i, b] + 1
             kb, m0 = _kth_bin(nb, i, k)
-            placed = ti.Vector([0, 0])  # (left, held): rows written below the k-th bin, and in it
             if n_in <= cap_cand:
-                # the candidates below the k-th's bin to the row's first m0 slots, in scan order and
-                # without a branch (a slot is kept by a candidate below the bin; one past the last
-                # is at most m0, a slot of the heap, filled after this pass)
-                left = 0
-                for q in range(n_in):
-                    d2 = cand_r2[r, q]
-                    r2[r, left] = d2
-                    nb[i, left] = ids[cand_at[r, q]]
-                    left += ti.cast(ti.cast(d2 * to_bin, ti.i32) < kb, ti.i32)
-                placed[0] = m0
-                for q in range(n_in):  # the k-th's bin, a few candidates, into the heap
-                    d2 = cand_r2[r, q]
-                    if ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1) == kb:
-                        placed = _place(r2, nb, r, i, k, kb, m0, d2, ids[cand_at[r, q]], to_bin, placed)
+                _place_kept(r2, nb, cand_r2, cand_at, ids, r, i, k, kb, m0, n_in, to_bin)
             else:
+                placed = ti.Vector([0, 0])  # (left, held): rows written below the k-th bin, and in it
                 for o in range(block * block):
                     first, end = _row_range(corner, o, block, dims, cell_start)
                     for s in range(first, end):
@@ -338,6 +323,35 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                         if d2 <= rb2:
                             placed = _place(r2, nb, r, i, k, kb, m0, d2, ids[s], to_bin, placed)
             settled[i] = 1
+
+
+@ti.func
+def _kept_histogram(nb: ti.template(), cand_r2: ti.template(), r, i, k, n_in, to_bin):
+    """Row i's n_in kept candidates counted by their r2's bin (k bins over [0, R_b^2]) in the
+    row's index slots, zeroed before."""
+    for q in range(n_in):
+        b = ti.min(ti.cast(cand_r2[r, q] * to_bin, ti.i32), k - 1)
+        nb[i, b] = nb[i, b] + 1  # not +=: Taichi makes that an atomic add
+
+
+@ti.func
+def _place_kept(r2: ti.template(), nb: ti.template(), cand_r2: ti.template(), cand_at: ti.template(),
+                ids: ti.template(), r, i, k, kb, m0, n_in, to_bin):
+    """Row i's second pass from its n_in kept candidates: those below the k-th's bin to the row's
+    first m0 slots, in scan order and without a branch (a slot is kept by a candidate below the
+    bin; one past the last is at most m0, a slot of the heap, filled after this pass), then the
+    k-th's bin, a few candidates, into the heap of the remaining slots (_place)."""
+    left = 0
+    for q in range(n_in):
+        d2 = cand_r2[r, q]
+        r2[r, left] = d2
+        nb[i, left] = ids[cand_at[r, q]]
+        left += ti.cast(ti.cast(d2 * to_bin, ti.i32) < kb, ti.i32)
+    placed = ti.Vector([m0, 0])  # (left, held)
+    for q in range(n_in):
+        d2 = cand_r2[r, q]
+        if ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1) == kb:
+            placed = _place(r2, nb, r, i, k, kb, m0, d2, ids[cand_at[r, q]], to_bin, placed)
 
 
 @ti.func

@@ -231,6 +231,28 @@ def _composite_forward_tiles(
                                     alive[py - y0] -= 1
 
 
+@ti.func
+def _add_pixel_adjoint(acc, grad_alpha: ti.template(), grad_depth_acc: ti.template(), v, py, px,
+                       da_alpha, da_depth, dz_depth, dpower_da, du, dv, qa, qb, qc,
+                       n_channels: ti.template(), dtype: ti.template()):
+    """acc [C, 6] plus pixel (py, px)'s share of an entry's gradient for each channel c: d/d(mean_u,
+    mean_v, A, B, C, z) of its alpha and D (module docstring), from d alpha / d a_k, d D / d a_k,
+    d D / d z_k and d a_k / d power_k."""
+    d_mu_u = -(qa * du + qb * dv)
+    d_mu_v = -(qb * du + qc * dv)
+    for c in ti.static(range(n_channels)):
+        ga = grad_alpha[c, v, py, px]
+        gd = grad_depth_acc[c, v, py, px]
+        gp = (ga * da_alpha + gd * da_depth) * dpower_da
+        acc[c, 0] += gp * d_mu_u
+        acc[c, 1] += gp * d_mu_v
+        acc[c, 2] += -ti.cast(0.5, dtype) * gp * du * du
+        acc[c, 3] += -gp * du * dv
+        acc[c, 4] += -ti.cast(0.5, dtype) * gp * dv * dv
+        acc[c, 5] += gd * dz_depth
+    return acc
+
+
 @ti.kernel
 def _composite_backward_tiles(
     gauss: ti.types.ndarray(),  # [V*N, 6]
@@ -293,22 +315,11 @@ def _composite_backward_tiles(
                                 one_minus = ti.cast(1.0, dtype) - a
                                 trans = trans_scratch[v, py, px] / one_minus  # T_k
                                 suffix = suffix_scratch[v, py, px]
-                                da_alpha = t_final[v, py, px] / one_minus
-                                da_depth = trans * z - suffix / one_minus
-                                dz_depth = a * trans
                                 dpower_da = a if raw < ti.cast(alpha_max, dtype) else ti.cast(0.0, dtype)
-                                d_mu_u = -(qa * du + qb * dv)
-                                d_mu_v = -(qb * du + qc * dv)
-                                for c in ti.static(range(n_channels)):
-                                    ga = grad_alpha[c, v, py, px]
-                                    gd = grad_depth_acc[c, v, py, px]
-                                    gp = (ga * da_alpha + gd * da_depth) * dpower_da
-                                    acc[c, 0] += gp * d_mu_u
-                                    acc[c, 1] += gp * d_mu_v
-                                    acc[c, 2] += -ti.cast(0.5, dtype) * gp * du * du
-                                    acc[c, 3] += -gp * du * dv
-                                    acc[c, 4] += -ti.cast(0.5, dtype) * gp * dv * dv
-                                    acc[c, 5] += gd * dz_depth
+                                acc = _add_pixel_adjoint(acc, grad_alpha, grad_depth_acc, v, py, px,
+                                                         t_final[v, py, px] / one_minus,
+                                                         trans * z - suffix / one_minus, a * trans, dpower_da,
+                                                         du, dv, qa, qb, qc, n_channels, dtype)
                                 trans_scratch[v, py, px] = trans
                                 suffix_scratch[v, py, px] = suffix + a * trans * z
                                 touched += 1
