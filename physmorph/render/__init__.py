@@ -14,7 +14,8 @@ Each surface particle is a 3D Gaussian with mean x_i and covariance Sigma_i = si
 - dense.py: the obviously-correct dense reference (every pixel x every Gaussian, autograd).
 - losses.py: L_DT = mean(alpha * sdt / H) (resolution independent), soft IoU, depth MSE on
   target-covered pixels, adaptive gradient matching, alpha MSE metric.
-- api.py: render_and_grad (losses + dL/dF [+ dL/dx]), render_views (forward), shade (Phong).
+- api.py: render_and_grad (losses + dL/dF [+ dL/dx]), render_views (forward), coverage_behind
+  (forward behind a given transmittance), shade (Phong).
 
 Runs on CPU, or CUDA with ``RenderConfig(device="cuda"|"auto")``; the Taichi runtime is shared
 with the MPM solver through :func:`physmorph.base.taichi_runtime.init_taichi` (one arch per process).

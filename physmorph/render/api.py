@@ -1,4 +1,5 @@
-"""Public entry points: render_and_grad (losses + dL/dF), render_views (metrics), shade (figures).
+"""Public entry points: render_and_grad (losses + dL/dF), render_views and coverage_behind (metrics),
+shade (figures).
 
 Pipeline (paper sections 3.2 and 3.5): F, x --> Sigma = sigma0^2 F F^T --> EWA projection -->
 screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D
