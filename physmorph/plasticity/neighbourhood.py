@@ -40,9 +40,9 @@ from physmorph.base.taichi_runtime import ensure_taichi, taichi_state
 # (docs/study/performance_history.md, the k-nearest block of 4x4x4 cells).
 BLOCK_CELLS = 4
 CELL_SCALE = 0.75
-# How many candidates (points of the block within its reach) a row keeps for its second pass, at
-# most (M in _k_nearest_block): ~100-250 at the sampling's density; a row with more scans its
-# block again. The scratch is chunk x M x 12 bytes (25 MB at k_nearest's chunk).
+# The slots for candidates (points of the block within its reach) a row keeps for its second pass
+# (M in _k_nearest_block): ~100-250 candidates at the sampling's density; a row with M or more
+# scans its block again. The scratch is chunk x M x 12 bytes (25 MB at k_nearest's chunk).
 BLOCK_CANDIDATES = 256
 # A cell is passed over only where its box is farther than the heap's largest r2 by this relative
 # share: a point the floor of (x - lo) / h put in the cell may lie outside its box by round-off.
@@ -268,7 +268,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
     bin holding the k-th; a second pass writes every point below that bin and keeps the nearest
     of that bin's in a max-heap over the row's remaining slots. The row is in no particular order.
     The first scan keeps its candidates (the points within R_b, about a quarter of the block's) in
-    scan order where at most M, so the histogram and the second pass read them instead of scanning
+    scan order where fewer than M, so the histogram and the second pass read them instead of scanning
     the block again (the same row); a row with more scans again. Where the candidates are kept,
     the scan and the second pass's points below the k-th's bin go without a branch: each point is
     written to the next free slot, which only a kept one advances (a branch on whether a point is
@@ -282,7 +282,9 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
         rb2 = _block_reach2(xi, corner, lo, dims, h, block)
         to_bin = k / rb2
         # the first scan keeps every point within the reach as a candidate, in scan order and
-        # without a branch (each point is written to the next slot, which only a candidate keeps)
+        # without a branch (each point is written to the next slot, which only a candidate keeps;
+        # the last slot is overwritten by the points after the row's M-th candidate, so a row is
+        # taken from its kept candidates only where it has fewer than M)
         n_in = 0
         for o in range(block * block):  # a loop, not unrolled: one copy of the body (the heap's sift is long)
             first, end = _row_range(corner, o, block, dims, cell_start)
@@ -299,7 +301,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
             # indexed at run time would be lowered to a chain of selects); the second pass overwrites them
             for b in range(k):
                 nb[i, b] = 0
-            if n_in <= cap_cand:
+            if n_in < cap_cand:
                 _kept_histogram(nb, cand_r2, r, i, k, n_in, to_bin)
             else:
                 for o in range(block * block):
@@ -311,7 +313,7 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
                             b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
                             nb[i, b] = nb[i, b] + 1
             kb, m0 = _kth_bin(nb, i, k)
-            if n_in <= cap_cand:
+            if n_in < cap_cand:
                 _place_kept(r2, nb, cand_r2, cand_at, ids, r, i, k, kb, m0, n_in, to_bin)
             else:
                 placed = ti.Vector([0, 0])  # (left, held): rows written below the k-th bin, and in it
@@ -462,8 +464,8 @@ def k_nearest(x: np.ndarray,  # [N, 3]
     k-th-neighbour radii (estimated from the pool's density); any value gives the same answer.
     ``with_r2`` False: r2 is None, and the distances are kept for ``chunk`` rows at a time only
     (displacement_jacobian_pairs recomputes them: 241 MB fewer at 471K particles, k = 64).
-    ``candidates``: how many of a row's block candidates the first scan keeps for the second
-    (a row with more scans its block again; any value gives the same answer). ``block``: the
+    ``candidates``: the slots for a row's block candidates, which the first scan keeps for the
+    second (a row with as many or more scans its block again; any value gives the same answer). ``block``: the
     cells per axis of the block a query scans first (any value gives the same answer)."""
     ensure_taichi()
     x = np.ascontiguousarray(x, dtype=np.float64)

@@ -140,6 +140,24 @@ def test_k_nearest_equals_a_brute_force_search(cell_scale, block):
         k_nearest(x, source, len(source) + 1)
 
 
+def test_k_nearest_keeps_every_candidate_whatever_the_count_kept():
+    """The block's first scan keeps up to ``candidates`` points within the reach (each point
+    written to the next free slot); with every count from 1 to past what a block holds, some rows'
+    candidates fill the kept slots exactly and points past the reach come after the last: the same
+    rows as with room for all (the KD tree's distances)."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0.0, 1.0, (1500, 3))
+    source = np.arange(len(x))
+    for k in (1, 4, 9):
+        ref_r2 = _brute_knn(x, source, k)[1]
+        nb, r2 = k_nearest(x, source, k)
+        np.testing.assert_allclose(np.sort(r2, axis=1), ref_r2, rtol=0, atol=1e-12)
+        for kept in range(1, 61):
+            nb_k, r2_k = k_nearest(x, source, k, candidates=kept)
+            np.testing.assert_array_equal(r2_k, r2, err_msg=f"k = {k}, {kept} kept")
+            np.testing.assert_array_equal(nb_k, nb, err_msg=f"k = {k}, {kept} kept")
+
+
 def test_k_nearest_matches_the_kd_tree_reference_on_a_jittered_lattice():
     """On the sampling's own kind of cloud (a jittered lattice, neighbourhoods from a pool, k = 64)
     the cell grid returns the KD tree's neighbours (plasticity.nearest_neighbours)."""
