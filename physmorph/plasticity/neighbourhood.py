@@ -304,27 +304,34 @@ def _k_nearest_block(x: ti.types.ndarray(dtype=ti.f64, ndim=2),  # [N, 3] the qu
             if n_in < cap_cand:
                 _kept_histogram(nb, cand_r2, r, i, k, n_in, to_bin)
             else:
-                for o in range(block * block):
-                    first, end = _row_range(corner, o, block, dims, cell_start)
-                    for s in range(first, end):
-                        e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
-                        d2 = e.dot(e)
-                        if d2 <= rb2:
-                            b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
-                            nb[i, b] = nb[i, b] + 1
+                _rescan_block(r2, nb, pts, ids, cell_start, dims, corner, xi, rb2, to_bin, r, i, k, 0, 0, block, True)
             kb, m0 = _kth_bin(nb, i, k)
             if n_in < cap_cand:
                 _place_kept(r2, nb, cand_r2, cand_at, ids, r, i, k, kb, m0, n_in, to_bin)
             else:
-                placed = ti.Vector([0, 0])  # (left, held): rows written below the k-th bin, and in it
-                for o in range(block * block):
-                    first, end = _row_range(corner, o, block, dims, cell_start)
-                    for s in range(first, end):
-                        e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
-                        d2 = e.dot(e)
-                        if d2 <= rb2:
-                            placed = _place(r2, nb, r, i, k, kb, m0, d2, ids[s], to_bin, placed)
+                _rescan_block(r2, nb, pts, ids, cell_start, dims, corner, xi, rb2, to_bin, r, i, k, kb, m0, block, False)
             settled[i] = 1
+
+
+@ti.func
+def _rescan_block(r2: ti.template(), nb: ti.template(), pts: ti.template(), ids: ti.template(),
+                  cell_start: ti.template(), dims: ti.template(), corner, xi, rb2, to_bin, r, i, k, kb, m0,
+                  block: ti.template(), histogram: ti.template()):
+    """Row i's block scanned again, for a row with more candidates than its slots: with
+    ``histogram`` each point within the reach counted by its bin in the row's index slots, else
+    placed by the second pass (_place, the k-th's bin kb holding the (m0 + 1)-th nearest on)."""
+    placed = ti.Vector([0, 0])  # (left, held): rows written below the k-th bin, and in it
+    for o in range(block * block):
+        first, end = _row_range(corner, o, block, dims, cell_start)
+        for s in range(first, end):
+            e = ti.Vector([pts[s, 0], pts[s, 1], pts[s, 2]]) - xi
+            d2 = e.dot(e)
+            if d2 <= rb2:
+                if ti.static(histogram):
+                    b = ti.min(ti.cast(d2 * to_bin, ti.i32), k - 1)
+                    nb[i, b] = nb[i, b] + 1
+                else:
+                    placed = _place(r2, nb, r, i, k, kb, m0, d2, ids[s], to_bin, placed)
 
 
 @ti.func
