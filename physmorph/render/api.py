@@ -103,15 +103,25 @@ def _to_tensors(x, F, s, cameras: Cameras, cfg: RenderConfig):
             torch.as_tensor(s, dtype=dt, device=dev), CameraTensors.from_cameras(cameras, dt, dev))
 
 
-def render_views(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras,
-                 cfg: RenderConfig = RenderConfig()) -> tuple[np.ndarray, np.ndarray]:
-    """Forward only. x: [N, 3], F: [N, 3, 3], sigma0: scalar or [N].
-    Returns alpha [V, H, W] and expected depth [V, H, W] (0 where alpha <= alpha_min)."""
+def _composited(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, cfg: RenderConfig,
+                behind: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # [V, H, W] twice
+    """Forward only: the final transmittance and the accumulated depth D of the particles
+    (composited behind the transmittance ``behind`` [V, H, W] where given)."""
     x, F, s = _check_inputs(x, F, sigma0)
     xt, Ft, st, cams = _to_tensors(x, F, s, cameras, cfg)
     with torch.no_grad():
         sp = splat(xt, Ft, st, cams, cfg)
-        t_final, depth_acc, _ = composite_forward(sp.params, sp.bins, cams.count, cams.height, cams.width, cfg)
+        t_final, depth_acc, _ = composite_forward(sp.params, sp.bins, cams.count, cams.height, cams.width, cfg,
+                                                  behind=None if behind is None else torch.as_tensor(behind))
+    return t_final, depth_acc
+
+
+def render_views(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras,
+                 cfg: RenderConfig = RenderConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Forward only. x: [N, 3], F: [N, 3, 3], sigma0: scalar or [N].
+    Returns alpha [V, H, W] and expected depth [V, H, W] (0 where alpha <= alpha_min)."""
+    t_final, depth_acc = _composited(x, F, sigma0, cameras, cfg)
+    with torch.no_grad():
         alpha = 1.0 - t_final
         depth = expected_depth(alpha, depth_acc, cfg.alpha_min)
     return alpha.double().cpu().numpy(), depth.double().cpu().numpy()
@@ -125,12 +135,7 @@ def coverage_behind(x: np.ndarray,  # [N, 3]
     """Forward only: the alpha of everything, these particles composited behind ``transmittance``,
     1 - T T_these to within the compositing's early stop (a pixel already opaque in front costs
     nothing: the metrics' particles outside the surface mask, behind the loss's render of it)."""
-    x, F, s = _check_inputs(x, F, sigma0)
-    xt, Ft, st, cams = _to_tensors(x, F, s, cameras, cfg)
-    with torch.no_grad():
-        sp = splat(xt, Ft, st, cams, cfg)
-        t_final, _, _ = composite_forward(sp.params, sp.bins, cams.count, cams.height, cams.width, cfg,
-                                          behind=torch.as_tensor(transmittance))
+    t_final, _ = _composited(x, F, sigma0, cameras, cfg, behind=transmittance)
     return (1.0 - t_final).double().cpu().numpy()
 
 
