@@ -35,18 +35,20 @@ class G2PAdjoint:
 
     @ti.kernel
     def g2p_backward_particles(self, t: ti.i32, pair: ti.template()):
-        """The particle part of g2p's reverse for every particle (_particle_adjoint): F's adjoint
-        of state t written, and the (x_bar, v_bar, C_bar) the node loop scatters left in x_adj,
-        v_adj and C_adj, which that loop consumes."""
+        """The particle part of g2p's reverse for every particle: F's adjoint of state t written,
+        and the (x_bar, v_bar, C_bar) the node loop scatters left in x_adj, v_adj and C_adj, which
+        that loop consumes. The particle's linearisation (_particle_linearization: its loads, the
+        clamp, the volume scale and the inverses) is taken once for both sets with ``pair``."""
         a = self.adjoint
         for p in range(self.n):
-            # one call site of the particle part for both sets (a loop over the sets)
+            inside, Fh, B, r, Fs, Fs_inv_T, Fn_inv_T = self._particle_linearization(t, p)
+            # one call site of the per-set part for both sets (a loop over the sets)
             for which in range(2 if ti.static(pair) else 1):
                 xa, va, Ca, Fa = a.x_adj[p], a.v_adj[p], a.C_adj[p], a.F_adj[p]
                 if ti.static(pair):
                     if which == 1:
                         xa, va, Ca, Fa = a.x_adj2[p], a.v_adj2[p], a.C_adj2[p], a.F_adj2[p]
-                xb, vb, Cb, Fb = self._particle_adjoint(t, p, xa, va, Ca, Fa)
+                xb, vb, Cb, Fb = self._particle_adjoint(inside, Fh, B, r, Fs, Fs_inv_T, Fn_inv_T, xa, va, Ca, Fa)
                 if which == 0:
                     a.x_adj[p], a.v_adj[p], a.C_adj[p], a.F_adj[p] = xb, vb, Cb, Fb
                 if ti.static(pair):
@@ -120,37 +122,53 @@ class G2PAdjoint:
         return xbar, xbar2
 
     @ti.func
-    def _particle_adjoint(self, t, p, xbar_n, vbar_n, Cbar_n, Fbar_n):
-        """The particle part of g2p's reverse for one adjoint set: the adjoints of x, v, C, F of
+    def _particle_linearization(self, t, p):
+        """What the reverse of particle p's G2P update at substep t applies to any adjoint set: the
+        clamp's mask on x (1 where x' is inside the domain), F of state t, B = I + dt C' and, under
+        isochoric smoothing (F' = r Fs, Fs = (1 - s) Fn + s F, Fn = B F, r = (det Fn / det Fs)^(1/3)),
+        r, Fs, Fs^-T and Fn^-T, each inverse zero where its term passes nothing back (below)."""
+        dt = self.dtype(self.model.cfg.dt)
+        xn = self.trajectory.x[t + 1, p]
+        inside = ti.Vector.one(self.dtype, 3)
+        for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
+            if xn[a] <= self.dtype(self.model.x_min) or xn[a] >= self.dtype(self.model.x_max):
+                inside[a] = 0.0
+        Fh = self.trajectory.F[t, p]
+        B = ti.Matrix.identity(self.dtype, 3) + dt * self.trajectory.C[t + 1, p]
+        r = ti.cast(1.0, self.dtype)
+        Fs = Fh
+        Fs_inv_T = ti.Matrix.zero(self.dtype, 3, 3)
+        Fn_inv_T = ti.Matrix.zero(self.dtype, 3, 3)
+        if ti.static(self.model.cfg.smoothing_mode == "isochoric"):
+            s = self.dtype(self.model.cfg.smoothing)
+            Fn = B @ Fh
+            Fs = (1.0 - s) * Fn + s * Fh
+            r = self.model.volume_scale(Fn, Fs)
+            Jt = self.model.volume_target(Fn)
+            if (Jt / Fs.determinant()) > 0:  # r follows the ratio (1 where it is not positive)
+                Fs_inv_T = Fs.inverse().transpose()
+                if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor J_min)
+                    Fn_inv_T = Fn.inverse().transpose()
+        return inside, Fh, B, r, Fs, Fs_inv_T, Fn_inv_T
+
+    @ti.func
+    def _particle_adjoint(self, inside, Fh, B, r, Fs, Fs_inv_T, Fn_inv_T, xbar_n, vbar_n, Cbar_n, Fbar_n):
+        """The particle part of g2p's reverse for one adjoint set, with the particle's
+        linearisation (inside .. Fn_inv_T: _particle_linearization): the adjoints of x, v, C, F of
         state t+1 -> F's of state t and the (x_bar, v_bar, C_bar) that the node loop scatters."""
         s = self.dtype(self.model.cfg.smoothing)
         dt = self.dtype(self.model.cfg.dt)
-        xn = self.trajectory.x[t + 1, p]
-        for a in ti.static(range(3)):  # the clamp passes no gradient where it is active
-            if xn[a] <= self.dtype(self.model.x_min) or xn[a] >= self.dtype(self.model.x_max):
-                xbar_n[a] = 0.0
-        Fh = self.trajectory.F[t, p]
-        Cn = self.trajectory.C[t + 1, p]
+        xbar_n = xbar_n * inside
         Fbar_new = (1.0 - s) * Fbar_n
         Fbar = s * Fbar_n
         if ti.static(self.model.cfg.smoothing_mode == "isochoric"):
-            # F' = r Fs, r = (det Fn / det Fs)^(1/3): Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T,
-            # Fn_bar += (r r_bar / 3) Fn^-T with r_bar = <F'_bar, Fs> (0 where the floor
-            # J_min holds det F' instead of det Fn)
-            Fn = (ti.Matrix.identity(self.dtype, 3) + dt * Cn) @ Fh
-            Fs = (1.0 - s) * Fn + s * self.trajectory.F[t, p]
-            r = self.model.volume_scale(Fn, Fs)
-            Fs_bar = r * Fbar_n
-            Fbar_new = ti.Matrix.zero(self.dtype, 3, 3)
-            Jt = self.model.volume_target(Fn)
-            if (Jt / Fs.determinant()) > 0:
-                k3 = r * (Fbar_n * Fs).sum() / 3.0
-                Fs_bar -= k3 * Fs.inverse().transpose()
-                if Jt == Fn.determinant():  # det F' follows det Fn (not held at the floor)
-                    Fbar_new = k3 * Fn.inverse().transpose()
-            Fbar_new += (1.0 - s) * Fs_bar
+            # Fs_bar = r F'_bar - (r r_bar / 3) Fs^-T and Fn_bar += (r r_bar / 3) Fn^-T with
+            # r_bar = <F'_bar, Fs> (each inverse zero where its term passes nothing back)
+            k3 = r * (Fbar_n * Fs).sum() / 3.0
+            Fs_bar = r * Fbar_n - k3 * Fs_inv_T
+            Fbar_new = k3 * Fn_inv_T + (1.0 - s) * Fs_bar
             Fbar = s * Fs_bar
-        Fh_bar = (ti.Matrix.identity(self.dtype, 3) + dt * Cn).transpose() @ Fbar_new
+        Fh_bar = B.transpose() @ Fbar_new
         Fbar += Fh_bar
         Cbar = Cbar_n + dt * Fbar_new @ Fh.transpose()
         vbar = vbar_n + dt * xbar_n
