@@ -22,7 +22,7 @@ from physmorph.base.taichi_runtime import resolve_device
 
 from physmorph.settings.render import LOSS_TERMS, RenderConfig
 from .containers import RenderResult, RenderTarget
-from .losses import alpha_mse, expected_depth, match_gradients, render_losses
+from .losses import alpha_mse, expected_depth, losses_and_gradients, match_gradients
 from .projection import CameraTensors, ProjectedGaussians
 from .projection_kernels import ProjectionReverse, project_forward
 from .rasterizer import composite_backward, composite_forward
@@ -161,27 +161,11 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
     with torch.no_grad():
         sp = splat(xt, Ft, st, cams, cfg)
     t_final, depth_acc, last = composite_forward(sp.params, sp.bins, n_views, height, width, cfg)
-    alpha_leaf = (1.0 - t_final).requires_grad_(True)
-    depth_leaf = depth_acc.clone().requires_grad_(True)
-    losses = render_losses(alpha_leaf, depth_leaf, t_alpha, t_depth, t_sdt, cfg)
-
-    # dL_c / d(alpha, D) for each loss c, then one rasterizer backward with a channel per loss.
-    g_alpha = torch.zeros((len(LOSS_TERMS),) + tuple(alpha_leaf.shape), dtype=dt, device=dev)
-    g_depth = torch.zeros_like(g_alpha)
-    for c, name in enumerate(LOSS_TERMS):
-        ga, gd = torch.autograd.grad(losses[name], (alpha_leaf, depth_leaf), allow_unused=True,
-                                     retain_graph=c + 1 < len(LOSS_TERMS))
-        if ga is not None:
-            g_alpha[c] = ga
-        if gd is not None:
-            g_depth[c] = gd
-        del ga, gd
-    loss_values = {k: float(v.detach()) for k, v in losses.items()}
-    del losses  # frees the loss graph's pixel-sized buffers before the rasterizer backward
-    # ... and hands them back to the system (outside a morph run's held heap, where the backward
-    # reuses them instead: physmorph.base.memory): under glibc's mmap threshold they stay resident
-    # under the backward's gradients otherwise (the paper frame's peak: 0.92-1.03 GB above the
-    # render's start without this, 0.70-0.76 GB with it, when the backward ran all views at once)
+    alpha = 1.0 - t_final
+    # dL_c / d(alpha, D) for each loss c, then one rasterizer backward with a channel per loss
+    loss_values, g_alpha, g_depth = losses_and_gradients(alpha, depth_acc, t_alpha, t_depth, t_sdt, cfg)
+    # outside a morph run's held heap, the losses' temporaries go back to the system before the
+    # backward's gradients (inside it, the backward reuses them: physmorph.base.memory)
     release_free_memory()
     g_x, g_F = reverse_by_view(xt, Ft, st, cams, sp, t_final, last, g_alpha, g_depth, cfg, want_grad_x)
     del g_alpha, g_depth, sp
@@ -196,7 +180,6 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
         all_weights.update({f"x_{k}": v for k, v in weights_x.items()})
 
     with torch.no_grad():
-        alpha = alpha_leaf.detach()
         mse = alpha_mse(alpha, t_alpha)
         depth = expected_depth(alpha, depth_acc, cfg.alpha_min)
     loss_values["total"] = loss_values["dt"] + weights["iou"] * loss_values["iou"] + weights["depth"] * loss_values["depth"]

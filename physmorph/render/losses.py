@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from physmorph.settings.render import RenderConfig
+from physmorph.settings.render import LOSS_TERMS, RenderConfig
 
 # Smoothing of the soft IoU ratio in pixel units: an empty render against an empty target scores 0.
 _IOU_EPS = 1e-6
@@ -50,12 +50,59 @@ def depth_loss(alpha: torch.Tensor, depth_acc: torch.Tensor, target_depth: torch
 
 def render_losses(alpha: torch.Tensor, depth_acc: torch.Tensor, target_alpha: torch.Tensor,
                   target_depth: torch.Tensor, target_sdt: torch.Tensor, cfg: RenderConfig) -> dict[str, torch.Tensor]:
-    """The three rendering losses: {"dt", "iou", "depth"} (scalars)."""
+    """The three rendering losses: {"dt", "iou", "depth"} (scalars), differentiable by autograd: the
+    reference of losses_and_gradients, which the renderer runs."""
     return {
         "dt": dt_loss(alpha, target_sdt),
         "iou": soft_iou_loss(alpha, target_alpha),
         "depth": depth_loss(alpha, depth_acc, target_depth, cfg.depth_min_alpha),
     }
+
+
+def losses_and_gradients(alpha: torch.Tensor,  # [V, H, W] rendered alpha
+                         depth_acc: torch.Tensor,  # [V, H, W] accumulated depth D
+                         target_alpha: torch.Tensor, target_depth: torch.Tensor,  # [V, H, W]
+                         target_sdt: torch.Tensor,  # [V, H, W]
+                         cfg: RenderConfig) -> tuple[dict[str, float], torch.Tensor, torch.Tensor]:
+    """render_losses' values and each loss's gradient of alpha and of D ([L, V, H, W] each, in
+    LOSS_TERMS' order), in closed form, one view at a time (paper section 3.5):
+
+        dL_DT/dalpha  = DT / (V H W H)
+        dL_IoU/dalpha = (I (1 - t) / U^2 - t / U) / V,  I = sum alpha t + eps, U = sum alpha + t - alpha t + eps (per view)
+        dL_depth/dD   = 2 r / (alpha n),  dL_depth/dalpha = -2 r D / (alpha^2 n)  on the depth loss's pixels, 0 elsewhere,
+                        r = D / alpha - target depth, n = max(their count, 1)
+
+    Autograd of render_losses (the reference the tests compare) gives the same, but keeps its
+    graph's pixel buffers over every view until its third backward: at the paper's scale (8 x
+    960x540) that is the render's largest transient; here a view's few temporaries live at a time.
+    The values' sums are taken in float64."""
+    n_views, height, _ = alpha.shape
+    g_alpha = torch.zeros((len(LOSS_TERMS),) + tuple(alpha.shape), dtype=alpha.dtype, device=alpha.device)
+    g_depth = torch.zeros_like(g_alpha)
+    dt, iou, depth = (LOSS_TERMS.index(term) for term in ("dt", "iou", "depth"))
+    sums = {"dt": 0.0, "iou": 0.0, "depth": 0.0}
+    count = 0
+    for v in range(n_views):
+        a, t, sdt = alpha[v], target_alpha[v], target_sdt[v]
+        sums["dt"] += float((a * sdt).sum(dtype=torch.float64))
+        torch.mul(sdt, 1.0 / (alpha.numel() * height), out=g_alpha[dt, v])
+        inter = float((a * t).sum(dtype=torch.float64))
+        union = float(a.sum(dtype=torch.float64)) + float(t.sum(dtype=torch.float64)) - inter + _IOU_EPS
+        inter += _IOU_EPS
+        sums["iou"] += 1.0 - inter / union
+        torch.mul(t, -(inter / union ** 2 + 1.0 / union) / n_views, out=g_alpha[iou, v]).add_(inter / union ** 2 / n_views)
+        pixels = (target_depth[v] > 0) & (a > cfg.depth_min_alpha)
+        count += int(pixels.sum())
+        safe = torch.where(pixels, a, torch.ones_like(a))
+        residual = torch.where(pixels, depth_acc[v] / safe - target_depth[v], torch.zeros_like(a))
+        sums["depth"] += float((residual * residual).sum(dtype=torch.float64))
+        torch.div(residual, safe, out=g_depth[depth, v]).mul_(2.0)  # times 1/n below, once n is known
+        torch.mul(g_depth[depth, v], depth_acc[v], out=g_alpha[depth, v]).div_(safe).neg_()
+    count = max(count, 1)
+    g_alpha[depth].div_(count)
+    g_depth[depth].div_(count)
+    values = {"dt": sums["dt"] / alpha.numel() / height, "iou": sums["iou"] / n_views, "depth": sums["depth"] / count}
+    return values, g_alpha, g_depth
 
 
 def alpha_mse(alpha: torch.Tensor, target_alpha: torch.Tensor) -> torch.Tensor:  # [V]
