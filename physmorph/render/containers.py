@@ -21,6 +21,12 @@ class RenderTarget:
         if len(shapes) != 1 or len(next(iter(shapes))) != 3:
             raise ValueError(f"target alpha, depth and sdt must share one [V, H, W] shape, got {shapes}")
 
+    def in_float(self, render_dtype: str) -> "RenderTarget":
+        """The images in the renderer's float type (RenderConfig.dtype), contiguous: a renderer of
+        that type reads them without converting them at each call."""
+        dtype = np.float64 if render_dtype == "float64" else np.float32
+        return RenderTarget(*(np.ascontiguousarray(a, dtype=dtype) for a in (self.alpha, self.depth, self.sdt)))
+
 
 @dataclass
 class RenderResult:

@@ -93,3 +93,25 @@ def test_no_depth_pixels_gives_zero_depth_loss_and_gradient():
     c = LOSS_TERMS.index("depth")
     assert values["depth"] == 0.0
     assert float(g_alpha[c].abs().max()) == 0.0 and float(g_depth[c].abs().max()) == 0.0
+
+
+def test_a_target_in_the_renders_float_type_renders_the_same():
+    """RenderTarget.in_float: the morph's target converted once gives the render of the float64 one."""
+    from physmorph.base.cameras import ring_cameras
+    from physmorph.render.api import render_and_grad
+    from physmorph.render.containers import RenderTarget
+
+    cams = ring_cameras(2, width=24, height=20, distance=10.0, fov_y_deg=30.0)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1.0, 1.0, size=(60, 3))
+    F = np.eye(3) + 0.2 * rng.normal(size=(60, 3, 3))
+    shape = (2, 20, 24)
+    target = RenderTarget(alpha=rng.uniform(size=shape), depth=rng.uniform(9.0, 11.0, size=shape),
+                          sdt=rng.normal(size=shape) * 5.0)
+    for dtype in ("float32", "float64"):
+        cfg = RenderConfig(dtype=dtype)
+        converted = target.in_float(dtype)
+        assert converted.alpha.dtype == np.dtype(dtype) and converted.sdt.flags.c_contiguous
+        a, b = render_and_grad(x, F, 0.12, cams, target, cfg), render_and_grad(x, F, 0.12, cams, converted, cfg)
+        assert a.losses == b.losses
+        np.testing.assert_array_equal(a.grad_F, b.grad_F)
