@@ -13,7 +13,8 @@ Each surface particle is a 3D Gaussian with mean x_i and covariance Sigma_i = si
   with identical results: Gaussian-major per tile (CPU default) and pixel-parallel (CUDA).
 - dense.py: the obviously-correct dense reference (every pixel x every Gaussian, autograd).
 - losses.py: L_DT = mean(alpha * sdt / H) (resolution independent), soft IoU, depth MSE on
-  target-covered pixels, adaptive gradient matching, alpha MSE metric.
+  target-covered pixels (torch, by autograd: the reference), their gradients in closed form a view
+  at a time (what the renderer runs), adaptive gradient matching, alpha MSE metric.
 - api.py: render_and_grad (losses + dL/dF [+ dL/dx]), render_views (forward), coverage_behind
   (forward behind a given transmittance), shade (Phong).
 

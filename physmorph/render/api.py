@@ -2,11 +2,11 @@
 shade (figures).
 
 Pipeline (paper sections 3.2 and 3.5): F, x --> Sigma = sigma0^2 F F^T --> EWA projection -->
-screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D
---(torch)--> losses. The projection and its reverse are Taichi kernels (projection_kernels, no
-autograd graph); the rasterizer's backward and the projection's reverse run once per view with one
-channel per loss, which is what adaptive gradient matching needs (each loss's gradient norm
-separately).
+screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D -->
+losses and their gradients of alpha and D (closed form: losses.losses_and_gradients). The
+projection and its reverse are Taichi kernels (projection_kernels, no autograd graph); the
+rasterizer's backward and the projection's reverse run once per view with one channel per loss,
+which is what adaptive gradient matching needs (each loss's gradient norm separately).
 """
 
 from __future__ import annotations
