@@ -1,4 +1,4 @@
-"""How the morph's frames use the C library's heap: freed memory held for the next frame, or given back.
+"""How the morph's frames use the C library's heap: freed memory held for the next frame.
 
 glibc serves allocations under its mmap threshold (at most 32 MB) from the heap and larger ones
 by mmap, returned to the system when freed; free memory at the heap's top is returned once it
@@ -9,15 +9,11 @@ hands freed pages back to its host (free page reporting: on the 2-core developme
 and frees well over a gigabyte of stage-sized NumPy and torch temporaries (11-50 MB each at the
 paper's 471K particles and 8 x 960x540 pixels), so every frame paid for them again.
 
-- :func:`held_heap` (the morph run, physmorph.morph.loop.run_morph): for the duration of a run,
-  every allocation comes from the heap (no mmap'd blocks) and nothing is returned (no trim), so a
-  frame's temporaries reuse the pages the frames before them faulted in. The resident set is then
-  the heap's high-water mark: the largest of the stages' transients on top of what the frame holds.
-- :func:`release_free_memory`: outside a held heap, return the heap's free pages (``malloc_trim``);
-  the render calls it before its rasterizer backward, where its loss terms' pixel buffers end,
-  which keeps the resident set of a render outside a run low. Inside a held heap it does nothing.
-
-Other C libraries have neither call, and nothing is done there. What either costs and saves at
+:func:`held_heap` (the morph run, physmorph.morph.loop.run_morph): for the duration of a run,
+every allocation comes from the heap (no mmap'd blocks) and nothing is returned (no trim), so a
+frame's temporaries reuse the pages the frames before them faulted in. The resident set is then
+the heap's high-water mark: the largest of the stages' transients on top of what the frame holds.
+Other C libraries have no such settings, and nothing is done there. What it costs and saves at
 the paper's scale: docs/study/performance_history.md.
 """
 
@@ -46,16 +42,6 @@ def _glibc():
         return (lib.malloc_trim, lib.mallopt) if lib is not None else None
     except (OSError, AttributeError):
         return None
-
-
-def release_free_memory() -> bool:
-    """Return the heap's free pages to the operating system (glibc ``malloc_trim``); True if
-    they were (the C library has the call and no held_heap is active), whether or not any page was free."""
-    calls = _glibc()
-    if calls is None or _held:
-        return False
-    calls[0](0)
-    return True
 
 
 @contextlib.contextmanager

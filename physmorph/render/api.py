@@ -3,26 +3,26 @@ shade (figures).
 
 Pipeline (paper sections 3.2 and 3.5): F, x --> Sigma = sigma0^2 F F^T --> EWA projection -->
 screen-space params [V*N, 6] --(Taichi tile rasterizer, hand-written backward)--> alpha, D -->
-losses and their gradients of alpha and D (closed form: losses.losses_and_gradients). The
-projection and its reverse are Taichi kernels (projection_kernels, no autograd graph); the
-rasterizer's backward and the projection's reverse run once per view with one channel per loss,
-which is what adaptive gradient matching needs (each loss's gradient norm separately).
+losses and their gradients of alpha and D (closed form: losses.LossGradients). The projection
+and its reverse are Taichi kernels (projection_kernels, no autograd graph); the rasterizer's
+backward and the projection's reverse run once per view with one channel per loss, which is what
+adaptive gradient matching needs (each loss's gradient norm separately).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
 
 from physmorph.base.cameras import Cameras
-from physmorph.base.memory import release_free_memory
 from physmorph.base.taichi_runtime import resolve_device
 
 from physmorph.settings.render import LOSS_TERMS, RenderConfig
 from .containers import RenderResult, RenderTarget
-from .losses import alpha_mse, expected_depth, losses_and_gradients, match_gradients
+from .losses import LossGradients, alpha_mse, expected_depth, match_gradients
 from .projection import CameraTensors, ProjectedGaussians
 from .projection_kernels import ProjectionReverse, project_forward
 from .rasterizer import composite_backward, composite_forward
@@ -79,19 +79,22 @@ def reverse_by_view(x: torch.Tensor,  # [N, 3]
                     cams: CameraTensors, sp: Splats,
                     t_final: torch.Tensor,  # [V, H, W]
                     last: torch.Tensor,  # [V, H, W]
-                    g_alpha: torch.Tensor,  # [L, V, H, W] each loss's gradient of alpha
-                    g_depth: torch.Tensor,  # [L, V, H, W] ... of the accumulated depth
-                    cfg: RenderConfig, want_grad_x: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
+                    image_gradients: Callable[[int], tuple[torch.Tensor, torch.Tensor]],
+                    n_losses: int, cfg: RenderConfig, want_grad_x: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
     """The rasterizer's backward and the projection's reverse, all losses at once, one view at a
-    time: dL_l/dx [L, N, 3] (or None) and dL_l/dF [L, N, 3, 3]. The params' gradients of one view
-    ([L, N, 6]) exist at a time, not all views' (at the paper's scale 35 MB, not 276); the numbers
-    are those of both passes over all views at once."""
+    time: dL_l/dx [L, N, 3] (or None) and dL_l/dF [L, N, 3, 3]. ``image_gradients(v)``: view v's
+    gradients of the L losses with respect to alpha and to the accumulated depth ([L, 1, H, W]
+    each), asked for when that view's backward runs. The params' gradients of one view ([L, N, 6])
+    and its gradient images exist at a time, not all views' (at the paper's scale 35 + 12 MB, not
+    276 + 100); the numbers are those of both passes over all views at once."""
     n = x.shape[0]
-    reverse = ProjectionReverse(x, F, sigma0, g_alpha.shape[0], want_grad_x)
+    reverse = ProjectionReverse(x, F, sigma0, n_losses, want_grad_x)
     for v in range(cams.count):
         bins, first = sp.bins.view(v, n)
+        g_alpha, g_depth = image_gradients(v)
         g_params = composite_backward(sp.params[v * n:(v + 1) * n], bins, t_final[v:v + 1], last[v:v + 1] - first,
-                                      g_alpha[:, v:v + 1], g_depth[:, v:v + 1], cfg)
+                                      g_alpha, g_depth, cfg)
+        del g_alpha, g_depth
         reverse.add(cams.view(v), cfg, g_params[:, None])
         del g_params
     return reverse.result()
@@ -162,13 +165,11 @@ def render_and_grad(x: np.ndarray, F: np.ndarray, sigma0, cameras: Cameras, targ
         sp = splat(xt, Ft, st, cams, cfg)
     t_final, depth_acc, last = composite_forward(sp.params, sp.bins, n_views, height, width, cfg)
     alpha = 1.0 - t_final
-    # dL_c / d(alpha, D) for each loss c, then one rasterizer backward with a channel per loss
-    loss_values, g_alpha, g_depth = losses_and_gradients(alpha, depth_acc, t_alpha, t_depth, t_sdt, cfg)
-    # outside a morph run's held heap, the losses' temporaries go back to the system before the
-    # backward's gradients (inside it, the backward reuses them: physmorph.base.memory)
-    release_free_memory()
-    g_x, g_F = reverse_by_view(xt, Ft, st, cams, sp, t_final, last, g_alpha, g_depth, cfg, want_grad_x)
-    del g_alpha, g_depth, sp
+    losses = LossGradients(alpha, depth_acc, t_alpha, t_depth, t_sdt, cfg.depth_min_alpha)
+    loss_values = dict(losses.values)
+    # one rasterizer backward a view, with a channel per loss
+    g_x, g_F = reverse_by_view(xt, Ft, st, cams, sp, t_final, last, losses.view, len(LOSS_TERMS), cfg, want_grad_x)
+    del losses, sp
     per_loss_F = {name: g_F[c] for c, name in enumerate(LOSS_TERMS)}
     per_loss_x = {name: g_x[c] for c, name in enumerate(LOSS_TERMS)} if want_grad_x else {}
     grad_F, weights = match_gradients(per_loss_F, cfg)

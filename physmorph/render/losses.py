@@ -6,6 +6,8 @@ D = sum_k a_k T_k z_k [V, H, W]; targets are tensors of the same shape.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import torch
 
 from physmorph.settings.render import LOSS_TERMS, RenderConfig
@@ -17,8 +19,8 @@ _IOU_EPS = 1e-6
 def expected_depth(alpha: torch.Tensor, depth_acc: torch.Tensor, min_alpha: float) -> torch.Tensor:  # [V, H, W]
     """Expected depth of the visible surface, D / alpha; 0 where alpha <= min_alpha."""
     covered = alpha.detach() > min_alpha
-    safe = torch.where(covered, alpha, torch.ones_like(alpha))
-    return torch.where(covered, depth_acc / safe, torch.zeros_like(depth_acc))
+    safe = torch.where(covered, alpha, 1.0)
+    return torch.where(covered, depth_acc / safe, 0.0)
 
 
 def dt_loss(alpha: torch.Tensor, target_sdt: torch.Tensor) -> torch.Tensor:
@@ -51,7 +53,7 @@ def depth_loss(alpha: torch.Tensor, depth_acc: torch.Tensor, target_depth: torch
 def render_losses(alpha: torch.Tensor, depth_acc: torch.Tensor, target_alpha: torch.Tensor,
                   target_depth: torch.Tensor, target_sdt: torch.Tensor, cfg: RenderConfig) -> dict[str, torch.Tensor]:
     """The three rendering losses: {"dt", "iou", "depth"} (scalars), differentiable by autograd: the
-    reference of losses_and_gradients, which the renderer runs."""
+    reference of LossGradients, which the renderer runs."""
     return {
         "dt": dt_loss(alpha, target_sdt),
         "iou": soft_iou_loss(alpha, target_alpha),
@@ -59,50 +61,71 @@ def render_losses(alpha: torch.Tensor, depth_acc: torch.Tensor, target_alpha: to
     }
 
 
-def losses_and_gradients(alpha: torch.Tensor,  # [V, H, W] rendered alpha
-                         depth_acc: torch.Tensor,  # [V, H, W] accumulated depth D
-                         target_alpha: torch.Tensor, target_depth: torch.Tensor,  # [V, H, W]
-                         target_sdt: torch.Tensor,  # [V, H, W]
-                         cfg: RenderConfig) -> tuple[dict[str, float], torch.Tensor, torch.Tensor]:
-    """render_losses' values and each loss's gradient of alpha and of D ([L, V, H, W] each, in
-    LOSS_TERMS' order), in closed form, one view at a time (paper section 3.5):
+@dataclass
+class LossGradients:
+    """render_losses' values and each loss's gradient images of alpha and D, in closed form, one
+    view's at a time (paper section 3.5):
 
         dL_DT/dalpha  = DT / (V H W H)
         dL_IoU/dalpha = (I (1 - t) / U^2 - t / U) / V,  I = sum alpha t + eps, U = sum alpha + t - alpha t + eps (per view)
         dL_depth/dD   = 2 r / (alpha n),  dL_depth/dalpha = -2 r D / (alpha^2 n)  on the depth loss's pixels, 0 elsewhere,
                         r = D / alpha - target depth, n = max(their count, 1)
 
-    Autograd of render_losses (the reference the tests compare) gives the same, but keeps its
-    graph's pixel buffers over every view until its third backward: at the paper's scale (8 x
-    960x540) that is the render's largest transient; here a view's few temporaries live at a time.
-    The values' sums are taken in float64."""
-    n_views, height, _ = alpha.shape
-    g_alpha = torch.zeros((len(LOSS_TERMS),) + tuple(alpha.shape), dtype=alpha.dtype, device=alpha.device)
-    g_depth = torch.zeros_like(g_alpha)
-    dt, iou, depth = (LOSS_TERMS.index(term) for term in ("dt", "iou", "depth"))
-    sums = {"dt": 0.0, "iou": 0.0, "depth": 0.0}
-    count = 0
-    for v in range(n_views):
-        a, t, sdt = alpha[v], target_alpha[v], target_sdt[v]
-        sums["dt"] += float((a * sdt).sum(dtype=torch.float64))
-        torch.mul(sdt, 1.0 / (alpha.numel() * height), out=g_alpha[dt, v])
-        inter = float((a * t).sum(dtype=torch.float64))
-        union = float(a.sum(dtype=torch.float64)) + float(t.sum(dtype=torch.float64)) - inter + _IOU_EPS
-        inter += _IOU_EPS
-        sums["iou"] += 1.0 - inter / union
-        torch.mul(t, -(inter / union ** 2 + 1.0 / union) / n_views, out=g_alpha[iou, v]).add_(inter / union ** 2 / n_views)
-        pixels = (target_depth[v] > 0) & (a > cfg.depth_min_alpha)
-        count += int(pixels.sum())
-        safe = torch.where(pixels, a, torch.ones_like(a))
-        residual = torch.where(pixels, depth_acc[v] / safe - target_depth[v], torch.zeros_like(a))
-        sums["depth"] += float((residual * residual).sum(dtype=torch.float64))
-        torch.div(residual, safe, out=g_depth[depth, v]).mul_(2.0)  # times 1/n below, once n is known
-        torch.mul(g_depth[depth, v], depth_acc[v], out=g_alpha[depth, v]).div_(safe).neg_()
-    count = max(count, 1)
-    g_alpha[depth].div_(count)
-    g_depth[depth].div_(count)
-    values = {"dt": sums["dt"] / alpha.numel() / height, "iou": sums["iou"] / n_views, "depth": sums["depth"] / count}
-    return values, g_alpha, g_depth
+    Autograd of render_losses (the reference the tests compare) gives the same, but holds its
+    graph's pixel buffers over every view until its third backward and the gradients of every
+    view after it: at the paper's scale (8 x 960x540) the render's largest transients. Here the
+    values take one pass over the views (their sums in float64) and a view's gradients are made
+    when the rasterizer's backward of that view asks for them."""
+
+    alpha: torch.Tensor  # [V, H, W] rendered alpha
+    depth_acc: torch.Tensor  # [V, H, W] accumulated depth D
+    target_alpha: torch.Tensor  # [V, H, W]
+    target_depth: torch.Tensor  # [V, H, W]
+    target_sdt: torch.Tensor  # [V, H, W]
+    min_alpha: float  # RenderConfig.depth_min_alpha
+    values: dict[str, float] = field(init=False)
+    _iou: list[tuple[float, float]] = field(init=False)  # per view (I, U)
+    _depth_pixels: int = field(init=False)  # n
+
+    def __post_init__(self) -> None:
+        n_views, height, _ = self.alpha.shape
+        sums = {"dt": 0.0, "iou": 0.0, "depth": 0.0}
+        self._iou, count = [], 0
+        for v in range(n_views):
+            a, t = self.alpha[v], self.target_alpha[v]
+            sums["dt"] += float((a * self.target_sdt[v]).sum(dtype=torch.float64))
+            inter = float((a * t).sum(dtype=torch.float64))
+            union = float(a.sum(dtype=torch.float64)) + float(t.sum(dtype=torch.float64)) - inter + _IOU_EPS
+            self._iou.append((inter + _IOU_EPS, union))
+            sums["iou"] += 1.0 - (inter + _IOU_EPS) / union
+            pixels, safe, residual = self._depth_residual(v)
+            count += int(pixels.sum())
+            sums["depth"] += float((residual * residual).sum(dtype=torch.float64))
+        self._depth_pixels = max(count, 1)
+        self.values = {"dt": sums["dt"] / self.alpha.numel() / height, "iou": sums["iou"] / n_views,
+                       "depth": sums["depth"] / self._depth_pixels}
+
+    def _depth_residual(self, v: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [H, W] each
+        """View v's depth-loss pixels, alpha there (1 elsewhere) and D / alpha - target depth there (0 elsewhere)."""
+        a = self.alpha[v]
+        pixels = (self.target_depth[v] > 0) & (a > self.min_alpha)
+        safe = torch.where(pixels, a, 1.0)
+        return pixels, safe, torch.where(pixels, self.depth_acc[v] / safe - self.target_depth[v], 0.0)
+
+    def view(self, v: int) -> tuple[torch.Tensor, torch.Tensor]:  # [L, 1, H, W] twice
+        """View v's gradients of each loss (LOSS_TERMS' order) with respect to alpha and to D."""
+        n_views, height, width = self.alpha.shape
+        a, t = self.alpha[v], self.target_alpha[v]
+        g_alpha = torch.zeros((len(LOSS_TERMS), 1, height, width), dtype=a.dtype, device=a.device)
+        g_depth = torch.zeros_like(g_alpha)
+        dt, iou, depth = (LOSS_TERMS.index(term) for term in ("dt", "iou", "depth"))
+        torch.mul(self.target_sdt[v], 1.0 / (self.alpha.numel() * height), out=g_alpha[dt, 0])
+        inter, union = self._iou[v]
+        torch.mul(t, -(inter / union ** 2 + 1.0 / union) / n_views, out=g_alpha[iou, 0]).add_(inter / union ** 2 / n_views)
+        _, safe, residual = self._depth_residual(v)
+        torch.div(residual, safe, out=g_depth[depth, 0]).mul_(2.0 / self._depth_pixels)
+        torch.mul(g_depth[depth, 0], self.depth_acc[v], out=g_alpha[depth, 0]).div_(safe).neg_()
+        return g_alpha, g_depth
 
 
 def alpha_mse(alpha: torch.Tensor, target_alpha: torch.Tensor) -> torch.Tensor:  # [V]

@@ -1,6 +1,5 @@
-"""Freed heap memory goes back to the system where the frames ask for it, or is held for the next
-frame through a morph run (physmorph.base.memory), and the morph's memory estimate asks the solver
-what it stores (physmorph.settings.solver_memory)."""
+"""Freed heap memory is held for the next frame through a morph run (physmorph.base.memory), and
+the morph's memory estimate asks the solver what it stores (physmorph.settings.solver_memory)."""
 
 import os
 import platform
@@ -8,7 +7,7 @@ import platform
 import numpy as np
 import pytest
 
-from physmorph.base.memory import held_heap, release_free_memory
+from physmorph.base.memory import held_heap
 
 
 def _rss_mb() -> float:
@@ -16,26 +15,11 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
-@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's malloc_trim")
-def test_freed_heap_blocks_leave_the_resident_set():
-    """200 MB of 100 KB arrays (under glibc's mmap threshold, so on the heap) freed below a block
-    still in use stay resident until released; released, at least half of them leave."""
-    blocks = [np.ones(12_800) for _ in range(2_000)]  # 100 KB each
-    keep = blocks[-1]  # the heap's top stays in use: glibc cannot shrink the heap by itself
-    before = _rss_mb()
-    del blocks
-    freed = _rss_mb()
-    assert release_free_memory()
-    after = _rss_mb()
-    assert freed - after > 100, (before, freed, after)
-    assert keep.sum() == 12_800
-
-
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
 def test_a_held_heap_keeps_freed_blocks_for_the_next_and_gives_them_back_after():
     """Inside held_heap a freed 200 MB array (above glibc's largest mmap threshold, so mmap'd
     otherwise) stays resident, the next one of that size reuses its pages (the resident set does
-    not grow by it), and release_free_memory does nothing; after the block the defaults are back:
+    not grow by it); after the block the defaults are back:
     the pages are returned, and a freed large array leaves the resident set at once."""
     n = 25_000_000  # 200 MB of float64
     with held_heap() as held:
@@ -43,7 +27,6 @@ def test_a_held_heap_keeps_freed_blocks_for_the_next_and_gives_them_back_after()
         start = _rss_mb()
         block = np.ones(n)
         del block
-        assert not release_free_memory()
         kept = _rss_mb()
         assert kept - start > 150, (start, kept)
         again = np.ones(n)
@@ -55,7 +38,6 @@ def test_a_held_heap_keeps_freed_blocks_for_the_next_and_gives_them_back_after()
     before_free = _rss_mb()
     del block
     assert before_free - _rss_mb() > 150
-    assert release_free_memory()
 
 
 @pytest.mark.parametrize("precision", ["float32", "float64"])

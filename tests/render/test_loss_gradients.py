@@ -1,5 +1,5 @@
-"""The render losses' closed-form gradients (losses_and_gradients) against autograd of
-render_losses, their reference, and against central differences."""
+"""The render losses' closed-form gradients (LossGradients) against autograd of render_losses,
+their reference, and against central differences."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from physmorph.render.losses import losses_and_gradients, render_losses
+from physmorph.render.losses import LossGradients, render_losses
 from physmorph.settings.render import LOSS_TERMS, RenderConfig
 
 
@@ -24,6 +24,15 @@ def random_images(seed: int, views: int = 3, height: int = 7, width: int = 9, dt
     target_sdt = 10.0 * torch.randn(shape, generator=g, dtype=dtype)
     depth_acc = alpha * (5.0 + torch.rand(shape, generator=g, dtype=dtype))
     return alpha, depth_acc, target_alpha, target_depth, target_sdt
+
+
+def losses_and_gradients(alpha, depth_acc, target_alpha, target_depth, target_sdt, cfg):
+    """LossGradients' values and every view's gradients stacked: [L, V, H, W] twice."""
+    losses = LossGradients(alpha, depth_acc, target_alpha, target_depth, target_sdt, cfg.depth_min_alpha)
+    views = [losses.view(v) for v in range(alpha.shape[0])]
+    for g_alpha, g_depth in views:
+        assert g_alpha.shape == g_depth.shape == (len(LOSS_TERMS), 1) + tuple(alpha.shape[1:])
+    return losses.values, torch.cat([g for g, _ in views], dim=1), torch.cat([g for _, g in views], dim=1)
 
 
 def autograd_reference(alpha, depth_acc, target_alpha, target_depth, target_sdt, cfg):

@@ -267,7 +267,7 @@ def test_the_reverse_view_by_view_equals_both_passes_over_every_view(kernel):
         by_view.add(ct.view(v), cfg, g_params[:, v:v + 1])
     got_x, got_F = by_view.result()
     assert torch.equal(got_x, ref_x) and torch.equal(got_F, ref_F)
-    gx, gF = reverse_by_view(xt, Ft, s0, ct, sp, t_final, last, g[0], g[1], cfg, True)
+    gx, gF = reverse_by_view(xt, Ft, s0, ct, sp, t_final, last, lambda v: (g[0][:, v:v + 1], g[1][:, v:v + 1]), 3, cfg, True)
     scale = float(ref_F.abs().max())
     assert float((gF - ref_F).abs().max()) <= 1e-5 * scale and gx.shape == ref_x.shape
 
