@@ -122,6 +122,7 @@ class LossGradients:
         torch.mul(self.target_sdt[v], 1.0 / (self.alpha.numel() * height), out=g_alpha[dt, 0])
         inter, union = self._iou[v]
         torch.mul(t, -(inter / union ** 2 + 1.0 / union) / n_views, out=g_alpha[iou, 0]).add_(inter / union ** 2 / n_views)
+        # recomputed, not kept from the values' pass: kept, every view's would be alive at once
         _, safe, residual = self._depth_residual(v)
         torch.div(residual, safe, out=g_depth[depth, 0]).mul_(2.0 / self._depth_pixels)
         torch.mul(g_depth[depth, 0], self.depth_acc[v], out=g_alpha[depth, 0]).div_(safe).neg_()
