@@ -1,5 +1,5 @@
 """Tests of physmorph.render: tile rasterizer vs dense reference, finite differences in float64,
-analytic footprints and silhouettes, occlusion, losses, and edge cases."""
+analytic footprints and silhouettes, occlusion and losses (edge cases: test_render_edge_cases.py)."""
 
 from __future__ import annotations
 
@@ -7,14 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from physmorph.base.cameras import Cameras, look_at, ring_cameras
+from physmorph.base.cameras import ring_cameras
 from physmorph.settings.render import RenderConfig
-from physmorph.render.containers import RenderTarget
 from physmorph.render.rasterizer import composite
 from physmorph.render.projection import covariance_from_F
 from physmorph.render.dense import dense_composite
 from physmorph.render.losses import match_gradients
-from physmorph.render.api import coverage_behind, render_and_grad, render_views, shade
+from physmorph.render.api import coverage_behind, render_and_grad, render_views
 from physmorph.render.api import splat
 from physmorph.render.losses import alpha_mse, dt_loss, soft_iou_loss
 from physmorph.render.projection import CameraTensors, project_gaussians
@@ -22,42 +21,8 @@ from physmorph.render.projection_kernels import project_backward, project_forwar
 from physmorph.render.rasterizer import composite_backward, composite_forward
 from physmorph.render.tiles import bin_gaussians
 
-# Smooth settings for finite differences: no cutoffs or thresholds that switch terms on and off.
-SMOOTH = dict(cutoff_sigma=12.0, alpha_min=0.0, transmittance_min=0.0, dtype="float64", tile_size=8)
-
-
-def random_scene(n: int, seed: int, spread: float = 1.5, aniso: float = 0.3):
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(-spread, spread, size=(n, 3))
-    F = np.eye(3) + aniso * rng.normal(size=(n, 3, 3))
-    return x, F
-
-
-def small_cameras(views: int = 2, width: int = 24, height: int = 20) -> Cameras:
-    return ring_cameras(views, width=width, height=height, distance=10.0, fov_y_deg=30.0)
-
-
-def disk_target(cams: Cameras, radius_frac: float = 0.3, depth: float = 10.0) -> RenderTarget:
-    """A disk silhouette at the image centre in every view, with its analytic signed distance."""
-    h, w = cams.height, cams.width
-    jj, ii = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    r = np.hypot(ii - 0.5 * w, jj - 0.5 * h)
-    sdt = r - radius_frac * h
-    alpha = np.clip(0.5 - sdt, 0.0, 1.0)
-    shape = (cams.count, h, w)
-    return RenderTarget(alpha=np.broadcast_to(alpha, shape).copy(),
-                        depth=np.broadcast_to(np.where(alpha > 0, depth, 0.0), shape).copy(),
-                        sdt=np.broadcast_to(sdt, shape).copy())
-
-
-def torch_scene(x, F, sigma0, cams, cfg, requires_grad=True):
-    dt = torch.float64 if cfg.dtype == "float64" else torch.float32
-    xt = torch.tensor(x, dtype=dt, requires_grad=requires_grad)
-    Ft = torch.tensor(F, dtype=dt, requires_grad=requires_grad)
-    ct = CameraTensors.from_cameras(cams, dt, "cpu")
-    proj = project_gaussians(xt, covariance_from_F(Ft, sigma0), ct, cfg)
-    return xt, Ft, ct, proj
-
+from render_cases import (SMOOTH, disk_target, fibonacci_sphere, front_camera, random_scene, small_cameras,
+                          torch_scene)
 
 # ---------------------------------------------------------------------------------------------
 # F -> Sigma and projection
@@ -337,13 +302,8 @@ def test_adaptive_gradient_matching_sets_the_norm_ratio():
 # Known cases
 
 
-def _front_camera(width: int, height: int, f: float, distance: float) -> Cameras:
-    w2c = look_at(np.array([0.0, 0.0, distance]), np.zeros(3), np.array([0.0, 1.0, 0.0]))
-    return Cameras(w2c[None], np.array([[f, f, 0.5 * width, 0.5 * height]]), width, height)
-
-
 def test_isotropic_gaussian_footprint_is_analytic():
-    cams = _front_camera(48, 40, f=60.0, distance=10.0)
+    cams = front_camera(48, 40, f=60.0, distance=10.0)
     sigma0 = 0.5
     cfg = RenderConfig(dtype="float64", tile_size=8)
     alpha, depth = render_views(np.zeros((1, 3)), np.eye(3)[None], sigma0, cams, cfg)
@@ -356,17 +316,10 @@ def test_isotropic_gaussian_footprint_is_analytic():
     np.testing.assert_allclose(depth[0][alpha[0] > 0], 10.0, rtol=1e-12)
 
 
-def fibonacci_sphere(n: int, radius: float) -> np.ndarray:
-    k = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * k / n)
-    theta = np.pi * (1 + 5 ** 0.5) * k
-    return radius * np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
-
-
 def test_sphere_silhouette_matches_analytic_disk():
     """A shell of particles on a sphere renders as the disk of radius f R / sqrt(d^2 - R^2)."""
     radius, distance, f, size = 4.0, 30.0, 150.0, 64
-    cams = _front_camera(size, size, f=f, distance=distance)
+    cams = front_camera(size, size, f=f, distance=distance)
     n = 3000
     spacing = np.sqrt(4 * np.pi * radius ** 2 / n)
     sigma0 = 0.7 * spacing
@@ -387,7 +340,7 @@ def test_sphere_silhouette_matches_analytic_disk():
 
 
 def test_occlusion_nearest_surface_wins_and_input_order_is_irrelevant():
-    cams = _front_camera(32, 32, f=40.0, distance=10.0)
+    cams = front_camera(32, 32, f=40.0, distance=10.0)
     cfg = RenderConfig(dtype="float64", tile_size=8, opacity=0.99)
     x = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0]])  # near (z_cam = 8) and far (z_cam = 12)
     F = np.stack([np.eye(3) * 3.0, np.eye(3) * 3.0])
@@ -498,108 +451,3 @@ def test_descending_the_render_gradient_reduces_the_dt_loss():
 
 # ---------------------------------------------------------------------------------------------
 # Edge cases
-
-
-def _assert_finite(res):
-    for v in (res.alpha, res.depth, res.grad_F, res.alpha_mse_per_view):
-        assert np.all(np.isfinite(v))
-    assert all(np.isfinite(v) for v in res.losses.values())
-    if res.grad_x is not None:
-        assert np.all(np.isfinite(res.grad_x))
-
-
-def test_no_gaussian_in_view_and_behind_camera():
-    cams = small_cameras(2)
-    target = disk_target(cams)
-    centres = cams.centers
-    x = np.array([[100.0, 100.0, 100.0],  # far outside every frustum
-                  centres[0] * 1.05,  # behind camera 0
-                  centres[1] + 0.01])  # behind the near plane of camera 1
-    F = np.broadcast_to(np.eye(3), (3, 3, 3)).copy()
-    res = render_and_grad(x[:2], F[:2], 0.3, cams.subset([0]), RenderTarget(
-        target.alpha[:1], target.depth[:1], target.sdt[:1]), RenderConfig(), want_grad_x=True)
-    _assert_finite(res)
-    assert res.alpha.max() == 0.0 and res.depth.max() == 0.0
-    assert np.abs(res.grad_F).max() == 0.0 and np.abs(res.grad_x).max() == 0.0
-    res = render_and_grad(x, F, 0.3, cams, target, RenderConfig(), want_grad_x=True)
-    _assert_finite(res)
-    # In view 0, the particle right in front of camera 1 (behind camera 1's near plane) is seen.
-    assert res.alpha[1].max() == 0.0
-
-
-def test_empty_particle_set():
-    cams = small_cameras(2)
-    res = render_and_grad(np.zeros((0, 3)), np.zeros((0, 3, 3)), 0.3, cams, disk_target(cams), RenderConfig(),
-                          want_grad_x=True)
-    _assert_finite(res)
-    assert res.grad_F.shape == (0, 3, 3) and res.grad_x.shape == (0, 3)
-    assert res.alpha.max() == 0.0
-
-
-def test_degenerate_and_huge_covariances():
-    cams = small_cameras(2)
-    target = disk_target(cams)
-    x, _ = random_scene(4, 9, spread=0.5)
-    F = np.stack([np.zeros((3, 3)),  # collapsed to a point
-                  np.diag([1.0, 1e-9, 1e-9]),  # near-singular (a needle)
-                  -np.eye(3),  # inverted
-                  np.eye(3) * 1e3])  # huge: covers every pixel
-    res = render_and_grad(x, F, 0.3, cams, target, RenderConfig(), want_grad_x=True)
-    _assert_finite(res)
-    assert res.alpha.min() > 0.5  # the huge Gaussian covers the whole image
-    # The collapsed Gaussian is the low-pass footprint (about a pixel): still rendered alone.
-    alone, _ = render_views(x[:1], F[:1], 0.3, cams, RenderConfig())
-    assert 0.5 < alone.max() <= RenderConfig().alpha_max and np.count_nonzero(alone[0] > 0.01) < 30
-
-
-@pytest.mark.parametrize("kind", ["empty", "full"])
-def test_empty_or_full_target_silhouette(kind):
-    cams = small_cameras(2)
-    shape = (2, cams.height, cams.width)
-    if kind == "empty":
-        target = RenderTarget(np.zeros(shape), np.zeros(shape), np.full(shape, 5.0))
-    else:
-        target = RenderTarget(np.ones(shape), np.full(shape, 10.0), np.full(shape, -5.0))
-    x = fibonacci_sphere(150, 1.2)
-    F = np.broadcast_to(np.eye(3), (150, 3, 3)).copy()
-    cfg = RenderConfig(iou_fraction=0.0, depth_fraction=0.0)
-    res = render_and_grad(x, F, 0.2, cams, target, cfg, want_grad_x=True)
-    _assert_finite(res)
-    assert np.abs(res.grad_F).max() > 0
-    # Sensible direction: the DT loss shrinks the render on an empty target and grows it on a full one.
-    after = render_and_grad(x, F - 0.05 / np.abs(res.grad_F).max() * res.grad_F, 0.2, cams, target, cfg)
-    assert after.alpha.sum() < res.alpha.sum() if kind == "empty" else after.alpha.sum() > res.alpha.sum()
-    full = render_and_grad(x, F, 0.2, cams, target, RenderConfig())  # with IoU and depth terms
-    _assert_finite(full)
-
-
-def test_invalid_inputs_raise():
-    cams = small_cameras(1)
-    with pytest.raises(ValueError, match="NaN"):
-        render_views(np.full((1, 3), np.nan), np.eye(3)[None], 0.3, cams)
-    with pytest.raises(ValueError, match="F must be"):
-        render_views(np.zeros((2, 3)), np.eye(3)[None], 0.3, cams)
-    with pytest.raises(ValueError):
-        RenderConfig(alpha_max=1.0)
-
-
-def test_shade_produces_an_image():
-    cams = _front_camera(40, 40, f=60.0, distance=12.0)
-    x = fibonacci_sphere(800, 2.0)
-    rgb = shade(x, np.broadcast_to(np.eye(3), (800, 3, 3)), 0.15, cams, 0, RenderConfig())
-    assert rgb.shape == (40, 40, 3) and np.all(np.isfinite(rgb))
-    assert rgb.min() >= 0.0 and rgb.max() <= 1.0
-    np.testing.assert_allclose(rgb[0, 0], 1.0)  # background corner
-    # Head light from the upper left: the upper-left of the sphere is brighter than the lower right.
-    assert rgb[14, 14].sum() > rgb[26, 26].sum()
-
-
-def test_auto_device_and_per_particle_sigma0():
-    """device="auto" falls back to what is available; sigma0 may be given per particle."""
-    cams = small_cameras(1)
-    x, F = random_scene(6, 12, spread=0.5)
-    a_scalar, _ = render_views(x, F, 0.3, cams, RenderConfig(device="auto"))
-    a_array, _ = render_views(x, F, np.full(6, 0.3), cams, RenderConfig(device="auto"))
-    np.testing.assert_allclose(a_scalar, a_array, atol=1e-6)
-    a_small, _ = render_views(x, F, np.full(6, 0.1), cams, RenderConfig(device="auto"))
-    assert a_small.sum() < a_scalar.sum()
