@@ -106,7 +106,6 @@ class MorphInputs:
         """The frame's metrics: α MSE and IoU over every target view, the deformation measures,
         the energies, the Chamfer distance and the volume metrics."""
         cfg, target = self.cfg, self.target
-        sel = slice(None) if cfg.metric_all_particles else mask
         if alpha is None and masked_alpha is not None and cfg.metric_all_particles:
             # The loss rendered the masked particles from every view; coverage composes, 1 - alpha =
             # T_mask T_rest (to within the compositing's early stop, transmittance_min), so only the
@@ -116,8 +115,8 @@ class MorphInputs:
             alpha = masked_alpha if not rest.any() else coverage_behind(
                 st.x[rest], st.F[rest], self.parts.sigma0, target.cameras, 1.0 - masked_alpha, cfg.render)
         if alpha is None:
-            alpha, _ = render_views(st.x[sel], st.F[sel], self.parts.sigma0, target.cameras, cfg.render)
-        per_view = ((alpha - target.alpha) ** 2).mean(axis=(1, 2))
+            alpha = self.rendered_alpha(st, mask)
+        per_view = self.view_errors(alpha)
         iou = silhouette_iou(alpha, target.alpha)
         dm = deformation_measures(st.F, st.Fp)
         d = self.nearest_target(st.x)[0] if target_distance is None else target_distance
@@ -131,6 +130,22 @@ class MorphInputs:
                 "mask_fraction": float(mask.mean()) if self.need_mask else np.nan,
                 "chamfer": float(d.mean()),
                 **volume_metrics(st.x, self.parts.mass, target.grid_mass, target.grid, splat=grid_mass)}, per_view, dm
+
+    def rendered_alpha(self, st: ParticleState, mask: np.ndarray) -> np.ndarray:  # mask [N] -> [V, H, W]
+        """The coverage of every target view by the particles the metric counts (every particle with
+        metric_all_particles, else the mask's)."""
+        sel = slice(None) if self.cfg.metric_all_particles else mask
+        return render_views(st.x[sel], st.F[sel], self.parts.sigma0, self.target.cameras, self.cfg.render)[0]
+
+    def view_errors(self, alpha: np.ndarray) -> np.ndarray:  # alpha [V, H, W] -> [V]
+        """Each view's α MSE against the target's silhouette."""
+        return ((alpha - self.target.alpha) ** 2).mean(axis=(1, 2))
+
+    def alpha_mse(self, st: ParticleState, mask: np.ndarray) -> float:  # mask [N]
+        """The α MSE that :meth:`measure` reports for ``st`` without the rest of its measures (the
+        release curve's: there the nearest-target search and the deformation measures would cost
+        as much as the views' rendering, for numbers nobody reads)."""
+        return float(self.view_errors(self.rendered_alpha(st, mask)).mean())
 
     def wait_for_walk(self) -> None:
         """The surface walk's graph, where one is being built, ready (or None: Qhull could not)."""

@@ -319,7 +319,7 @@ class MorphRun:
         if self.cfg.release_frames and self.status == "complete":
             mask = self.fs.mask
             extra["release_alpha_mse"] = json.dumps(release_curve(self.solver, self.fs.state, self.cfg.release_frames,
-                                                                  lambda s: self.inputs.measure(s, mask)[0]["alpha_mse"],
+                                                                  lambda s: self.inputs.alpha_mse(s, mask),
                                                                   self.log, self.name))
         # The file's provenance also keeps every setting resolved (the key leaves defaults out).
         self.run.finish(self.status, extra, {**json.loads(record), "resolved": self.cfg.to_dict()})

@@ -155,3 +155,28 @@ def test_the_release_starts_from_rest(tiny):
     np.testing.assert_allclose(released, quiet, rtol=0, atol=1e-9)
     np.testing.assert_allclose(quiet, quiet[0], rtol=0, atol=1e-4)  # at rest and stress-free: it stays
     assert coasting[-1] > coasting[0] + 0.05  # 2 units/s for 3 frames of 1/240 s x 20 substeps
+
+
+@pytest.mark.parametrize("all_particles", [True, False])
+def test_the_release_curves_alpha_mse_is_the_frames(tiny, all_particles):
+    """The release curve measures each released frame by MorphInputs.alpha_mse (the views rendered,
+    nothing else measured): the α MSE that the frame's measures report for the same state and mask,
+    to the bit, whether the metric counts every particle or the mask's."""
+    from physmorph.morph.inputs import MorphInputs
+    from physmorph.mpm.state import ParticleState
+
+    cfg, d = tiny
+    mc = dataclasses.replace(morph_config(cfg, "iso_bunny_full"), progress=False, metric_all_particles=all_particles)
+    inputs = MorphInputs(d / "p_iso.h5", d / "t_bunny.h5", mc, "release_measure", print)
+    n = inputs.N
+    rng = np.random.default_rng(3)
+    parts = inputs.parts
+    F = np.eye(3) + 0.05 * rng.normal(size=(n, 3, 3))  # [N, 3, 3]
+    st = ParticleState(x=parts.x + 0.3 * rng.normal(size=(n, 3)), v=np.zeros((n, 3)), F=F, C=np.zeros((n, 3, 3)),
+                       Fp=np.tile(np.eye(3), (n, 1, 1)), mass=parts.mass.copy(), volume=parts.volume.copy())
+    mask = rng.random(n) < 0.6  # [N]
+    measured = inputs.measure(st, mask)[0]["alpha_mse"]
+    assert inputs.alpha_mse(st, mask) == measured
+    # the measure depends on which particles count: the check above compares like with like
+    other = inputs.alpha_mse(st, ~mask if not all_particles else np.ones(n, bool))
+    assert (other != measured) == (not all_particles)
