@@ -13,7 +13,7 @@ from physmorph.base.taichi_runtime import resolve_device
 from physmorph.meshes.fit import volume_mismatch
 from physmorph.meshes.particles import load_particles
 from physmorph.morph.frame_measures import DeformationMeasures, deformation_measures, grid_mass
-from physmorph.morph.quality import silhouette_iou, volume_metrics
+from physmorph.morph.quality import silhouette_iou, view_alpha_mse, volume_metrics
 from physmorph.morph.targets import load_target
 from physmorph.mpm.solver import solver_for
 from physmorph.mpm.state import ParticleState, kinetic_energy, total_volume
@@ -116,7 +116,7 @@ class MorphInputs:
                 st.x[rest], st.F[rest], self.parts.sigma0, target.cameras, 1.0 - masked_alpha, cfg.render)
         if alpha is None:
             alpha = self.rendered_alpha(st, mask)
-        per_view = self.view_errors(alpha)
+        per_view = view_alpha_mse(alpha, target.alpha)
         iou = silhouette_iou(alpha, target.alpha)
         dm = deformation_measures(st.F, st.Fp)
         d = self.nearest_target(st.x)[0] if target_distance is None else target_distance
@@ -137,15 +137,11 @@ class MorphInputs:
         sel = slice(None) if self.cfg.metric_all_particles else mask
         return render_views(st.x[sel], st.F[sel], self.parts.sigma0, self.target.cameras, self.cfg.render)[0]
 
-    def view_errors(self, alpha: np.ndarray) -> np.ndarray:  # alpha [V, H, W] -> [V]
-        """Each view's α MSE against the target's silhouette."""
-        return ((alpha - self.target.alpha) ** 2).mean(axis=(1, 2))
-
     def alpha_mse(self, st: ParticleState, mask: np.ndarray) -> float:  # mask [N]
         """The α MSE that :meth:`measure` reports for ``st`` without the rest of its measures (the
         release curve's: there the nearest-target search and the deformation measures would cost
         as much as the views' rendering, for numbers nobody reads)."""
-        return float(self.view_errors(self.rendered_alpha(st, mask)).mean())
+        return float(view_alpha_mse(self.rendered_alpha(st, mask), self.target.alpha).mean())
 
     def wait_for_walk(self) -> None:
         """The surface walk's graph, where one is being built, ready (or None: Qhull could not)."""

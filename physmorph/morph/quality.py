@@ -46,6 +46,13 @@ OVERFILL = 2.0
 INTERIOR_PERCENTILE = 90.0
 
 
+def view_alpha_mse(alpha: np.ndarray,  # [V, H, W]
+                   target_alpha: np.ndarray,  # [V, H, W]
+                   ) -> np.ndarray:  # [V]
+    """Each view's alpha MSE against the target's silhouette."""
+    return ((alpha - target_alpha) ** 2).mean(axis=(1, 2))
+
+
 def silhouette_iou(alpha: np.ndarray,  # [V, H, W]
                    target_alpha: np.ndarray,  # [V, H, W]
                    threshold: float = 0.5) -> np.ndarray:  # [V]
@@ -118,6 +125,6 @@ def ceiling_metrics(x: np.ndarray,  # [N, 3] the target's own particles at rest
     x = np.asarray(x, dtype=np.float64)
     F = np.broadcast_to(np.eye(3), (len(x), 3, 3))
     alpha, _ = render_views(x, F, sigma0, cameras, render)
-    mse = ((alpha - target_alpha) ** 2).mean(axis=(1, 2))
+    mse = view_alpha_mse(alpha, target_alpha)
     iou = silhouette_iou(alpha, target_alpha)
     return {"alpha_mse": float(mse.mean()), "alpha_mse_views": mse, "iou": float(iou.mean()), "iou_views": iou}
